@@ -1,0 +1,56 @@
+"""The error family of phisim: every error the library raises on purpose derives from PhisimError."""
+
+from __future__ import annotations
+
+__all__ = [
+    "PhisimError",
+    "ShapeError",
+    "GridMismatchError",
+    "BoundaryError",
+    "ParameterError",
+    "NonFiniteError",
+    "SolveError",
+    "FileFormatError",
+]
+
+
+class PhisimError(Exception):
+    """Base class of all errors raised deliberately by phisim and inverse."""
+
+
+class ShapeError(PhisimError, ValueError):
+    """An array has the wrong number of dimensions or the wrong size for its grid."""
+
+
+class GridMismatchError(PhisimError, ValueError):
+    """Two fields live on different grids, sample locations or boundaries and cannot be combined."""
+
+
+class BoundaryError(PhisimError, ValueError):
+    """An unknown or inconsistent boundary specification (e.g. periodic on one side only)."""
+
+
+class ParameterError(PhisimError, ValueError):
+    """A physical or numerical parameter is out of range (negative dt, non-positive resolution, ...)."""
+
+
+class NonFiniteError(PhisimError, FloatingPointError):
+    """A state or an input contains NaN or Inf."""
+
+
+class SolveError(PhisimError, RuntimeError):
+    """A linear solve did not converge.
+
+    Attributes:
+        iterations: Iterations performed (per sample where known).
+        residual: Residual norm reached (per sample where known).
+    """
+
+    def __init__(self, message: str, iterations=None, residual=None):
+        super().__init__(message)
+        self.iterations = iterations
+        self.residual = residual
+
+
+class FileFormatError(PhisimError, OSError):
+    """A file is missing required content or is corrupt."""

@@ -1,0 +1,27 @@
+"""Package metadata for phisim (simulation core) and inverse (physical-gradient training)."""
+from setuptools import find_packages, setup
+
+setup(
+    name="phisim",
+    version="0.1.0",
+    description="Differentiable PDE simulation on PyTorch with physical-gradient and half-inverse-gradient training",
+    long_description=open("README.md", encoding="utf-8").read(),
+    long_description_content_type="text/markdown",
+    python_requires=">=3.10",
+    packages=find_packages(include=["phisim", "phisim.*", "inverse", "inverse.*"]),
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "pyfftw>=0.13",
+        "torch>=2.1",
+        "h5py>=3.8",
+        "matplotlib>=3.7",
+        "tqdm>=4.60",
+    ],
+    extras_require={
+        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4"],
+        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "pytest-timeout>=2"],
+        "well": ["the-well"],
+    },
+    entry_points={"console_scripts": ["phisim=inverse.cli:main"]},
+)
