@@ -19,8 +19,11 @@ setup_env() {
   if ! python -c "import torch" 2>/dev/null; then
     # Prefer a local CPU wheel when the machine carries one (no multi-GB CUDA download);
     # elsewhere fall back to the normal index.
-    python -m pip install -q --no-index "torch==2.13.0" 2>/dev/null \
-      || python -m pip install -q "torch>=2.1"
+    if python -m pip install -q --no-deps --no-index "torch==2.13.0" 2>/dev/null; then
+      python -m pip install -q "torch==2.13.0"
+    else
+      python -m pip install -q "torch>=2.1"
+    fi
   fi
   python -m pip install -q -e ".[test]"
   touch "$stamp"

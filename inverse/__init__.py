@@ -1,0 +1,3 @@
+"""inverse: physical-gradient (SIP) and half-inverse-gradient (HIG) training of networks through physics."""
+
+__all__: list[str] = []
