@@ -1,0 +1,493 @@
+"""Boundary conditions per side of each axis, and how they pad cell-centred and face-centred arrays.
+
+**Convention: boundary values sit on the domain boundary (the cell face)**, second-order accurate, as in a
+finite-volume code. For a cell-centred array with interior values ``u_1, u_2, ...`` counted inward from a
+boundary face, the ghost cells ``g_1, g_2, ...`` counted outward are
+
+* ``Dirichlet(v)``: ``g_k = 2 v - u_k`` (odd reflection about the face; the linear interpolant is ``v`` on it);
+* ``Neumann(f)``:   ``g_k = u_k + (2k - 1) dx f`` where ``f = du/dn`` is the *outward* normal derivative;
+* ``Periodic()``:   values from the opposite end.
+
+For a face-centred array sampled along its own normal axis (a MAC velocity component ``u_i`` along axis
+``i``), sample ``0`` and sample ``n`` lie on the boundary faces; ghosts sit at distance ``k dx`` outside:
+``g_k = 2 v - u_k`` (odd) or ``g_k = u_k + 2 k dx f`` (even).
+
+Walls and open sides act differently on each *role* a quantity plays at that side:
+
+================  ====================  ========================  ==========================
+condition         scalar                normal velocity           tangential velocity
+================  ====================  ========================  ==========================
+Dirichlet(v)      value v               value v                   value v
+Neumann(f)        flux f                flux f                    flux f
+NoSlipWall(w)     zero flux             0                         wall velocity w (moving lid)
+FreeSlipWall()    zero flux             0                         zero flux
+Open()            zero flux             zero flux                 zero flux
+================  ====================  ========================  ==========================
+
+The pressure of an incompressible flow takes zero flux at walls, value 0 at open sides and stays
+periodic: :meth:`Boundary.for_pressure` derives it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from .errors import BoundaryError, ShapeError
+from .grid import AXIS_NAMES
+
+__all__ = [
+    "BoundaryCondition",
+    "Periodic",
+    "Dirichlet",
+    "Neumann",
+    "NoSlipWall",
+    "FreeSlipWall",
+    "Open",
+    "Boundary",
+    "pad",
+    "pad_staggered_component",
+    "set_boundary_faces",
+]
+
+SCALAR, NORMAL, TANGENTIAL = "scalar", "normal", "tangential"
+
+
+class BoundaryCondition:
+    """Base class of the condition on one side of one axis."""
+
+    name: str = "?"
+
+    def rule(self, role: str, component: int | None) -> tuple:
+        """The ghost rule for a quantity playing ``role`` at this side.
+
+        Args:
+            role: ``'scalar'``, ``'normal'`` (velocity component normal to this side) or ``'tangential'``.
+            component: The vector component index (for per-component values), or ``None`` for scalars.
+
+        Returns:
+            ``('periodic',)``, ``('odd', value)`` (value on the face) or ``('even', flux)`` (outward flux).
+        """
+        raise NotImplementedError
+
+
+def _component_value(value, component: int | None):
+    if isinstance(value, (tuple, list)):
+        if component is None:
+            raise BoundaryError(f"a per-component boundary value {value} was applied to a scalar field")
+        if component >= len(value):
+            raise BoundaryError(f"boundary value {value} has no entry for component {component}")
+        return float(value[component])
+    return value
+
+
+@dataclass(frozen=True)
+class Periodic(BoundaryCondition):
+    """Periodic side: the domain wraps around. Must be used on both sides of an axis."""
+
+    name = "periodic"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        return ("periodic",)
+
+
+@dataclass(frozen=True)
+class Dirichlet(BoundaryCondition):
+    """Prescribed value on the boundary face.
+
+    Args:
+        value: The boundary value: a float, a tuple (one per vector component) or a tensor broadcastable
+            to the boundary slab ``(B, [C,] ...)`` with the normal axis of length 1.
+    """
+
+    value: object = 0.0
+    name = "dirichlet"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        return ("odd", _component_value(self.value, component))
+
+
+@dataclass(frozen=True)
+class Neumann(BoundaryCondition):
+    """Prescribed outward normal derivative ``du/dn = flux`` on the boundary face.
+
+    Args:
+        flux: Outward normal derivative (float, per-component tuple, or broadcastable tensor).
+    """
+
+    flux: object = 0.0
+    name = "neumann"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        return ("even", _component_value(self.flux, component))
+
+
+@dataclass(frozen=True)
+class NoSlipWall(BoundaryCondition):
+    """Solid wall: zero normal velocity, tangential velocity equal to the wall's (0 unless moving).
+
+    Args:
+        velocity: The wall velocity as a vector (one float per axis), e.g. ``(1.0, 0.0)`` for a lid
+            moving in +x. Its component normal to the wall is ignored (walls do not move through
+            themselves). ``None`` means a wall at rest. Scalars see a zero-flux wall.
+    """
+
+    velocity: tuple[float, ...] | None = None
+    name = "no_slip"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        if role == SCALAR:
+            return ("even", 0.0)
+        if role == NORMAL or self.velocity is None:
+            return ("odd", 0.0)
+        return ("odd", _component_value(tuple(self.velocity), component))
+
+
+@dataclass(frozen=True)
+class FreeSlipWall(BoundaryCondition):
+    """Slip wall: zero normal velocity, zero normal derivative of the tangential velocity."""
+
+    name = "free_slip"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        return ("odd", 0.0) if role == NORMAL else ("even", 0.0)
+
+
+@dataclass(frozen=True)
+class Open(BoundaryCondition):
+    """Open / outflow side: zero normal derivative for every quantity (pressure 0 in the projection)."""
+
+    name = "open"
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        return ("even", 0.0)
+
+
+_NAMES = {
+    "periodic": Periodic,
+    "dirichlet": Dirichlet,
+    "zero": Dirichlet,
+    "neumann": Neumann,
+    "wall": NoSlipWall,
+    "no_slip": NoSlipWall,
+    "noslip": NoSlipWall,
+    "free_slip": FreeSlipWall,
+    "freeslip": FreeSlipWall,
+    "slip": FreeSlipWall,
+    "open": Open,
+    "outflow": Open,
+}
+
+
+def _condition(spec) -> BoundaryCondition:
+    if isinstance(spec, BoundaryCondition):
+        return spec
+    if isinstance(spec, str):
+        key = spec.strip().lower().replace("-", "_")
+        if key not in _NAMES:
+            raise BoundaryError(
+                f"unknown boundary condition {spec!r}; known names: {sorted(set(_NAMES))}, or pass a "
+                "BoundaryCondition such as Dirichlet(1.0)"
+            )
+        return _NAMES[key]()
+    raise BoundaryError(f"cannot interpret {spec!r} as a boundary condition")
+
+
+def _side_pair(spec) -> tuple[BoundaryCondition, BoundaryCondition]:
+    if isinstance(spec, (tuple, list)):
+        if len(spec) != 2:
+            raise BoundaryError(f"a per-axis boundary pair needs (lower, upper), got {spec!r}")
+        return _condition(spec[0]), _condition(spec[1])
+    c = _condition(spec)
+    return c, c
+
+
+@dataclass(frozen=True)
+class Boundary:
+    """The boundary conditions of a domain: one ``(lower, upper)`` pair of conditions per axis.
+
+    Build it with :meth:`create` from a name (``'periodic'``, ``'dirichlet'``, ``'neumann'``, ``'wall'``,
+    ``'free_slip'``, ``'open'``), a condition (``Dirichlet(1.0)``), a per-axis sequence, or a mapping
+    ``{'x': 'periodic', 'y': ('wall', NoSlipWall(velocity=(1.0, 0.0)))}``.
+
+    Raises:
+        BoundaryError: For unknown names, missing axes, or periodic on only one side of an axis.
+    """
+
+    sides: tuple[tuple[BoundaryCondition, BoundaryCondition], ...]
+
+    def __post_init__(self):
+        for axis, (lo, hi) in enumerate(self.sides):
+            if isinstance(lo, Periodic) != isinstance(hi, Periodic):
+                raise BoundaryError(
+                    f"axis {AXIS_NAMES[axis]}: periodic must be used on both sides, got {lo.name}/{hi.name}"
+                )
+
+    @classmethod
+    def create(cls, spec, rank: int) -> Boundary:
+        """Build a boundary for a ``rank``-dimensional domain from a flexible specification.
+
+        Args:
+            spec: A ``Boundary``, a condition or its name (all sides), a sequence with one entry per axis
+                (each a condition or a ``(lower, upper)`` pair), or a mapping from axis name/index to such.
+            rank: Number of spatial axes.
+
+        Returns:
+            The boundary.
+
+        Raises:
+            BoundaryError: If the specification is unknown, incomplete or inconsistent.
+        """
+        if isinstance(spec, Boundary):
+            if spec.rank != rank:
+                raise BoundaryError(f"boundary is {spec.rank}-D but the grid is {rank}-D")
+            return spec
+        if isinstance(spec, Mapping):
+            keys = {}
+            for k, v in spec.items():
+                idx = AXIS_NAMES.index(k) if isinstance(k, str) and k in AXIS_NAMES else k
+                if not isinstance(idx, int) or not 0 <= idx < rank:
+                    raise BoundaryError(f"boundary mapping key {k!r} is not an axis of a {rank}-D grid")
+                keys[idx] = v
+            missing = [AXIS_NAMES[a] for a in range(rank) if a not in keys]
+            if missing:
+                raise BoundaryError(f"boundary mapping misses axes {missing}")
+            return cls(tuple(_side_pair(keys[a]) for a in range(rank)))
+        if isinstance(spec, (list, tuple)):
+            if len(spec) != rank:
+                raise BoundaryError(f"boundary sequence has {len(spec)} entries for a {rank}-D grid")
+            return cls(tuple(_side_pair(s) for s in spec))
+        c = _condition(spec)
+        return cls(tuple((c, c) for _ in range(rank)))
+
+    @property
+    def rank(self) -> int:
+        """Number of axes."""
+        return len(self.sides)
+
+    def is_periodic(self, axis: int) -> bool:
+        """Whether ``axis`` is periodic."""
+        return isinstance(self.sides[axis][0], Periodic)
+
+    @property
+    def periodic_axes(self) -> tuple[bool, ...]:
+        """Per axis, whether it is periodic."""
+        return tuple(self.is_periodic(a) for a in range(self.rank))
+
+    def for_pressure(self) -> Boundary:
+        """Boundary of the pressure of a flow with this velocity boundary.
+
+        Walls and Neumann sides give zero flux, open and Dirichlet sides give pressure 0, periodic stays.
+        """
+
+        def conv(c: BoundaryCondition) -> BoundaryCondition:
+            if isinstance(c, Periodic):
+                return c
+            if isinstance(c, (Open, Dirichlet)):
+                return Dirichlet(0.0)
+            return Neumann(0.0)
+
+        return Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides))
+
+    def for_scalar(self) -> Boundary:
+        """Boundary for a scalar quantity (e.g. a marker) transported in a flow with this boundary.
+
+        Walls and open sides give zero flux; Dirichlet/Neumann/periodic are kept.
+        """
+
+        def conv(c: BoundaryCondition) -> BoundaryCondition:
+            return Neumann(0.0) if isinstance(c, (NoSlipWall, FreeSlipWall, Open)) else c
+
+        return Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides))
+
+    def __repr__(self) -> str:
+        parts = []
+        for a, (lo, hi) in enumerate(self.sides):
+            parts.append(f"{AXIS_NAMES[a]}={lo!r}" if lo == hi else f"{AXIS_NAMES[a]}=({lo!r}, {hi!r})")
+        return "Boundary(" + ", ".join(parts) + ")"
+
+
+# ---- padding ------------------------------------------------------------------------------------------
+
+
+def _ghosts(inside: torch.Tensor, rule: tuple, dim: int, spacing: torch.Tensor | None) -> torch.Tensor:
+    """Ghosts g_1..g_w (ordered outward) from mirror samples u_1..u_w (ordered inward) along ``dim``."""
+    kind = rule[0]
+    if kind == "odd":
+        v = rule[1]
+        return 2 * v - inside if not (isinstance(v, (int, float)) and v == 0) else -inside
+    f = rule[1]
+    if isinstance(f, (int, float)) and f == 0:
+        return inside
+    return inside + f * spacing
+
+
+def _spacing(width: int, dim: int, ndim: int, dx: float, face: bool, like: torch.Tensor) -> torch.Tensor:
+    k = torch.arange(1, width + 1, dtype=like.dtype, device=like.device)
+    dist = (2 * k if face else 2 * k - 1) * dx
+    shape = [1] * ndim
+    shape[dim] = width
+    return dist.reshape(shape)
+
+
+def _pad_axis(x, dim, n, width, lo_rule, hi_rule, dx, face):
+    """Pad one axis of ``x`` (length ``n`` cells; ``n + 1`` samples if ``face``) by ``width`` ghosts per side."""
+    if width == 0:
+        return x
+    if width > n:
+        raise ShapeError(f"cannot pad {width} ghost layers onto an axis of {n} cells")
+    length = x.shape[dim]
+    if lo_rule[0] == "periodic":
+        lo = x.narrow(dim, n - width, width)
+        hi = x.narrow(dim, 1 if face else 0, width)
+        return torch.cat([lo, x, hi], dim=dim)
+    start = 1 if face else 0
+    lo_in = x.narrow(dim, start, width).flip(dim)  # u_w .. u_1 (outermost first after flip of ghosts)
+    hi_in = x.narrow(dim, length - start - width, width)  # u_w .. u_1 reading outward
+    sp = None
+    if lo_rule[0] == "even" or hi_rule[0] == "even":
+        sp = _spacing(width, dim, x.ndim, dx, face, x)
+    # lower ghosts in array order: g_w .. g_1 ; inside in matching order u_w .. u_1
+    lo_g = _ghosts(lo_in, lo_rule, dim, None if sp is None else sp.flip(dim))
+    hi_g = _ghosts(hi_in.flip(dim), hi_rule, dim, sp)  # g_1 .. g_w
+    return torch.cat([lo_g, x, hi_g], dim=dim)
+
+
+def _role(axis: int, component: int | None) -> str:
+    if component is None:
+        return SCALAR
+    return NORMAL if component == axis else TANGENTIAL
+
+
+def pad(
+    values: torch.Tensor,
+    boundary: Boundary,
+    dx: Sequence[float],
+    width: int = 1,
+    *,
+    vector: bool = False,
+    axes: Sequence[int] | None = None,
+) -> torch.Tensor:
+    """Pad a cell-centred array with ghost cells according to ``boundary``.
+
+    Args:
+        values: ``(B, *res)`` for a scalar field, ``(B, d, *res)`` for a vector field with ``d == rank``
+            (component ``c`` is normal to axis ``c``).
+        boundary: The boundary conditions.
+        dx: Cell spacing per axis (Neumann fluxes are scaled by it).
+        width: Ghost layers per side.
+        vector: Whether ``values`` carries a component axis.
+        axes: Which spatial axes to pad (default all). Axes are padded in order, so corner ghosts are
+            consistent with the sides.
+
+    Returns:
+        The padded array, each padded axis ``2 * width`` longer.
+
+    Raises:
+        ShapeError: If the array does not fit the boundary's rank or is too small for ``width``.
+    """
+    rank = boundary.rank
+    expected = rank + (2 if vector else 1)
+    if values.ndim != expected:
+        raise ShapeError(
+            f"expected a {'vector' if vector else 'scalar'} array with {expected} dims (batch"
+            f"{', component' if vector else ''}, {rank} spatial), got shape {tuple(values.shape)}"
+        )
+    axes = range(rank) if axes is None else axes
+    if not vector:
+        out = values
+        for a in axes:
+            lo, hi = boundary.sides[a]
+            dim = 1 + a
+            out = _pad_axis(out, dim, values.shape[dim], width, lo.rule(SCALAR, None), hi.rule(SCALAR, None),
+                            dx[a], False)
+        return out
+    if values.shape[1] != rank:
+        raise ShapeError(f"vector array has {values.shape[1]} components, the grid is {rank}-D")
+    comps = []
+    for c in range(rank):
+        comp = values[:, c]
+        for a in axes:
+            lo, hi = boundary.sides[a]
+            dim = 1 + a
+            role = _role(a, c)
+            comp = _pad_axis(comp, dim, values.shape[2 + a], width, lo.rule(role, c), hi.rule(role, c), dx[a], False)
+        comps.append(comp)
+    return torch.stack(comps, dim=1)
+
+
+def pad_staggered_component(
+    values: torch.Tensor,
+    component: int,
+    boundary: Boundary,
+    dx: Sequence[float],
+    width: int = 1,
+    axes: Sequence[int] | None = None,
+) -> torch.Tensor:
+    """Pad MAC component ``component`` (normal to its faces) with ghost samples on every axis.
+
+    Along its own axis the samples include both boundary faces and ghosts sit at ``k dx`` beyond them
+    (odd reflection about the face value for walls/Dirichlet, even for open/Neumann). Along the other
+    axes the component is cell-centred and behaves as a tangential velocity.
+
+    Args:
+        values: ``(B, *face_shape(component))``.
+        component: The velocity component / face normal axis.
+        boundary: Velocity boundary.
+        dx: Cell spacing per axis.
+        width: Ghost layers per side.
+        axes: Which spatial axes to pad (default all).
+
+    Returns:
+        The padded array.
+    """
+    rank = boundary.rank
+    if values.ndim != rank + 1:
+        raise ShapeError(f"staggered component must have shape (B, *face_shape), got {tuple(values.shape)}")
+    axes = range(rank) if axes is None else axes
+    out = values
+    for a in axes:
+        lo, hi = boundary.sides[a]
+        role = _role(a, component)
+        n = values.shape[1 + a] - (1 if a == component else 0)
+        out = _pad_axis(out, 1 + a, n, width, lo.rule(role, component), hi.rule(role, component), dx[a],
+                        a == component)
+    return out
+
+
+def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary) -> torch.Tensor:
+    """Impose the boundary on the normal velocity stored on the boundary faces of MAC component ``component``.
+
+    Walls get 0, Dirichlet sides their value, periodic axes copy face 0 onto face ``n``; open and Neumann
+    sides are left as they are (the flow determines them).
+
+    Args:
+        values: ``(B, *face_shape(component))``.
+        component: The component / axis.
+        boundary: Velocity boundary.
+
+    Returns:
+        A new array with the boundary faces set.
+    """
+    lo, hi = boundary.sides[component]
+    dim = 1 + component
+    n = values.shape[dim] - 1
+    if isinstance(lo, Periodic):
+        first = values.narrow(dim, 0, 1)
+        return torch.cat([values.narrow(dim, 0, n), first], dim=dim)
+    parts = [None, values.narrow(dim, 1, n - 1), None]
+    for idx, (cond, pos) in enumerate(((lo, 0), (hi, n))):
+        face = values.narrow(dim, pos, 1)
+        r = cond.rule(NORMAL, component)
+        if r[0] == "odd":
+            face = torch.zeros_like(face) + r[1]
+        parts[0 if idx == 0 else 2] = face
+    return torch.cat(parts, dim=dim)

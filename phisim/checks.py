@@ -1,0 +1,75 @@
+"""Cheap input checks shared by the physics functions; each raises a PhisimError subclass."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .errors import NonFiniteError, ParameterError
+
+__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite"]
+
+
+def check_dt(dt, name: str = "dt") -> float:
+    """Validate a time step: a finite number ``>= 0``.
+
+    Args:
+        dt: The time step (a Python number or a 0-d tensor).
+        name: Name used in the error message.
+
+    Returns:
+        ``dt`` as a float (tensors are left as they are so gradients w.r.t. ``dt`` survive).
+
+    Raises:
+        ParameterError: If ``dt`` is negative, NaN or infinite.
+    """
+    value = float(dt.detach()) if isinstance(dt, torch.Tensor) else dt
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"{name} must be a number, got {dt!r}") from exc
+    if not math.isfinite(value) or value < 0:
+        raise ParameterError(f"{name} must be finite and >= 0, got {value}; a negative {name} would run time backwards")
+    return dt if isinstance(dt, torch.Tensor) else value
+
+
+def check_nonnegative(value, name: str) -> float:
+    """Validate a finite coefficient ``>= 0`` (viscosity, diffusivity, ...).
+
+    Raises:
+        ParameterError: If the value is negative, NaN or infinite.
+    """
+    v = float(value.detach()) if isinstance(value, torch.Tensor) else value
+    try:
+        v = float(v)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"{name} must be a number, got {value!r}") from exc
+    if not math.isfinite(v) or v < 0:
+        raise ParameterError(f"{name} must be finite and >= 0, got {v}")
+    return value if isinstance(value, torch.Tensor) else v
+
+
+def check_positive(value, name: str) -> float:
+    """Validate a finite number ``> 0``.
+
+    Raises:
+        ParameterError: If the value is not positive and finite.
+    """
+    v = check_nonnegative(value, name)
+    if float(v) == 0:
+        raise ParameterError(f"{name} must be > 0, got 0")
+    return v
+
+
+def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
+    """Raise if ``x`` contains NaN or Inf (one reduction; costs a device sync on GPU).
+
+    Raises:
+        NonFiniteError: Naming the input and how many entries are non-finite.
+    """
+    finite = torch.isfinite(x)
+    if not bool(finite.all()):
+        bad = int((~finite).sum())
+        raise NonFiniteError(f"{name} contains {bad} NaN/Inf value(s) out of {x.numel()}")
+    return x
