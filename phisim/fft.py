@@ -1,0 +1,657 @@
+"""FFT engines behind one interface: torch.fft (autograd, any device) and pyfftw (CPU, planned).
+
+Every transform here takes and returns torch tensors, is differentiable (also twice), and follows
+scipy.fft's definitions and normalisation names, so ``dctn(x, type=2, norm='ortho')`` equals
+``scipy.fft.dctn(x, type=2, norm='ortho')``:
+
+* ``rfftn`` / ``irfftn`` — real-to-complex FFT over the chosen axes (last axis halved);
+* ``dctn`` / ``idctn`` and ``dstn`` / ``idstn`` — discrete cosine / sine transforms of types 2 and 3
+  (the cell-centred transforms: DCT-II diagonalises the Neumann Laplacian and DST-II the Dirichlet
+  Laplacian when the boundary sits on the cell face);
+* ``r2rn`` — the unnormalised real-to-real transforms (FFTW's REDFT10/REDFT01/RODFT10/RODFT01),
+  one kind per axis, mixed in one call.
+
+Engines:
+
+* ``'torch'``: ``torch.fft``; DCT/DST are computed from one real FFT of a permuted sequence
+  (Makhoul 1980, "A fast cosine transform in one and multiple dimensions", IEEE TASSP 28(1)),
+  so they run on CUDA and are differentiated by torch's autograd.
+* ``'pyfftw'``: FFTW plans made by pyfftw, cached per (transform, shape, dtype, axes, threads,
+  planner effort); the real-to-real kinds are FFTW's own. Results are differentiable through
+  ``torch.autograd.Function`` wrappers whose backward applies the adjoint transform:
+  ``DCT-II^T = DCT-III·diag(2,1,…,1)``, ``DCT-III^T = diag(1/2,1,…,1)·DCT-II``,
+  ``DST-II^T = DST-III·diag(1,…,1,2)``, ``DST-III^T = diag(1,…,1,1/2)·DST-II``; the adjoint of
+  ``rfftn`` is ``N·irfftn`` with the interior bins of the halved axis halved, the adjoint of
+  ``irfftn`` is ``rfftn/N`` with those bins doubled. CPU tensors only.
+* ``'auto'`` (default): ``'torch'`` for tensors on an accelerator; on the CPU ``'pyfftw'`` when
+  it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
+  ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
+
+Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
+threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
+18.3 ms vs 18.5 ms for 128³), so one thread is the default.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from .errors import ParameterError, ShapeError
+
+try:  # pragma: no cover - exercised implicitly
+    import pyfftw as _pyfftw
+
+    _HAVE_PYFFTW = True
+except ImportError:  # pragma: no cover - depends on the environment
+    _pyfftw = None
+    _HAVE_PYFFTW = False
+
+__all__ = [
+    "FFTSettings",
+    "get_fft_settings",
+    "set_fft_settings",
+    "fft_settings",
+    "available_engines",
+    "resolve_engine",
+    "rfftn",
+    "irfftn",
+    "dctn",
+    "idctn",
+    "dstn",
+    "idstn",
+    "r2rn",
+    "R2R_KINDS",
+]
+
+#: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
+R2R_KINDS = ("dct2", "dct3", "dst2", "dst3")
+_FFTW_KIND = {"dct2": "FFTW_REDFT10", "dct3": "FFTW_REDFT01", "dst2": "FFTW_RODFT10", "dst3": "FFTW_RODFT01"}
+_ENGINES = ("auto", "torch", "pyfftw")
+_EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
+
+
+@dataclass(frozen=True)
+class FFTSettings:
+    """Which FFT engine to use and how to plan it.
+
+    Attributes:
+        engine: ``'auto'`` (torch on accelerators, pyfftw on the CPU when installed), ``'torch'``
+            or ``'pyfftw'`` (CPU tensors only).
+        threads: FFTW threads per plan (pyfftw engine). Default 1: two threads measured no faster
+            on the 2-core development machine.
+        planner_effort: FFTW planner flag; ``'FFTW_MEASURE'`` (default) times candidate algorithms
+            once per plan (10–500 ms, cached), ``'FFTW_ESTIMATE'`` plans instantly but runs up to
+            2–3x slower for real-to-real transforms.
+    """
+
+    engine: str = "auto"
+    threads: int = 1
+    planner_effort: str = "FFTW_MEASURE"
+
+    def __post_init__(self) -> None:
+        if self.engine not in _ENGINES:
+            raise ParameterError(f"FFT engine must be one of {_ENGINES}, got {self.engine!r}")
+        if not isinstance(self.threads, int) or self.threads < 1:
+            raise ParameterError(f"threads must be a positive int, got {self.threads!r}")
+        if self.planner_effort not in _EFFORTS:
+            raise ParameterError(f"planner_effort must be one of {_EFFORTS}, got {self.planner_effort!r}")
+
+
+_SETTINGS = FFTSettings()
+_WARNED_NO_PYFFTW = False
+
+
+def get_fft_settings() -> FFTSettings:
+    """Return the process-wide default :class:`FFTSettings`."""
+    return _SETTINGS
+
+
+def set_fft_settings(settings: FFTSettings | None = None, **changes) -> FFTSettings:
+    """Replace the process-wide default FFT settings.
+
+    Args:
+        settings: A complete settings object, or None to modify the current one.
+        **changes: Fields of :class:`FFTSettings` to change (``engine``, ``threads``, ``planner_effort``).
+
+    Returns:
+        The previous settings (pass them back to restore).
+
+    Raises:
+        ParameterError: For an unknown engine, thread count or planner flag.
+    """
+    global _SETTINGS
+    previous = _SETTINGS
+    base = settings if settings is not None else _SETTINGS
+    _SETTINGS = replace(base, **changes) if changes else base
+    return previous
+
+
+@contextlib.contextmanager
+def fft_settings(**changes) -> Iterator[FFTSettings]:
+    """Context manager that changes the default FFT settings temporarily.
+
+    Args:
+        **changes: Fields of :class:`FFTSettings` to change inside the block.
+
+    Yields:
+        The settings in effect inside the block.
+    """
+    previous = set_fft_settings(**changes)
+    try:
+        yield _SETTINGS
+    finally:
+        set_fft_settings(previous)
+
+
+def available_engines() -> tuple[str, ...]:
+    """Return the names of the engines usable in this environment (``'torch'`` always)."""
+    return ("torch", "pyfftw") if _HAVE_PYFFTW else ("torch",)
+
+
+def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
+    """Decide which engine transforms ``x``.
+
+    Args:
+        x: The tensor to transform (its device decides for ``'auto'``).
+        engine: ``None`` (use the default settings), ``'auto'``, ``'torch'`` or ``'pyfftw'``.
+
+    Returns:
+        ``'torch'`` or ``'pyfftw'``.
+
+    Raises:
+        ParameterError: For an unknown engine, or ``'pyfftw'`` with a tensor not on the CPU.
+    """
+    global _WARNED_NO_PYFFTW
+    engine = _SETTINGS.engine if engine is None else engine
+    if engine not in _ENGINES:
+        raise ParameterError(f"FFT engine must be one of {_ENGINES}, got {engine!r}")
+    if engine == "torch":
+        return "torch"
+    if engine == "pyfftw":
+        if x.device.type != "cpu":
+            raise ParameterError(f"the pyfftw engine works on CPU tensors only, got device {x.device}; "
+                                 "use engine='torch' or 'auto'")
+        if not _HAVE_PYFFTW:
+            if not _WARNED_NO_PYFFTW:
+                warnings.warn("pyfftw is not installed; falling back to the torch FFT engine", stacklevel=3)
+                _WARNED_NO_PYFFTW = True
+            return "torch"
+        return "pyfftw"
+    # auto
+    if x.device.type != "cpu":
+        return "torch"
+    if not _HAVE_PYFFTW:
+        if not _WARNED_NO_PYFFTW:
+            warnings.warn("pyfftw is not installed; using torch.fft on the CPU (slower real-to-real "
+                          "transforms)", stacklevel=3)
+            _WARNED_NO_PYFFTW = True
+        return "torch"
+    return "pyfftw"
+
+
+# ----------------------------------------------------------------------------------------------
+# argument handling
+
+
+def _norm_axes(x: torch.Tensor, axes: Sequence[int] | int | None) -> tuple[int, ...]:
+    if axes is None:
+        return tuple(range(x.ndim))
+    if isinstance(axes, int):
+        axes = (axes,)
+    out = []
+    for a in axes:
+        if not -x.ndim <= a < x.ndim:
+            raise ShapeError(f"axis {a} out of range for a tensor of {x.ndim} dimensions")
+        out.append(a % x.ndim)
+    if len(set(out)) != len(out):
+        raise ShapeError(f"repeated axes {tuple(axes)}")
+    return tuple(out)
+
+
+def _check_real(x: torch.Tensor, name: str) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise ParameterError(f"{name} expects a torch.Tensor, got {type(x).__name__}")
+    if x.dtype not in (torch.float32, torch.float64):
+        raise ParameterError(f"{name} expects a float32 or float64 tensor, got {x.dtype}")
+
+
+def _axis_vector(w: torch.Tensor, ndim: int, axis: int) -> torch.Tensor:
+    shape = [1] * ndim
+    shape[axis] = -1
+    return w.reshape(shape)
+
+
+# ----------------------------------------------------------------------------------------------
+# torch engine: DCT/DST from one real FFT (Makhoul's permutation)
+
+
+@lru_cache(maxsize=256)
+def _twiddle(n: int, sign: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    k = torch.arange(n // 2 + 1, dtype=torch.float64)
+    w = torch.polar(torch.ones_like(k), sign * math.pi * k / (2 * n))
+    cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
+    return w.to(device=device, dtype=cdtype)
+
+
+def _torch_dct2_last(x: torch.Tensor) -> torch.Tensor:
+    n = x.shape[-1]
+    v = torch.cat([x[..., ::2], x[..., 1::2].flip(-1)], dim=-1)
+    z = torch.fft.rfft(v, dim=-1) * _twiddle(n, -1, x.dtype, x.device)
+    lower = 2 * z.real
+    upper = (-2 * z.imag[..., 1:n - n // 2]).flip(-1)
+    return torch.cat([lower, upper], dim=-1)
+
+
+def _torch_dct3_last(c: torch.Tensor) -> torch.Tensor:
+    n = c.shape[-1]
+    h = n // 2 + 1
+    # Z_k = (c_k - i c_{N-k}) / 2 for k = 0..N//2, with c_N := 0.
+    rev = torch.cat([torch.zeros_like(c[..., :1]), c[..., 1:].flip(-1)], dim=-1)[..., :h]
+    z = torch.complex(c[..., :h], -rev) * _twiddle(n, 1, c.dtype, c.device)
+    v = torch.fft.irfft(z, n=n, dim=-1) * n  # (2N * idct2) = N * irfft(Z * W) * 2 / 2
+    m = (n + 1) // 2
+    out = torch.empty_like(v)
+    out[..., ::2] = v[..., :m]
+    out[..., 1::2] = v[..., m:].flip(-1)
+    return out
+
+
+def _alternate(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    a = torch.ones(n, dtype=dtype, device=device)
+    a[1::2] = -1
+    return a
+
+
+def _torch_r2r_last(x: torch.Tensor, kind: str) -> torch.Tensor:
+    n = x.shape[-1]
+    if kind == "dct2":
+        return _torch_dct2_last(x)
+    if kind == "dct3":
+        return _torch_dct3_last(x)
+    alt = _alternate(n, x.dtype, x.device)
+    if kind == "dst2":
+        return _torch_dct2_last(x * alt).flip(-1)
+    if kind == "dst3":
+        return _torch_dct3_last(x.flip(-1)) * alt
+    raise ParameterError(f"unknown real-to-real kind {kind!r}; expected one of {R2R_KINDS}")
+
+
+def _torch_r2rn(x: torch.Tensor, kinds: tuple[str, ...], axes: tuple[int, ...]) -> torch.Tensor:
+    for kind, axis in zip(kinds, axes):
+        x = _torch_r2r_last(x.movedim(axis, -1), kind).movedim(-1, axis)
+    return x
+
+
+# ----------------------------------------------------------------------------------------------
+# pyfftw engine: cached plans, autograd wrappers
+
+
+class _Plan:
+    """An FFTW plan with its own aligned buffers and a lock (plans are not re-entrant)."""
+
+    def __init__(self, fftw, input_array, output_array):
+        self.fftw = fftw
+        self.input_array = input_array
+        self.output_array = output_array
+        self.lock = threading.Lock()
+
+    def __call__(self, a: np.ndarray) -> np.ndarray:
+        with self.lock:
+            # Always copy into the plan's own buffer: FFTW may overwrite its input.
+            self.input_array[...] = a
+            self.fftw.execute()
+            return self.output_array.copy()
+
+
+_PLANS: dict[tuple, _Plan] = {}
+_PLAN_LOCK = threading.Lock()
+
+
+def _get_plan(op: str, shape: tuple[int, ...], dtype: np.dtype, axes: tuple[int, ...],
+              kinds: tuple[str, ...] = (), out_n: tuple[int, ...] = ()) -> _Plan:
+    s = _SETTINGS
+    key = (op, shape, np.dtype(dtype).str, axes, kinds, out_n, s.threads, s.planner_effort)
+    plan = _PLANS.get(key)
+    if plan is not None:
+        return plan
+    with _PLAN_LOCK:
+        plan = _PLANS.get(key)
+        if plan is not None:
+            return plan
+        real = np.dtype(dtype)
+        cplx = np.result_type(real, np.complex64)
+        flags = (s.planner_effort, "FFTW_DESTROY_INPUT")
+        if op == "r2r":
+            a = _pyfftw.empty_aligned(shape, dtype=real)
+            b = _pyfftw.empty_aligned(shape, dtype=real)
+            direction = [_FFTW_KIND[k] for k in kinds]
+            fftw = _pyfftw.FFTW(a, b, axes=axes, direction=direction, flags=flags, threads=s.threads)
+        elif op == "rfft":
+            a = _pyfftw.empty_aligned(shape, dtype=real)
+            oshape = list(shape)
+            oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
+            b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
+            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_FORWARD", flags=flags, threads=s.threads)
+        elif op == "irfft":
+            # shape is the complex input shape; out_n the real output sizes along axes
+            oshape = list(shape)
+            for ax, n in zip(axes, out_n):
+                oshape[ax] = n
+            a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
+            b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
+            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_BACKWARD", flags=flags, threads=s.threads)
+        else:  # pragma: no cover - internal
+            raise AssertionError(op)
+        plan = _Plan(fftw, a, b)
+        _PLANS[key] = plan
+        return plan
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().contiguous().numpy()
+
+
+_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2"}
+
+
+def _edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
+    """Vector of ones with ``value`` at index 0 (DCT kinds) or at index n-1 (DST kinds)."""
+    w = torch.ones(n, dtype=dtype, device=device)
+    w[0 if kind.startswith("dct") else n - 1] = value
+    return w
+
+
+class _PyfftwR2R(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, kinds, axes):
+        ctx.kinds, ctx.axes = kinds, axes
+        plan = _get_plan("r2r", tuple(x.shape), _np_dtype(x.dtype), axes, kinds)
+        return torch.from_numpy(plan(_np(x)))
+
+    @staticmethod
+    def backward(ctx, g):
+        kinds, axes = ctx.kinds, ctx.axes
+        g = g.contiguous()
+        # pre-weights of the adjoint (for type-2 kinds): double the edge entry
+        for kind, ax in zip(kinds, axes):
+            if kind in ("dct2", "dst2"):
+                g = g * _axis_vector(_edge_weight(g.shape[ax], kind, 2.0, g.dtype, g.device), g.ndim, ax)
+        out = _PyfftwR2R.apply(g, tuple(_ADJOINT[k] for k in kinds), axes)
+        for kind, ax in zip(kinds, axes):
+            if kind in ("dct3", "dst3"):
+                out = out * _axis_vector(_edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device),
+                                         out.ndim, ax)
+        return out, None, None
+
+
+def _halved_axis_weight(n: int, value: float, dtype, device) -> torch.Tensor:
+    """Weights over the rfft bins 0..n//2 of the halved axis: ``value`` on interior bins, 1 on 0 and n/2."""
+    w = torch.full((n // 2 + 1,), value, dtype=dtype, device=device)
+    w[0] = 1.0
+    if n % 2 == 0:
+        w[-1] = 1.0
+    return w
+
+
+class _PyfftwRfftn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, axes):
+        ctx.axes = axes
+        ctx.s = tuple(x.shape[a] for a in axes)
+        plan = _get_plan("rfft", tuple(x.shape), _np_dtype(x.dtype), axes)
+        return torch.from_numpy(plan(_np(x)))
+
+    @staticmethod
+    def backward(ctx, g):
+        axes, s = ctx.axes, ctx.s
+        real = g.real.dtype
+        w = _halved_axis_weight(s[-1], 0.5, real, g.device)
+        g = g * _axis_vector(w, g.ndim, axes[-1])
+        return _PyfftwIrfftn.apply(g, s, axes) * math.prod(s), None
+
+
+class _PyfftwIrfftn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, X, s, axes):
+        ctx.axes, ctx.s = axes, s
+        real = torch.float32 if X.dtype == torch.complex64 else torch.float64
+        plan = _get_plan("irfft", tuple(X.shape), _np_dtype(real), axes, (), s)
+        # FFTW's execute() is unnormalised; scale by 1/prod(s) here.
+        return torch.from_numpy(plan(_np(X))) / math.prod(s)
+
+    @staticmethod
+    def backward(ctx, g):
+        axes, s = ctx.axes, ctx.s
+        G = _PyfftwRfftn.apply(g.contiguous(), axes)
+        w = _halved_axis_weight(s[-1], 2.0, g.dtype, g.device) / math.prod(s)
+        return G * _axis_vector(w, G.ndim, axes[-1]), None, None
+
+
+def _np_dtype(dtype: torch.dtype) -> np.dtype:
+    return np.dtype("float32") if dtype == torch.float32 else np.dtype("float64")
+
+
+# ----------------------------------------------------------------------------------------------
+# public transforms
+
+
+def r2rn(x: torch.Tensor, kinds: Sequence[str] | str, axes: Sequence[int] | int | None = None, *,
+         engine: str | None = None) -> torch.Tensor:
+    """Unnormalised real-to-real transforms, one kind per axis (FFTW/scipy ``norm='backward'`` definitions).
+
+    With ``N`` the length of an axis and ``n, k = 0..N-1``:
+
+    * ``'dct2'``: ``y_k = 2 Σ_n x_n cos(π k (2n+1) / 2N)``
+    * ``'dct3'``: ``y_k = x_0 + 2 Σ_{n≥1} x_n cos(π n (2k+1) / 2N)``  (``dct3(dct2(x)) = 2N x``)
+    * ``'dst2'``: ``y_k = 2 Σ_n x_n sin(π (k+1)(2n+1) / 2N)``
+    * ``'dst3'``: ``y_k = (-1)^k x_{N-1} + 2 Σ_{n<N-1} x_n sin(π (n+1)(2k+1) / 2N)``  (``dst3(dst2(x)) = 2N x``)
+
+    Args:
+        x: Real tensor (float32/float64), any shape; batch axes are the axes not transformed.
+        kinds: One kind per axis in ``axes`` (a single string applies to all axes).
+        axes: Axes to transform (default: all).
+        engine: FFT engine (see :func:`resolve_engine`); None uses the default settings.
+
+    Returns:
+        Real tensor of the same shape, dtype and device.
+
+    Raises:
+        ParameterError: For a non-float tensor, an unknown kind, or a kinds/axes length mismatch.
+        ShapeError: For an out-of-range or repeated axis.
+    """
+    _check_real(x, "r2rn")
+    axes = _norm_axes(x, axes)
+    if isinstance(kinds, str):
+        kinds = (kinds,) * len(axes)
+    kinds = tuple(kinds)
+    if len(kinds) != len(axes):
+        raise ParameterError(f"r2rn needs one kind per axis: got kinds={kinds} for axes={axes}")
+    for k in kinds:
+        if k not in R2R_KINDS:
+            raise ParameterError(f"unknown real-to-real kind {k!r}; expected one of {R2R_KINDS}")
+    if not axes:
+        return x
+    if resolve_engine(x, engine) == "pyfftw":
+        return _PyfftwR2R.apply(x, kinds, axes)
+    return _torch_r2rn(x, kinds, axes)
+
+
+def rfftn(x: torch.Tensor, axes: Sequence[int] | int | None = None, *, engine: str | None = None) -> torch.Tensor:
+    """Real-to-complex n-dimensional FFT (unnormalised forward, like ``torch.fft.rfftn``).
+
+    Args:
+        x: Real tensor (float32/float64).
+        axes: Axes to transform (default: all); the last one is halved to ``n//2 + 1`` bins.
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Complex tensor (complex64/complex128), ``X_k = Σ_n x_n exp(-2πi k·n/N)``.
+
+    Raises:
+        ParameterError: For a non-float tensor or an unknown engine.
+        ShapeError: For an out-of-range or repeated axis.
+    """
+    _check_real(x, "rfftn")
+    axes = _norm_axes(x, axes)
+    if not axes:
+        raise ShapeError("rfftn needs at least one axis")
+    if resolve_engine(x, engine) == "pyfftw":
+        return _PyfftwRfftn.apply(x, axes)
+    return torch.fft.rfftn(x, dim=axes)
+
+
+def irfftn(X: torch.Tensor, s: Sequence[int], axes: Sequence[int] | int | None = None, *,
+           engine: str | None = None) -> torch.Tensor:
+    """Inverse of :func:`rfftn` (normalised by ``1/prod(s)``, like ``torch.fft.irfftn``).
+
+    Args:
+        X: Complex tensor (complex64/complex128) of half-spectrum bins.
+        s: Real output sizes along ``axes`` (needed to tell even from odd last-axis lengths).
+        axes: Transformed axes (default: the last ``len(s)`` axes).
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Real tensor; the imaginary parts of self-conjugate bins are ignored (as numpy/torch do).
+
+    Raises:
+        ParameterError: For a non-complex tensor or inconsistent sizes.
+        ShapeError: For an out-of-range or repeated axis.
+    """
+    if not isinstance(X, torch.Tensor) or X.dtype not in (torch.complex64, torch.complex128):
+        raise ParameterError(f"irfftn expects a complex64/complex128 tensor, got {getattr(X, 'dtype', type(X))}")
+    s = tuple(int(n) for n in s)
+    if axes is None:
+        axes = tuple(range(X.ndim - len(s), X.ndim))
+    axes = _norm_axes(X, axes)
+    if len(s) != len(axes):
+        raise ParameterError(f"irfftn: s={s} and axes={axes} differ in length")
+    if X.shape[axes[-1]] != s[-1] // 2 + 1 or any(X.shape[a] != n for a, n in zip(axes[:-1], s[:-1])):
+        raise ShapeError(f"irfftn: input shape {tuple(X.shape)} does not match output sizes {s} on axes {axes}")
+    if resolve_engine(X, engine) == "pyfftw":
+        return _PyfftwIrfftn.apply(X, s, axes)
+    return torch.fft.irfftn(X, s=s, dim=axes)
+
+
+def _check_type_norm(type: int, norm: str | None) -> str:
+    if type not in (2, 3):
+        raise ParameterError(f"only DCT/DST types 2 and 3 are implemented, got type={type}")
+    norm = "backward" if norm is None else norm
+    if norm not in ("backward", "ortho", "forward"):
+        raise ParameterError(f"norm must be 'backward', 'ortho' or 'forward', got {norm!r}")
+    return norm
+
+
+def _trig(x: torch.Tensor, family: str, type: int, axes, norm: str, inverse: bool, engine) -> torch.Tensor:
+    _check_real(x, f"{'i' if inverse else ''}{family}n")
+    norm = _check_type_norm(type, norm)
+    axes = _norm_axes(x, axes)
+    # the forward kind, and the kind actually applied
+    applied_type = (5 - type) if inverse else type
+    kind = f"{family}{applied_type}"
+    # scale: forward transforms of 'forward' norm and inverses of 'backward' norm carry 1/(2N)
+    if norm == "ortho":
+        for ax in axes:
+            n = x.shape[ax]
+            if applied_type == 3:  # pre-weight h: 1/sqrt(N) at the edge entry, 1/sqrt(2N) elsewhere
+                h = _edge_weight(n, kind, math.sqrt(2.0), x.dtype, x.device) / math.sqrt(2.0 * n)
+                x = x * _axis_vector(h, x.ndim, ax)
+        y = r2rn(x, kind, axes, engine=engine)
+        for ax in axes:
+            n = y.shape[ax]
+            if applied_type == 2:  # post-weight f: sqrt(1/4N) at the edge entry, sqrt(1/2N) elsewhere
+                f = _edge_weight(n, kind, math.sqrt(0.5), y.dtype, y.device) / math.sqrt(2.0 * n)
+                y = y * _axis_vector(f, y.ndim, ax)
+        return y
+    y = r2rn(x, kind, axes, engine=engine)
+    if (norm == "forward") != inverse:
+        y = y / math.prod(2 * x.shape[a] for a in axes)
+    return y
+
+
+def dctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
+         engine: str | None = None) -> torch.Tensor:
+    """n-dimensional discrete cosine transform, as ``scipy.fft.dctn`` (types 2 and 3).
+
+    Args:
+        x: Real tensor (float32/float64).
+        type: 2 (cell-centred, diagonalises the face-Neumann Laplacian) or 3 (its inverse up to scale).
+        axes: Axes to transform (default: all).
+        norm: ``'backward'`` (default, unscaled), ``'ortho'`` (orthonormal) or ``'forward'`` (1/(2N)).
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Real tensor of the same shape.
+
+    Raises:
+        ParameterError: For other types, an unknown norm or a non-float tensor.
+    """
+    return _trig(x, "dct", type, axes, norm, False, engine)
+
+
+def idctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
+          engine: str | None = None) -> torch.Tensor:
+    """Inverse of :func:`dctn` with the same ``type`` and ``norm`` (as ``scipy.fft.idctn``).
+
+    Args:
+        x: Real tensor (float32/float64).
+        type: 2 or 3 — the type of the forward transform being inverted.
+        axes: Axes to transform (default: all).
+        norm: ``'backward'`` (default), ``'ortho'`` or ``'forward'``.
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Real tensor of the same shape.
+
+    Raises:
+        ParameterError: For other types, an unknown norm or a non-float tensor.
+    """
+    return _trig(x, "dct", type, axes, norm, True, engine)
+
+
+def dstn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
+         engine: str | None = None) -> torch.Tensor:
+    """n-dimensional discrete sine transform, as ``scipy.fft.dstn`` (types 2 and 3).
+
+    Args:
+        x: Real tensor (float32/float64).
+        type: 2 (cell-centred, diagonalises the face-Dirichlet Laplacian) or 3 (its inverse up to scale).
+        axes: Axes to transform (default: all).
+        norm: ``'backward'`` (default), ``'ortho'`` or ``'forward'``.
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Real tensor of the same shape.
+
+    Raises:
+        ParameterError: For other types, an unknown norm or a non-float tensor.
+    """
+    return _trig(x, "dst", type, axes, norm, False, engine)
+
+
+def idstn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
+          engine: str | None = None) -> torch.Tensor:
+    """Inverse of :func:`dstn` with the same ``type`` and ``norm`` (as ``scipy.fft.idstn``).
+
+    Args:
+        x: Real tensor (float32/float64).
+        type: 2 or 3 — the type of the forward transform being inverted.
+        axes: Axes to transform (default: all).
+        norm: ``'backward'`` (default), ``'ortho'`` or ``'forward'``.
+        engine: FFT engine (see :func:`resolve_engine`).
+
+    Returns:
+        Real tensor of the same shape.
+
+    Raises:
+        ParameterError: For other types, an unknown norm or a non-float tensor.
+    """
+    return _trig(x, "dst", type, axes, norm, True, engine)
