@@ -1,0 +1,347 @@
+"""Forward-physics / local-inverse operator pairs for physical-gradient training.
+
+A :class:`PhysicsOperator` bundles a differentiable forward process ``y = P(x)`` with a *local inverse*
+``x = P⁻¹(y*; x0)``: a solution of ``P(x) = y*`` (or of ``min_x ½‖P(x) − y*‖²``) that is conditioned on a
+current guess ``x0`` and, where ``P`` is not injective, prefers the solution closest to ``x0``
+(Holl, Koltun, Thuerey, "Physical Gradients for Deep Learning", section 2.2 and appendix A.2; the
+physgrad chapter of the Physics-based Deep Learning book, "Global and local inverse simulators").
+
+All arrays are torch tensors, batch first: ``x`` has shape ``(B, *x_shape)``, ``y`` ``(B, *y_shape)``.
+Every sample is an independent problem: sample ``i`` of ``P(x)`` depends on sample ``i`` of ``x`` only.
+Device and dtype follow the input; float64 works everywhere.
+
+This module holds the base class and the analytic pairs of the reference experiments E1 (the two
+optimizer toys) and E2 (``sin(a/x)``). Generic local inverses for any differentiable forward live in
+:mod:`inverse.local_solvers`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+
+from phisim.errors import NonFiniteError, ParameterError, ShapeError
+
+__all__ = [
+    "PhysicsOperator",
+    "ScaleToy",
+    "SquareToy",
+    "Sine",
+    "check_finite",
+]
+
+
+def check_finite(name: str, value: torch.Tensor) -> None:
+    """Raises :class:`~phisim.errors.NonFiniteError` if ``value`` holds NaN or Inf.
+
+    Args:
+        name: What the tensor is, for the message (e.g. ``"x0"``).
+        value: Any tensor.
+
+    Raises:
+        NonFiniteError: ``value`` contains a NaN or an infinite entry.
+    """
+    if value.is_floating_point() or value.is_complex():
+        if not bool(torch.isfinite(value).all()):
+            n_bad = int((~torch.isfinite(value)).sum())
+            raise NonFiniteError(
+                f"{name} contains {n_bad} non-finite value(s) (NaN or Inf) out of {value.numel()}; "
+                "check the network output / the simulation state before calling the operator."
+            )
+
+
+def _as_tensor(value, like: torch.Tensor | None = None) -> torch.Tensor:
+    """Converts numpy arrays / numbers to a tensor on ``like``'s device and dtype (if given)."""
+    t = torch.as_tensor(value)
+    if like is not None:
+        t = t.to(device=like.device, dtype=like.dtype)
+    return t
+
+
+class PhysicsOperator:
+    """A differentiable forward process ``P`` paired with a local inverse ``P⁻¹(·; x0)``.
+
+    Subclasses implement :meth:`_forward` (differentiable with autograd, batched) and
+    :meth:`_local_inverse`; the public :meth:`forward` and :meth:`local_inverse` validate their input
+    (finite values, batch sizes and shapes) and then call them. Calling the operator is the same as
+    :meth:`forward`.
+
+    Per-sample parameters (e.g. the ``a`` of :class:`Sine`, one per sample) are supported: operators
+    holding them override :meth:`select`, which returns the operator restricted to some samples; the
+    generic solvers of :mod:`inverse.local_solvers` use it when they work sample by sample.
+
+    Attributes:
+        check_inputs: If True (default), :meth:`forward` and :meth:`local_inverse` check their inputs
+            for NaN/Inf (one device synchronisation per call). Set False in tight GPU loops.
+    """
+
+    check_inputs: bool = True
+
+    # ----------------------------------------------------------------- to implement in subclasses
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+        raise NotImplementedError
+
+    def output_shape(self, x_shape: Sequence[int]) -> torch.Size | None:
+        """Shape of ``forward(x)`` for an ``x`` of shape ``x_shape``, or None where it is not known.
+
+        The default says the output has the input's shape. Operators for which this does not hold
+        override it (returning None makes :meth:`local_inverse` evaluate ``forward(x0)`` to check the
+        target's shape when no ``y0`` is given).
+
+        Args:
+            x_shape: ``(B, *x_shape)``.
+
+        Returns:
+            ``(B, *y_shape)``, or None.
+        """
+        return torch.Size(x_shape)
+
+    def select(self, index: slice | torch.Tensor | Sequence[int]) -> PhysicsOperator:
+        """The operator restricted to the samples ``index`` of the batch.
+
+        Operators without per-sample parameters return ``self`` (the default).
+
+        Args:
+            index: A slice or integer index tensor into the batch dimension.
+
+        Returns:
+            An operator acting on ``x[index]``.
+        """
+        return self
+
+    # ----------------------------------------------------------------- public interface
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Simulates ``y = P(x)`` (differentiable, batched).
+
+        Args:
+            x: ``(B, *x_shape)``, floating point.
+
+        Returns:
+            ``y``, ``(B, *y_shape)``, same device and dtype as ``x``.
+
+        Raises:
+            ShapeError: ``x`` has no batch dimension or a shape the operator does not accept.
+            NonFiniteError: ``x`` contains NaN/Inf (when :attr:`check_inputs`).
+        """
+        x = _as_tensor(x)
+        if x.ndim < 1:
+            raise ShapeError("x must be batch-first with at least one dimension, got a 0-d tensor")
+        if not x.is_floating_point():
+            raise ShapeError(f"x must be a floating-point tensor, got dtype {x.dtype}")
+        if self.check_inputs:
+            check_finite("x", x)
+        return self._forward(x)
+
+    __call__ = forward
+
+    def local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Local inverse ``x = P⁻¹(y_target; x0)``: a solution of ``P(x) = y_target`` near ``x0``.
+
+        Where several solutions exist the one closest to ``x0`` is preferred; where none exists the
+        operator returns (an approximation of) a minimiser of ``½‖P(x) − y_target‖²`` reached from
+        ``x0``. The result carries no autograd history (it is a target, used as ``stopgrad(x̃)``).
+
+        Args:
+            y_target: ``(B, *y_shape)``, the desired output.
+            x0: ``(B, *x_shape)``, the current guess the inverse is conditioned on.
+            y0: Optional ``P(x0)``, ``(B, *y_shape)``, if already computed (saves a forward pass for
+                inverses that use it).
+
+        Returns:
+            ``x``, ``(B, *x_shape)``, detached, same device and dtype as ``x0``.
+
+        Raises:
+            ShapeError: ``y_target`` does not have the shape of ``P(x0)`` (or of ``y0``), or the batch
+                sizes differ.
+            NonFiniteError: an input contains NaN/Inf (when :attr:`check_inputs`).
+        """
+        x0 = _as_tensor(x0).detach()
+        y_target = torch.as_tensor(y_target, device=x0.device).detach()
+        if y_target.is_floating_point():
+            y_target = y_target.to(dtype=x0.dtype)
+        if x0.ndim < 1 or y_target.ndim < 1:
+            raise ShapeError("x0 and y_target must be batch-first tensors with at least one dimension")
+        if y_target.shape[0] != x0.shape[0]:
+            raise ShapeError(
+                f"batch sizes differ: y_target has {y_target.shape[0]} samples, x0 has {x0.shape[0]}"
+            )
+        if self.check_inputs:
+            check_finite("x0", x0)
+            check_finite("y_target", y_target)
+        if y0 is not None:
+            y0 = _as_tensor(y0).detach()
+            if self.check_inputs:
+                check_finite("y0", y0)
+            expected = y0.shape
+            source = "y0"
+        else:
+            expected = self.output_shape(x0.shape)
+            source = "forward(x0)"
+            if expected is None:
+                with torch.no_grad():
+                    y0 = self._forward(x0)
+                expected = y0.shape
+        if tuple(y_target.shape) != tuple(expected):
+            raise ShapeError(
+                f"y_target has shape {tuple(y_target.shape)} but {source} has shape {tuple(expected)}; "
+                "the target must have the shape of the forward output for the given x0"
+            )
+        return self._local_inverse(y_target, x0, y0).detach()
+
+
+# --------------------------------------------------------------------------------------------------
+# E1: optimizer toys
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_last_dim_two(x: torch.Tensor, name: str) -> None:
+    if x.ndim != 2 or x.shape[-1] != 2:
+        raise ShapeError(f"{name} must have shape (B, 2), got {tuple(x.shape)}")
+
+
+class ScaleToy(PhysicsOperator):
+    """E1 toy with anisotropic scaling: ``P(x1, x2) = (x1, α·x2)``, exact inverse ``(y1, y2/α)``.
+
+    With ``L = |P(x)|²`` gradient descent's trajectory depends on ``α`` while the physical-gradient
+    trajectory does not (scale invariance; physgrad chapter, "The crux of the matter").
+
+    Args:
+        alpha: The scale ``α`` of the second component; finite and non-zero.
+
+    Raises:
+        ParameterError: ``alpha`` is zero or not finite.
+    """
+
+    def __init__(self, alpha: float = 1.0):
+        alpha = float(alpha)
+        if alpha == 0.0 or not math.isfinite(alpha):
+            raise ParameterError(f"alpha must be finite and non-zero, got {alpha}")
+        self.alpha = alpha
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        _check_last_dim_two(x, "x")
+        scale = torch.tensor([1.0, self.alpha], dtype=x.dtype, device=x.device)
+        return x * scale
+
+    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+        _check_last_dim_two(x0, "x0")
+        return torch.stack([y_target[:, 0], y_target[:, 1] / self.alpha], dim=-1)
+
+
+class SquareToy(PhysicsOperator):
+    """E1 toy ``P(x1, x2) = (x1, x2²)`` with the closest-solution analytic inverse.
+
+    ``P`` is not injective: ``(x1, ±x2)`` give the same output. The local inverse conditioned on ``x0``
+    returns ``(y1, s·sqrt(y2))`` with ``s = sign(x0_2)`` (``+1`` where ``x0_2 = 0``), the preimage on
+    ``x0``'s side. For ``y2 < 0`` no preimage exists and ``x2 = 0`` (the minimiser of ``|x2² − y2|``)
+    is returned.
+    """
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        _check_last_dim_two(x, "x")
+        return torch.stack([x[:, 0], x[:, 1] ** 2], dim=-1)
+
+    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+        _check_last_dim_two(x0, "x0")
+        sign = torch.where(x0[:, 1] < 0, -1.0, 1.0).to(x0.dtype)
+        x2 = sign * torch.sqrt(torch.clamp(y_target[:, 1], min=0.0))
+        return torch.stack([y_target[:, 0], x2], dim=-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# E2: sin(a / x)
+# --------------------------------------------------------------------------------------------------
+
+
+class Sine(PhysicsOperator):
+    """E2 forward ``y = sin(a/x)`` with the analytic closest-solution inverse.
+
+    The solutions of ``sin(a/x) = t`` (``t ∈ [−1, 1]``) are ``x = a/u`` for the phases
+    ``u ∈ {θ₁ + 2πn} ∪ {θ₂ + 2πn}``, ``n ∈ ℤ``, with ``θ₁ = arcsin t`` and ``θ₂ = π − θ₁``. For the
+    E2 target ``t = −1`` both families coincide with the minima ``u = 3π/2 + 2πn`` of the paper
+    (appendix B.1: ``n = round(a/(2π x0) − 3/4)``, ``x* = a/(3π/2 + 2πn)``).
+
+    The local inverse returns the solution **closest to x0 in x**, exactly:
+
+    * ``x = a/u`` is monotone on each sign of ``u``, so the closest solution on ``x0``'s side is the
+      image of one of the two phase neighbours of ``u0 = a/x0`` in each family (``floor`` and ``ceil`` of
+      ``(u0 − θ)/(2π)``); the four candidates are compared by ``|x − x0|``. Rounding the phase, as in the
+      paper, picks the closest solution in ``u`` which can differ from the closest in ``x``.
+    * The outermost solutions need the special handling the paper mentions: a phase neighbour on the
+      other side of ``u = 0`` (e.g. ``n = −1`` for ``t = −1`` when ``x0 > 2a/π``, which rounding would
+      choose) is a solution of the opposite sign of ``x`` and never the closest one; such candidates
+      (and ``u = 0``, i.e. ``x = ∞``) are excluded. For ``x0 > 0, a > 0`` the result is therefore at most
+      the outermost positive solution ``a/θ_min``.
+    * Targets outside ``[−1, 1]`` have no solution; they are clamped to ``[−1, 1]`` (the closest
+      attainable output). ``x0 = 0`` is treated as ``+tiny`` (the solution closest to 0 on the positive
+      side, which is ``≈ 0``).
+
+    Args:
+        a: The parameter ``a``: a number (shared by all samples) or a tensor of shape ``(B,)`` with one
+            value per sample (numpy arrays are accepted). Must be finite and non-zero.
+
+    Raises:
+        ParameterError: ``a`` contains zero or a non-finite value, or has more than one dimension.
+    """
+
+    def __init__(self, a: float | torch.Tensor):
+        a_t = torch.as_tensor(a)
+        if not a_t.is_floating_point():
+            a_t = a_t.to(torch.get_default_dtype())
+        if a_t.ndim > 1:
+            raise ParameterError(f"a must be a number or a (B,) tensor, got shape {tuple(a_t.shape)}")
+        if not bool(torch.isfinite(a_t).all()) or bool((a_t == 0).any()):
+            raise ParameterError("a must be finite and non-zero everywhere")
+        self.a = a_t
+
+    def _a_like(self, x: torch.Tensor) -> torch.Tensor:
+        a = self.a.to(device=x.device, dtype=x.dtype)
+        if a.ndim == 1:
+            if a.shape[0] != x.shape[0]:
+                raise ShapeError(f"Sine holds {a.shape[0]} values of a but x has batch size {x.shape[0]}")
+            a = a.reshape((x.shape[0],) + (1,) * (x.ndim - 1))
+        return a
+
+    def select(self, index: slice | torch.Tensor | Sequence[int]) -> Sine:
+        """Restricts the per-sample ``a`` to the samples ``index`` (see :meth:`PhysicsOperator.select`).
+
+        Args:
+            index: A slice or integer index tensor into the batch dimension.
+
+        Returns:
+            A :class:`Sine` for those samples (``self`` when ``a`` is shared).
+        """
+        if self.a.ndim == 0:
+            return self
+        return Sine(self.a[index])
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sin(self._a_like(x) / x)
+
+    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+        a = self._a_like(x0)
+        tiny = torch.finfo(x0.dtype).tiny ** 0.5
+        x0s = torch.where(x0.abs() < tiny, torch.full_like(x0, tiny) * torch.where(x0 < 0, -1.0, 1.0), x0)
+        u0 = a / x0s
+        t = torch.clamp(y_target, -1.0, 1.0)
+        theta1 = torch.asin(t)
+        theta2 = math.pi - theta1
+        two_pi = 2.0 * math.pi
+        candidates = []
+        for theta in (theta1, theta2):
+            n_lo = torch.floor((u0 - theta) / two_pi)
+            for n in (n_lo, n_lo + 1.0):
+                candidates.append(theta + two_pi * n)
+        u = torch.stack(candidates, dim=0)  # (4, B, ...)
+        valid = (u * u0.unsqueeze(0)) > 0  # same side of u = 0 as u0; excludes u = 0
+        x_cand = a.unsqueeze(0) / torch.where(valid, u, torch.ones_like(u))
+        dist = torch.where(valid, (x_cand - x0s.unsqueeze(0)).abs(), torch.full_like(u, math.inf))
+        best = dist.argmin(dim=0, keepdim=True)
+        return torch.gather(x_cand, 0, best).squeeze(0)
