@@ -24,6 +24,7 @@ from .errors import (
     ShapeError,
     SolveError,
 )
+from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
 from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
 from .grid import Grid
 
@@ -35,4 +36,5 @@ __all__ = [
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
     "check_dt", "check_finite", "check_nonnegative", "check_positive",
+    "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
 ]
