@@ -231,7 +231,9 @@ class LocalSolver:
             x = self._solve(forward, y_target, x0)
         return x.detach().to(device=x0.device, dtype=x0.dtype)
 
-    def _solve(self, forward: Forward | PhysicsOperator, y_target: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+    def _solve(
+        self, forward: Forward | PhysicsOperator, y_target: torch.Tensor, x0: torch.Tensor
+    ) -> torch.Tensor:
         raise NotImplementedError
 
 
@@ -313,7 +315,8 @@ class NewtonSolver(LocalSolver):
             mag = lam.abs()
             keep = mag > self.rcond * mag.amax(dim=-1, keepdim=True)
             denom = mag if self.saddle_free else lam
-            inv = torch.where(keep, 1.0 / torch.where(keep, denom, torch.ones_like(denom)), torch.zeros_like(lam))
+            safe = torch.where(keep, denom, torch.ones_like(denom))
+            inv = torch.where(keep, 1.0 / safe, torch.zeros_like(lam))
             coeff = (vec.transpose(-1, -2) @ g.unsqueeze(-1)).squeeze(-1)
             step = -self.step_size * (vec @ (inv * coeff).unsqueeze(-1)).squeeze(-1)
             x = x + _clip(step, self.clip).reshape(x.shape)
@@ -337,7 +340,9 @@ class InverseGradientSolver(LocalSolver):
         ParameterError: Invalid settings.
     """
 
-    def __init__(self, max_iter: int = 1, step_size: float = 1.0, clip: float | None = None, rcond: float = 1e-12):
+    def __init__(
+        self, max_iter: int = 1, step_size: float = 1.0, clip: float | None = None, rcond: float = 1e-12
+    ):
         self.max_iter = _check_iterations(max_iter)
         self.step_size = _check_positive("step_size", step_size)
         self.clip = None if clip is None else _check_positive("clip", clip)
@@ -417,7 +422,9 @@ class LBFGSBSolver(LocalSolver):
             bounds = None if self.bounds is None else [self.bounds] * start.size
             res = scipy.optimize.minimize(
                 fun, start, jac=True, method="L-BFGS-B", bounds=bounds,
-                options={"maxiter": self.max_iter, "ftol": self.ftol, "gtol": self.gtol, "maxcor": self.maxcor},
+                options={
+                    "maxiter": self.max_iter, "ftol": self.ftol, "gtol": self.gtol, "maxcor": self.maxcor,
+                },
             )
             self.last_results.append(res)
             out[i] = torch.from_numpy(np.asarray(res.x, dtype=np.float64).reshape(shape[1:]))
@@ -494,5 +501,7 @@ class SolverOperator(PhysicsOperator):
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         return _evaluator(self.inner)(x)
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         return self.solver(self.inner, y_target, x0)

@@ -122,7 +122,9 @@ class UNet(nn.Module):
             )
         min_size = 2 ** (self.levels - 1)
         if min(x.shape[-2:]) < min_size:
-            raise ShapeError(f"grid {tuple(x.shape[-2:])} too small for {self.levels} levels (need >= {min_size})")
+            raise ShapeError(
+                f"grid {tuple(x.shape[-2:])} too small for {self.levels} levels (need >= {min_size})"
+            )
         skips = []
         h = x
         for i, block in enumerate(self.down):

@@ -83,7 +83,9 @@ class PhysicsOperator:
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         raise NotImplementedError
 
     def output_shape(self, x_shape: Sequence[int]) -> torch.Size | None:
@@ -230,7 +232,9 @@ class ScaleToy(PhysicsOperator):
         scale = torch.tensor([1.0, self.alpha], dtype=x.dtype, device=x.device)
         return x * scale
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         _check_last_dim_two(x0, "x0")
         return torch.stack([y_target[:, 0], y_target[:, 1] / self.alpha], dim=-1)
 
@@ -248,7 +252,9 @@ class SquareToy(PhysicsOperator):
         _check_last_dim_two(x, "x")
         return torch.stack([x[:, 0], x[:, 1] ** 2], dim=-1)
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         _check_last_dim_two(x0, "x0")
         sign = torch.where(x0[:, 1] < 0, -1.0, 1.0).to(x0.dtype)
         x2 = sign * torch.sqrt(torch.clamp(y_target[:, 1], min=0.0))
@@ -325,7 +331,9 @@ class Sine(PhysicsOperator):
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sin(self._a_like(x) / x)
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         a = self._a_like(x0)
         tiny = torch.finfo(x0.dtype).tiny ** 0.5
         x0s = torch.where(x0.abs() < tiny, torch.full_like(x0, tiny) * torch.where(x0 < 0, -1.0, 1.0), x0)

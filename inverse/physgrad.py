@@ -25,9 +25,10 @@ Two entry points:
 Quadratic y-space losses :class:`QuadraticLoss` ``L(y) = ½ Σ_k w_k |(T(y − y*))_k|²`` with a unitary
 linear transform ``T`` (identity, or the orthonormal FFT via :class:`FourierTransform`) supply the Newton
 step ``Δy``. Since the Hessian is ``Tᴴ W T``, the Newton step is ``Δy = η Tᴴ M T (y* − y)`` with
-``M_k = w_k/(w_k + λ)`` (``λ``: Levenberg damping, default 0, i.e. ``M_k = 1`` where ``w_k > 0``): the weights
-cancel, apart from modes the loss ignores (``w_k = 0``, or below ``rcond·max w``), which the step leaves
-alone. A frequency-weighted loss such as E5's is ``QuadraticLoss(weights=w(k), transform=FourierTransform(2))``.
+``M_k = w_k/(w_k + λ)`` (``λ``: Levenberg damping, default 0, i.e. ``M_k = 1`` where ``w_k > 0``): the
+weights cancel, apart from modes the loss ignores (``w_k = 0``, or below ``rcond·max w``), which the step
+leaves alone. A frequency-weighted loss such as E5's is
+``QuadraticLoss(weights=w(k), transform=FourierTransform(2))``.
 """
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ class QuadraticLoss:
             if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
                 raise ParameterError("weights must be finite and non-negative")
         if transform is not None and not callable(getattr(transform, "inverse", None)):
-            raise ParameterError("transform must be callable and have an inverse(c) method (unitary transform)")
+            raise ParameterError("transform must be callable with an inverse(c) method (unitary transform)")
         if not (math.isfinite(damping) and damping >= 0):
             raise ParameterError(f"damping must be finite and >= 0, got {damping}")
         if not (math.isfinite(rcond) and rcond >= 0):
@@ -240,7 +241,7 @@ def physical_update(
         y = operator.forward(xd)
     if tuple(y.shape) != tuple(y_target.shape):
         raise ShapeError(
-            f"y_target has shape {tuple(y_target.shape)} but the forward output P(x) has shape {tuple(y.shape)}"
+            f"y_target has shape {tuple(y_target.shape)} but P(x) has shape {tuple(y.shape)}"
         )
     with torch.no_grad():
         dy = loss.newton_step(y, y_target.to(y.dtype), eta)
