@@ -1,3 +1,32 @@
 """inverse: physical-gradient (SIP) and half-inverse-gradient (HIG) training of networks through physics."""
 
+from .local_solvers import (
+    GradientStepSolver,
+    InverseGradientSolver,
+    LBFGSBSolver,
+    LocalSolver,
+    NewtonSolver,
+    SolverOperator,
+    batch_hessian,
+    batch_jacobian,
+)
+from .nets import MLP, UNet, count_parameters
+from .operators import PhysicsOperator, ScaleToy, Sine, SquareToy
+from .physgrad import (
+    FourierTransform,
+    PhysicalGradient,
+    QuadraticLoss,
+    physgrad,
+    physical_gradient_loss,
+    physical_update,
+)
+
 __all__: list[str] = []
+__all__ += [  # operators, local solvers, physical-gradient layer, networks
+    "PhysicsOperator", "ScaleToy", "SquareToy", "Sine",
+    "LocalSolver", "GradientStepSolver", "NewtonSolver", "InverseGradientSolver", "LBFGSBSolver",
+    "SolverOperator", "batch_jacobian", "batch_hessian",
+    "QuadraticLoss", "FourierTransform", "physical_update", "physical_gradient_loss", "PhysicalGradient",
+    "physgrad",
+    "UNet", "MLP", "count_parameters",
+]
