@@ -1,5 +1,6 @@
 """inverse: physical-gradient (SIP) and half-inverse-gradient (HIG) training of networks through physics."""
 
+from .hig import HIG, GaussNewton, HIGStepInfo, JacobianMemoryError, hig_update, per_sample_jacobian
 from .local_solvers import (
     GradientStepSolver,
     InverseGradientSolver,
@@ -30,3 +31,4 @@ __all__ += [  # operators, local solvers, physical-gradient layer, networks
     "physgrad",
     "UNet", "MLP", "count_parameters",
 ]
+__all__ += ["HIG", "GaussNewton", "HIGStepInfo", "JacobianMemoryError", "hig_update", "per_sample_jacobian"]
