@@ -73,8 +73,9 @@ __all__ = [
 ]
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
-R2R_KINDS = ("dct2", "dct3", "dst2", "dst3")
-_FFTW_KIND = {"dct2": "FFTW_REDFT10", "dct3": "FFTW_REDFT01", "dst2": "FFTW_RODFT10", "dst3": "FFTW_RODFT01"}
+R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4")
+_FFTW_KIND = {"dct2": "FFTW_REDFT10", "dct3": "FFTW_REDFT01", "dst2": "FFTW_RODFT10", "dst3": "FFTW_RODFT01",
+              "dct4": "FFTW_REDFT11", "dst4": "FFTW_RODFT11"}
 _ENGINES = ("auto", "torch", "pyfftw")
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 
@@ -271,8 +272,19 @@ def _alternate(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor
     return a
 
 
+@lru_cache(maxsize=64)
+def _type4_matrix(n: int, kind: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    arg = math.pi * i[:, None] * i[None, :] / n
+    m = 2 * (torch.cos(arg) if kind == "dct4" else torch.sin(arg))
+    return m.to(dtype=dtype, device=device)
+
+
 def _torch_r2r_last(x: torch.Tensor, kind: str) -> torch.Tensor:
     n = x.shape[-1]
+    if kind in ("dct4", "dst4"):
+        # Type-4 transforms (mixed Dirichlet/Neumann axes) as a dense symmetric matrix: O(n^2) per line.
+        return x @ _type4_matrix(n, kind, x.dtype, x.device)
     if kind == "dct2":
         return _torch_dct2_last(x)
     if kind == "dct3":
@@ -360,7 +372,7 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
-_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2"}
+_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4"}
 
 
 def _edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
@@ -454,6 +466,11 @@ def r2rn(x: torch.Tensor, kinds: Sequence[str] | str, axes: Sequence[int] | int 
     * ``'dct3'``: ``y_k = x_0 + 2 Σ_{n≥1} x_n cos(π n (2k+1) / 2N)``  (``dct3(dct2(x)) = 2N x``)
     * ``'dst2'``: ``y_k = 2 Σ_n x_n sin(π (k+1)(2n+1) / 2N)``
     * ``'dst3'``: ``y_k = (-1)^k x_{N-1} + 2 Σ_{n<N-1} x_n sin(π (n+1)(2k+1) / 2N)``  (``dst3(dst2(x)) = 2N x``)
+    * ``'dct4'``: ``y_k = 2 Σ_n x_n cos(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dct4(dct4(x)) = 2N x``)
+    * ``'dst4'``: ``y_k = 2 Σ_n x_n sin(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dst4(dst4(x)) = 2N x``)
+
+    Type 4 diagonalises the cell-centred Laplacian with a Dirichlet face on one side and a Neumann
+    face on the other; the torch engine computes it as a dense matrix product (O(N²) per line).
 
     Args:
         x: Real tensor (float32/float64), any shape; batch axes are the axes not transformed.

@@ -1,0 +1,724 @@
+"""Poisson solves on uniform grids: a fast direct spectral solver and masked-domain PCG.
+
+The discrete problem is ``∇²_h u = f`` with the standard second-order stencil (3 points per axis,
+``(u_{i-1} - 2 u_i + u_{i+1}) / dx²``) on cell centres. Boundary values sit on the cell **face**
+(phisim's convention, see :mod:`phisim.boundary`): a Dirichlet value ``v`` gives the ghost
+``2 v - u_0``, a Neumann flux ``g`` (outward normal derivative) gives ``u_0 + g dx``. Each axis has a
+``(lower, upper)`` pair of kinds, and the zero-value problem along it is diagonalised exactly by
+
+==================  ===========  =================================================  ==========
+lower / upper       transform    eigenvalue of mode ``k = 0..n-1`` (times dx²)     inverse
+==================  ===========  =================================================  ==========
+periodic            FFT          ``-4 sin²(π k / n)``                               iFFT
+Dirichlet/Dirichlet DST-II       ``-4 sin²(π (k+1) / 2n)``                          DST-III/2n
+Neumann/Neumann     DCT-II       ``-4 sin²(π k / 2n)``                              DCT-III/2n
+Dirichlet/Neumann   DST-IV       ``-4 sin²(π (2k+1) / 4n)``                         DST-IV/2n
+Neumann/Dirichlet   DCT-IV       ``-4 sin²(π (2k+1) / 4n)``                         DCT-IV/2n
+==================  ===========  =================================================  ==========
+
+so the solve is a forward transform, a division by the summed eigenvalues and the inverse transform:
+``O(N log N)``, exact up to round-off (about 1e-13 relative in float64). Non-zero boundary values
+enter the right-hand side: ``f_0 -= 2 v / dx²`` (Dirichlet) and ``f_0 -= g / dx`` (Neumann) in the
+boundary cell. The solve is differentiable w.r.t. ``f`` and the boundary values (the operator is
+symmetric, and the transforms' adjoints are transforms of the same family; see :mod:`phisim.fft`).
+
+**Singular problems.** When no axis has a Dirichlet side (all periodic / Neumann), the operator
+annihilates constants. A solution exists only if the effective right-hand side has zero sum
+(``Σ f = Σ boundary fluxes / dx``). The solver checks this per sample: a mean within
+``compat_rtol`` of the rhs's RMS is round-off and is removed; a larger one is reported by
+``incompatible='raise'`` (default, :class:`~phisim.errors.ParameterError`), ``'warn'`` (warning, then
+removed) or ``'project'`` (removed silently, at the caller's request). The returned solution is the
+one with **zero mean**.
+
+**Masked domains** (:func:`masked_poisson_solve`): cells where ``mask`` is False are obstacles,
+excluded from the solve; the faces between fluid and obstacle cells are **zero-Neumann** (no flux —
+what the pressure of an incompressible flow needs at solid obstacles), and the solution is 0 inside
+obstacles. The system ``-∇²_h u = -f`` on the fluid cells is symmetric positive (semi-)definite and
+is solved by :func:`phisim.linalg.cg` with the spectral solver of the obstacle-free box as
+preconditioner (``M⁻¹ = mask · (-∇²_box)⁻¹ · mask``, symmetric positive definite on fluid cells).
+
+Reference: the fast diagonalisation method, e.g. Schumann & Sweet (1988), "A direct method for the
+solution of Poisson's equation with Neumann boundary conditions on a staggered grid of arbitrary
+size", J. Comput. Phys. 75, and Strang (1999), "The discrete cosine transform", SIAM Review 41.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from functools import lru_cache
+
+import torch
+
+from . import fft as _fft
+from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
+
+__all__ = [
+    "AXIS_KINDS",
+    "normalize_kinds",
+    "laplacian_eigenvalues",
+    "stencil_laplacian",
+    "boundary_source",
+    "spectral_poisson_solve",
+    "spectral_apply",
+    "masked_poisson_solve",
+    "masked_laplacian",
+    "solve_poisson",
+    "field_kinds_and_values",
+]
+
+#: Kinds accepted per side of an axis.
+AXIS_KINDS = ("periodic", "dirichlet", "neumann")
+
+_TRANSFORM = {
+    ("dirichlet", "dirichlet"): ("dst2", "dst3"),
+    ("neumann", "neumann"): ("dct2", "dct3"),
+    ("dirichlet", "neumann"): ("dst4", "dst4"),
+    ("neumann", "dirichlet"): ("dct4", "dct4"),
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# argument handling
+
+Kinds = tuple[tuple[str, str], ...]
+
+
+def normalize_kinds(kinds, rank: int) -> Kinds:
+    """Bring a boundary-kind specification into the form ``((lower, upper), ...)`` per axis.
+
+    Args:
+        kinds: One kind for all axes (``'periodic'``, ``'dirichlet'``, ``'neumann'``), or a sequence
+            with one entry per axis, each a kind or a ``(lower, upper)`` pair of kinds.
+        rank: Number of spatial axes.
+
+    Returns:
+        A tuple of ``(lower, upper)`` kind pairs, one per axis.
+
+    Raises:
+        BoundaryError: For unknown kinds, a wrong number of axes, or periodic on one side only.
+    """
+    if isinstance(kinds, str):
+        kinds = (kinds,) * rank
+    kinds = tuple(kinds)
+    if len(kinds) != rank:
+        raise BoundaryError(f"kinds has {len(kinds)} entries for {rank} spatial axes: {kinds}")
+    out = []
+    for axis, k in enumerate(kinds):
+        pair = (k, k) if isinstance(k, str) else tuple(k)
+        if len(pair) != 2:
+            raise BoundaryError(f"axis {axis}: expected a kind or a (lower, upper) pair, got {k!r}")
+        pair = tuple(str(p).lower() for p in pair)
+        for p in pair:
+            if p not in AXIS_KINDS:
+                raise BoundaryError(f"axis {axis}: unknown boundary kind {p!r}; expected one of {AXIS_KINDS}")
+        if (pair[0] == "periodic") != (pair[1] == "periodic"):
+            raise BoundaryError(f"axis {axis}: periodic must be used on both sides, got {pair}")
+        out.append(pair)
+    return tuple(out)
+
+
+def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
+    if isinstance(dx, (int, float)):
+        dx = (float(dx),) * rank
+    dx = tuple(float(d) for d in dx)
+    if len(dx) != rank:
+        raise ParameterError(f"dx has {len(dx)} entries for {rank} spatial axes")
+    for d in dx:
+        if not math.isfinite(d) or d <= 0:
+            raise ParameterError(f"dx must be finite and > 0, got {dx}")
+    return dx
+
+
+def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
+    if not isinstance(rhs, torch.Tensor):
+        raise ParameterError(f"{name} must be a torch.Tensor of shape (B, *resolution), got {type(rhs).__name__}")
+    if rhs.dtype not in (torch.float32, torch.float64):
+        raise ParameterError(f"{name} must be float32 or float64, got {rhs.dtype}")
+    rank = rhs.ndim - 1
+    if not 1 <= rank <= 3:
+        raise ShapeError(f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
+                         "add a batch axis with rhs[None] if needed")
+    return rank
+
+
+def _is_zero(v) -> bool:
+    return v is None or (isinstance(v, (int, float)) and v == 0)
+
+
+def _normalize_values(values, rank: int, kinds: Kinds):
+    if values is None:
+        return tuple((None, None) for _ in range(rank))
+    values = tuple(values)
+    if len(values) != rank:
+        raise BoundaryError(f"values has {len(values)} entries for {rank} spatial axes; give one "
+                            "(lower, upper) pair per axis (None for zero)")
+    out = []
+    for axis, v in enumerate(values):
+        pair = (None, None) if v is None else tuple(v)
+        if len(pair) != 2:
+            raise BoundaryError(f"values[{axis}] must be a (lower, upper) pair, got {v!r}")
+        if kinds[axis][0] == "periodic" and not all(_is_zero(p) for p in pair):
+            raise BoundaryError(f"axis {axis} is periodic and cannot carry boundary values {pair}")
+        out.append(pair)
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# eigenvalues and spectral application
+
+
+def _axis_eigs(n: int, pair: tuple[str, str], dx: float, halved: bool) -> torch.Tensor:
+    k = torch.arange(n, dtype=torch.float64)
+    if pair[0] == "periodic":
+        lam = -4 * torch.sin(math.pi * k / n) ** 2
+        if halved:
+            lam = lam[: n // 2 + 1]
+    elif pair == ("dirichlet", "dirichlet"):
+        lam = -4 * torch.sin(math.pi * (k + 1) / (2 * n)) ** 2
+    elif pair == ("neumann", "neumann"):
+        lam = -4 * torch.sin(math.pi * k / (2 * n)) ** 2
+    else:
+        lam = -4 * torch.sin(math.pi * (2 * k + 1) / (4 * n)) ** 2
+    return lam / dx**2
+
+
+def _layout(kinds: Kinds) -> tuple[list[int], list[int]]:
+    """Spatial axes transformed by real-to-real kinds, and the periodic ones (FFT)."""
+    r2r = [a for a, p in enumerate(kinds) if p[0] != "periodic"]
+    per = [a for a, p in enumerate(kinds) if p[0] == "periodic"]
+    return r2r, per
+
+
+def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.dtype = torch.float64,
+                          device=None, halved: bool = True) -> torch.Tensor:
+    """Eigenvalues of the face-boundary cell-centred Laplacian stencil in the solver's spectral layout.
+
+    Args:
+        resolution: Cells per axis.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds (see :func:`normalize_kinds`).
+        dtype: Output dtype.
+        device: Output device.
+        halved: Whether the last periodic axis is stored as ``n//2 + 1`` rfft bins (solver layout).
+
+    Returns:
+        Tensor of shape ``resolution`` (last periodic axis halved when ``halved``) holding
+        ``Σ_axes λ_axis(k_axis)`` (non-positive; units 1/length²).
+
+    Raises:
+        BoundaryError: For an invalid kinds specification.
+        ParameterError: For an invalid dx.
+    """
+    resolution = tuple(int(n) for n in resolution)
+    rank = len(resolution)
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    return _eigs_cached(resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved)
+
+
+@lru_cache(maxsize=128)
+def _eigs_cached(resolution, dx, kinds, dtype, device, halved) -> torch.Tensor:
+    _, per = _layout(kinds)
+    last_per = per[-1] if per else None
+    total = torch.zeros((), dtype=torch.float64)
+    for a, n in enumerate(resolution):
+        lam = _axis_eigs(n, kinds[a], dx[a], halved and a == last_per)
+        shape = [1] * len(resolution)
+        shape[a] = -1
+        total = total + lam.reshape(shape)
+    return total.to(dtype=dtype, device=device)
+
+
+def _singular(kinds: Kinds) -> bool:
+    return all("dirichlet" not in p for p in kinds)
+
+
+def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None) -> torch.Tensor:
+    """Apply a function of the Laplacian, ``φ(∇²_h) x``, exactly by diagonalisation.
+
+    Args:
+        x: Tensor ``(B, *resolution)``, float32/float64.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds (see :func:`normalize_kinds`); boundary values are zero here.
+        fn: Maps the eigenvalue tensor (solver layout, see :func:`laplacian_eigenvalues`, float64)
+            to the per-mode multipliers (real, same shape, broadcastable).
+        engine: FFT engine (see :func:`phisim.fft.resolve_engine`).
+
+    Returns:
+        ``φ(∇²_h) x``, shape and dtype of ``x``; differentiable w.r.t. ``x``.
+
+    Raises:
+        BoundaryError, ParameterError, ShapeError: For invalid kinds, dx or shapes.
+    """
+    rank = _check_rhs(x, "x")
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    lam = _eigs_cached(tuple(x.shape[1:]), dx, kinds, torch.float64, x.device, True)
+    mult = fn(lam)
+    return _apply_multiplier(x, kinds, mult, engine)
+
+
+def _apply_multiplier(x: torch.Tensor, kinds: Kinds, mult: torch.Tensor, engine) -> torch.Tensor:
+    """Forward transforms, multiply by ``mult`` (float64 multipliers in solver layout), inverse transforms."""
+    r2r, per = _layout(kinds)
+    res = x.shape[1:]
+    scale = 1.0
+    y = x
+    if r2r:
+        fwd = tuple(_TRANSFORM[kinds[a]][0] for a in r2r)
+        y = _fft.r2rn(y, fwd, tuple(1 + a for a in r2r), engine=engine)
+        scale = 1.0 / math.prod(2 * res[a] for a in r2r)
+    m = (mult * scale).to(x.dtype)
+    if per:
+        axes = tuple(1 + a for a in per)
+        Y = _fft.rfftn(y, axes, engine=engine)
+        y = _fft.irfftn(Y * m, tuple(res[a] for a in per), axes, engine=engine)
+    else:
+        y = y * m
+    if r2r:
+        inv = tuple(_TRANSFORM[kinds[a]][1] for a in r2r)
+        y = _fft.r2rn(y, inv, tuple(1 + a for a in r2r), engine=engine)
+    return y
+
+
+# ----------------------------------------------------------------------------------------------
+# boundary terms and the stencil
+
+
+def _slab(x: torch.Tensor, dim: int, index: int) -> torch.Tensor:
+    return x.narrow(dim, index, 1)
+
+
+def boundary_source(like: torch.Tensor, dx, kinds, values) -> torch.Tensor | None:
+    """The contribution of non-zero boundary values to the stencil: ``∇²_h u = L₀ u + b``.
+
+    ``b`` is non-zero only in boundary cells: ``2 v / dx²`` for a Dirichlet value ``v`` on the face,
+    ``g / dx`` for a Neumann flux ``g`` (outward normal derivative).
+
+    Args:
+        like: Tensor ``(B, *resolution)`` giving shape, dtype and device.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds (see :func:`normalize_kinds`).
+        values: None, or per axis a ``(lower, upper)`` pair of values (None/0, a float, or a tensor
+            broadcastable to the boundary slab ``(B, *resolution)`` with the axis of length 1).
+
+    Returns:
+        ``b`` with the shape of ``like``, or None when every value is zero.
+
+    Raises:
+        BoundaryError: For values on periodic axes or malformed values.
+        ShapeError: If a value tensor does not broadcast to its boundary slab.
+    """
+    rank = like.ndim - 1
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    values = _normalize_values(values, rank, kinds)
+    b = None
+    for a in range(rank):
+        for side, v in enumerate(values[a]):
+            if _is_zero(v):
+                continue
+            kind = kinds[a][side]
+            coef = 2.0 / dx[a] ** 2 if kind == "dirichlet" else 1.0 / dx[a]
+            slab_shape = list(like.shape)
+            slab_shape[1 + a] = 1
+            vt = torch.as_tensor(v, dtype=like.dtype, device=like.device)
+            try:
+                vt = torch.broadcast_to(vt, slab_shape)
+            except RuntimeError as exc:
+                raise ShapeError(f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} has shape "
+                                 f"{tuple(vt.shape)}, not broadcastable to the slab {tuple(slab_shape)}") from exc
+            pads = [0, 0] * rank
+            n = like.shape[1 + a]
+            # F.pad lists the last axis first
+            j = 2 * (rank - 1 - a)
+            pads[j + (0 if side == 0 else 1)] = 0
+            pads[j + (1 if side == 0 else 0)] = n - 1
+            term = torch.nn.functional.pad(vt * coef, pads)
+            b = term if b is None else b + term
+    return b
+
+
+def stencil_laplacian(u: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
+    """The second-order cell-centred Laplacian ``∇²_h u`` with face boundary conditions.
+
+    Args:
+        u: Tensor ``(B, *resolution)``.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds (see :func:`normalize_kinds`).
+        values: Boundary values (see :func:`boundary_source`); None for zero.
+
+    Returns:
+        ``Σ_axes (u_{i-1} - 2 u_i + u_{i+1}) / dx²`` with ghosts ``2v - u`` (Dirichlet), ``u + g dx``
+        (Neumann) or the periodic image; same shape as ``u``.
+
+    Raises:
+        BoundaryError, ParameterError, ShapeError: For invalid kinds, dx, values or shapes.
+    """
+    rank = _check_rhs(u, "u")
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    out = _laplace_zero(u, dx, kinds)
+    b = boundary_source(u, dx, kinds, values)
+    return out if b is None else out + b
+
+
+def _laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:
+    """Stencil with zero boundary values; ``open_faces[a]`` (optional) weights the interior faces of axis a."""
+    out = torch.zeros_like(u)
+    for a, (lo, hi) in enumerate(kinds):
+        dim = 1 + a
+        n = u.shape[dim]
+        if lo == "periodic":
+            flux = (torch.roll(u, -1, dim) - u) / dx[a] ** 2  # face i+1/2, i = 0..n-1 (last wraps)
+            if open_faces is not None:
+                flux = flux * open_faces[a]
+            out = out + flux - torch.roll(flux, 1, dim)
+            continue
+        inner = (u.narrow(dim, 1, n - 1) - u.narrow(dim, 0, n - 1)) / dx[a] ** 2  # faces 1..n-1
+        if open_faces is not None:
+            inner = inner * open_faces[a]
+        # face differences (u_i - u_{i-1}) / dx^2 at faces 0..n; zero-value ghosts: -u (Dirichlet), u (Neumann)
+        zero = torch.zeros_like(_slab(u, dim, 0))
+        lo_flux = 2 * _slab(u, dim, 0) / dx[a] ** 2 if lo == "dirichlet" else zero
+        hi_flux = -2 * _slab(u, dim, n - 1) / dx[a] ** 2 if hi == "dirichlet" else zero
+        faces = torch.cat([lo_flux, inner, hi_flux], dim=dim)
+        out = out + faces.narrow(dim, 1, n) - faces.narrow(dim, 0, n)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# the direct solver
+
+
+def _compat_tol(dtype: torch.dtype) -> float:
+    return 1e-4 if dtype == torch.float32 else 1e-9
+
+
+def _remove_mean(f: torch.Tensor, *, incompatible: str, compat_rtol: float | None, what: str) -> torch.Tensor:
+    dims = tuple(range(1, f.ndim))
+    mean = f.mean(dim=dims, keepdim=True)
+    tol = _compat_tol(f.dtype) if compat_rtol is None else compat_rtol
+    with torch.no_grad():
+        rms = f.pow(2).mean(dim=dims).sqrt()
+        bad = mean.flatten().abs() > tol * rms
+    if bool(bad.any()):
+        idx = [int(i) for i in torch.nonzero(bad).flatten()]
+        ratio = (mean.flatten().abs() / rms.clamp_min(torch.finfo(f.dtype).tiny)).detach()
+        msg = (f"{what}: the problem is singular (no Dirichlet side: solutions differ by a constant) and the "
+               f"right-hand side including boundary fluxes is incompatible for samples {idx}: its mean is "
+               f"{[f'{float(ratio[i]):.3g}' for i in idx]} x its RMS (tolerance {tol:g}). Its sum must equal the "
+               "net boundary flux / dx. Fix the data, or pass incompatible='project' (remove the mean) or "
+               "'warn'.")
+        if incompatible == "raise":
+            raise ParameterError(msg)
+        if incompatible == "warn":
+            warnings.warn(msg + " The mean was removed.", RuntimeWarning, stacklevel=3)
+    return f - mean
+
+
+def _check_incompatible(incompatible: str) -> None:
+    if incompatible not in ("raise", "warn", "project"):
+        raise ParameterError(f"incompatible must be 'raise', 'warn' or 'project', got {incompatible!r}")
+
+
+def spectral_poisson_solve(rhs: torch.Tensor, dx=1.0, kinds="dirichlet", values=None, *,
+                           incompatible: str = "raise", compat_rtol: float | None = None,
+                           engine: str | None = None) -> torch.Tensor:
+    """Solve ``∇²_h u = rhs`` directly on a rectangular grid (FFT / DST / DCT per axis).
+
+    Exact up to round-off for the standard second-order stencil with boundary values on the cell face
+    (see the module docstring for the transform per axis and the eigenvalues).
+
+    Args:
+        rhs: Right-hand side ``(B, *resolution)`` (1-3 spatial axes), float32/float64, any device.
+        dx: Cell spacing, a float or one per axis.
+        kinds: Per axis ``'periodic'``, ``'dirichlet'``, ``'neumann'`` or a ``(lower, upper)`` pair
+            (e.g. ``('dirichlet', 'periodic')`` for a 2-D channel); a single string applies to all axes.
+        values: None (zero boundary values) or per axis a ``(lower, upper)`` pair: the Dirichlet value
+            on the face or the Neumann outward flux ``du/dn``; each None/0, a float, or a tensor
+            broadcastable to the boundary slab (``rhs``'s shape with that axis of length 1).
+        incompatible: For singular problems (no Dirichlet side): what to do when the effective rhs has
+            a mean beyond ``compat_rtol`` x its RMS: ``'raise'`` (ParameterError), ``'warn'`` or
+            ``'project'`` (remove the mean silently).
+        compat_rtol: Tolerance of that check (default 1e-9 in float64, 1e-4 in float32).
+        engine: FFT engine (see :func:`phisim.fft.resolve_engine`).
+
+    Returns:
+        ``u`` with ``rhs``'s shape, dtype and device; for singular problems the zero-mean solution.
+        Differentiable w.r.t. ``rhs`` and tensor boundary values.
+
+    Raises:
+        ParameterError: Bad dtype/dx/option, or an incompatible rhs with ``incompatible='raise'``.
+        BoundaryError: Invalid kinds or values.
+        ShapeError: Wrong rhs rank or value shapes.
+        NonFiniteError: NaN/Inf in ``rhs``.
+    """
+    rank = _check_rhs(rhs)
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    _check_incompatible(incompatible)
+    if not bool(torch.isfinite(rhs).all()):
+        raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
+    f = rhs
+    b = boundary_source(rhs, dx, kinds, values)
+    if b is not None:
+        f = f - b
+    singular = _singular(kinds)
+    if singular:
+        f = _remove_mean(f, incompatible=incompatible, compat_rtol=compat_rtol, what="spectral_poisson_solve")
+    inv = _inverse_eigs(tuple(rhs.shape[1:]), dx, kinds, rhs.device)
+    return _apply_multiplier(f, kinds, inv, engine)
+
+
+@lru_cache(maxsize=128)
+def _inverse_eigs(resolution, dx, kinds, device) -> torch.Tensor:
+    lam = _eigs_cached(resolution, dx, kinds, torch.float64, device, True)
+    inv = torch.where(lam == 0, torch.zeros_like(lam), 1.0 / torch.where(lam == 0, torch.ones_like(lam), lam))
+    if _singular(kinds):
+        inv.reshape(-1)[0] = 0.0  # the constant mode (index 0 in every layout) is projected out
+    return inv
+
+
+# ----------------------------------------------------------------------------------------------
+# masked domains
+
+
+def _open_faces(mask: torch.Tensor, kinds: Kinds) -> list[torch.Tensor]:
+    faces = []
+    for a, (lo, _) in enumerate(kinds):
+        dim = 1 + a
+        n = mask.shape[dim]
+        if lo == "periodic":
+            faces.append(mask * torch.roll(mask, -1, dim))
+        else:
+            faces.append(mask.narrow(dim, 1, n - 1) * mask.narrow(dim, 0, n - 1))
+    return faces
+
+
+def masked_laplacian(u: torch.Tensor, mask: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
+    """The stencil Laplacian on the fluid cells of a masked domain (zero flux through obstacle faces).
+
+    Args:
+        u: Tensor ``(B, *resolution)``.
+        mask: Fluid indicator, bool or float, shape ``resolution`` or ``(B, *resolution)``; True = fluid.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds of the box (see :func:`normalize_kinds`).
+        values: Boundary values of the box (see :func:`boundary_source`).
+
+    Returns:
+        ``∇²_h u`` on fluid cells (obstacle neighbours contribute no flux), 0 on obstacle cells.
+
+    Raises:
+        BoundaryError, ParameterError, ShapeError: For invalid arguments.
+    """
+    rank = _check_rhs(u, "u")
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    m = _mask_tensor(mask, u)
+    out = _laplace_zero(u * m, dx, kinds, _open_faces(m, kinds)) * m
+    b = boundary_source(u, dx, kinds, values)
+    return out if b is None else out + b * m
+
+
+def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
+    m = torch.as_tensor(mask, device=like.device)
+    if m.ndim == like.ndim - 1:
+        m = m[None]
+    if m.ndim != like.ndim or tuple(m.shape[1:]) != tuple(like.shape[1:]) or m.shape[0] not in (1, like.shape[0]):
+        raise ShapeError(f"mask must have shape {tuple(like.shape[1:])} or (B, *resolution) matching "
+                         f"{tuple(like.shape)}, got {tuple(m.shape)}")
+    return m.to(like.dtype)
+
+
+def masked_poisson_solve(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="neumann", values=None, *,
+                         solve=None, x0: torch.Tensor | None = None, preconditioner: str | None = "spectral",
+                         incompatible: str = "raise", compat_rtol: float | None = None,
+                         return_info: bool = False, engine: str | None = None):
+    """Solve ``∇²_h u = rhs`` on the fluid cells of a box with obstacles by preconditioned CG.
+
+    Obstacle cells (``mask`` False) are excluded; faces between fluid and obstacle cells are
+    zero-Neumann (no flux), the box sides follow ``kinds``/``values``; ``u`` is 0 in obstacles. The CG
+    system is ``-∇²_h`` (symmetric positive (semi-)definite on fluid cells, identity on obstacle
+    cells), preconditioned by the exact spectral inverse of the obstacle-free box (masked both sides,
+    which keeps it symmetric positive definite).
+
+    Without a Dirichlet side the problem is singular: the rhs mean over fluid cells is checked as in
+    :func:`spectral_poisson_solve` and the zero-mean (over fluid cells) solution is returned. This
+    assumes one connected fluid region; a fluid pocket enclosed by obstacles needs a compatible rhs of
+    its own, otherwise CG stagnates and raises :class:`~phisim.errors.SolveError`.
+
+    Args:
+        rhs: Right-hand side ``(B, *resolution)``, float32/float64.
+        mask: Fluid indicator (bool/float), shape ``resolution`` or ``(B, *resolution)``.
+        dx: Cell spacing (float or one per axis).
+        kinds: Box boundary kinds (see :func:`normalize_kinds`); default all Neumann (a closed box).
+        values: Box boundary values (see :func:`boundary_source`).
+        solve: :class:`phisim.linalg.Solve` settings (default ``Solve()``: rtol 1e-5).
+        x0: Optional start iterate.
+        preconditioner: ``'spectral'`` (default) or None (plain CG).
+        incompatible: ``'raise'``, ``'warn'`` or ``'project'`` (see :func:`spectral_poisson_solve`).
+        compat_rtol: Tolerance of the compatibility check.
+        return_info: Also return the :class:`phisim.linalg.SolveInfo` (iterations per sample).
+        engine: FFT engine of the preconditioner.
+
+    Returns:
+        ``u`` (shape of ``rhs``), or ``(u, info)`` with ``return_info``. Differentiable w.r.t. ``rhs``
+        (implicit adjoint solve).
+
+    Raises:
+        SolveError: CG did not converge.
+        ParameterError, BoundaryError, ShapeError, NonFiniteError: For invalid input.
+    """
+    from .linalg import Solve, cg
+
+    rank = _check_rhs(rhs)
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    _check_incompatible(incompatible)
+    if preconditioner not in ("spectral", None):
+        raise ParameterError(f"preconditioner must be 'spectral' or None, got {preconditioner!r}")
+    if not bool(torch.isfinite(rhs).all()):
+        raise NonFiniteError("masked_poisson_solve: rhs contains NaN or Inf")
+    solve = Solve() if solve is None else solve
+    m = _mask_tensor(mask, rhs)
+    if bool((m.flatten(1).sum(1) == 0).any()):
+        raise ParameterError("masked_poisson_solve: the mask has no fluid cell in some sample")
+    faces = _open_faces(m, kinds)
+    singular = _singular(kinds)
+
+    f = rhs
+    b = boundary_source(rhs, dx, kinds, values)
+    if b is not None:
+        f = f - b
+    f = f * m
+    n_fluid = m.flatten(1).sum(1)
+    dims = tuple(range(1, rhs.ndim))
+
+    def project(t: torch.Tensor) -> torch.Tensor:
+        mm = m.to(t.dtype)
+        mean = (t * mm).sum(dim=dims, keepdim=True) / n_fluid.to(t.dtype).reshape((-1,) + (1,) * rank)
+        return t - mean * mm
+
+    if singular:
+        tol = _compat_tol(rhs.dtype) if compat_rtol is None else compat_rtol
+        with torch.no_grad():
+            mean = (f.sum(dim=dims) / n_fluid).abs()
+            rms = ((f**2).sum(dim=dims) / n_fluid).sqrt()
+            bad = mean > tol * rms
+        if bool(bad.any()):
+            msg = (f"masked_poisson_solve: singular problem (no Dirichlet side) with an incompatible rhs for "
+                   f"samples {[int(i) for i in torch.nonzero(bad).flatten()]} (mean over fluid cells beyond "
+                   f"{tol:g} x RMS). Fix the data or pass incompatible='project'/'warn'.")
+            if incompatible == "raise":
+                raise ParameterError(msg)
+            if incompatible == "warn":
+                warnings.warn(msg + " The mean was removed.", RuntimeWarning, stacklevel=2)
+
+    def operator(x: torch.Tensor) -> torch.Tensor:
+        mm = m.to(x.dtype)
+        fc = [fa.to(x.dtype) for fa in faces]
+        return -_laplace_zero(x * mm, dx, kinds, fc) * mm + (1 - mm) * x
+
+    inv = _inverse_eigs(tuple(rhs.shape[1:]), dx, kinds, rhs.device)
+
+    def spectral_pre(r: torch.Tensor) -> torch.Tensor:
+        mm = m.to(r.dtype)
+        z = -_apply_multiplier(r * mm, kinds, inv, engine)  # (-∇²_box)^-1 (constant mode dropped)
+        return z * mm + (1 - mm) * r
+
+    out = cg(operator, -f, x0, solve=solve, preconditioner=spectral_pre if preconditioner else None,
+             return_info=return_info, project=project if singular else None)
+    if return_info:
+        x, info = out
+        return x * m, info
+    return out * m
+
+
+# ----------------------------------------------------------------------------------------------
+# fields
+
+
+def field_kinds_and_values(boundary) -> tuple[Kinds, tuple]:
+    """Translate a :class:`phisim.boundary.Boundary` into per-side kinds and values for a scalar.
+
+    Each side's scalar ghost rule decides: an odd rule (Dirichlet, and the pressure of an open side)
+    gives ``'dirichlet'`` with its face value, an even rule (Neumann, walls, open) ``'neumann'`` with
+    its outward flux, periodic stays periodic.
+
+    Args:
+        boundary: A :class:`phisim.boundary.Boundary`.
+
+    Returns:
+        ``(kinds, values)`` as accepted by :func:`spectral_poisson_solve`.
+
+    Raises:
+        BoundaryError: For a rule this solver does not know.
+    """
+    kinds, values = [], []
+    for lo, hi in boundary.sides:
+        pk, pv = [], []
+        for cond in (lo, hi):
+            rule = cond.rule("scalar", None)
+            if rule[0] == "periodic":
+                pk.append("periodic")
+                pv.append(None)
+            elif rule[0] == "odd":
+                pk.append("dirichlet")
+                pv.append(rule[1])
+            elif rule[0] == "even":
+                pk.append("neumann")
+                pv.append(rule[1])
+            else:
+                raise BoundaryError(f"boundary condition {cond!r} has an unknown ghost rule {rule!r}")
+        kinds.append(tuple(pk))
+        values.append(tuple(pv))
+    return tuple(kinds), tuple(values)
+
+
+def solve_poisson(rhs, *, mask=None, solve=None, incompatible: str = "raise", compat_rtol: float | None = None,
+                  engine: str | None = None, return_info: bool = False):
+    """Solve ``∇² u = rhs`` for a scalar :class:`phisim.field.CenteredGrid`, boundary from the field.
+
+    The solution takes the grid and boundary of ``rhs``: its boundary conditions (values on the cell
+    face) are the ones the solution satisfies. Without ``mask`` the direct spectral solver is used
+    (exact to round-off); with ``mask`` (True = fluid) masked PCG (:func:`masked_poisson_solve`).
+
+    Args:
+        rhs: Scalar CenteredGrid, values ``(B, *resolution)``.
+        mask: Optional fluid indicator (``resolution`` or ``(B, *resolution)``), or a CenteredGrid of it.
+        solve: :class:`phisim.linalg.Solve` settings for the masked solve.
+        incompatible: Singular-problem policy (see :func:`spectral_poisson_solve`).
+        compat_rtol: Tolerance of the compatibility check.
+        engine: FFT engine.
+        return_info: With a mask, also return the SolveInfo.
+
+    Returns:
+        The solution as a CenteredGrid (and the SolveInfo with ``mask`` and ``return_info``).
+
+    Raises:
+        ShapeError: For a vector field.
+        ParameterError, BoundaryError, SolveError: See the tensor-level solvers.
+    """
+    from .field import CenteredGrid
+
+    if not isinstance(rhs, CenteredGrid):
+        raise ParameterError(f"solve_poisson expects a CenteredGrid, got {type(rhs).__name__}; "
+                             "use spectral_poisson_solve for tensors")
+    if rhs.values.ndim != rhs.grid.rank + 1:
+        raise ShapeError("solve_poisson needs a scalar field (B, *resolution); solve vector components separately")
+    kinds, values = field_kinds_and_values(rhs.boundary)
+    dx = rhs.grid.dx
+    if mask is None:
+        u = spectral_poisson_solve(rhs.values, dx, kinds, values, incompatible=incompatible,
+                                   compat_rtol=compat_rtol, engine=engine)
+        return rhs.with_values(u)
+    if isinstance(mask, CenteredGrid):
+        mask = mask.values
+    out = masked_poisson_solve(rhs.values, mask, dx, kinds, values, solve=solve, incompatible=incompatible,
+                               compat_rtol=compat_rtol, return_info=return_info, engine=engine)
+    if return_info:
+        return rhs.with_values(out[0]), out[1]
+    return rhs.with_values(out)
