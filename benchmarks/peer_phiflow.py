@@ -66,7 +66,7 @@ def case_list(suite: str) -> list[tuple[str, str, str]]:
     return [(c, s, d) for c in names for s in CASES[c][0] for d in CASES[c][1]]
 
 
-def drive(case: str, size: str, dtype: str, *, python: str = VENV_PYTHON, threads: int = 2, repeats: int = 5,
+def drive(case: str, size: str, dtype: str, *, python: str = VENV_PYTHON, threads: int = 1, repeats: int = 5,
           timeout_s: float = 900.0, quick: bool = False) -> dict:
     """Run one case in a child process of the PhiFlow venv and return its JSON result.
 
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size")
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--suite", choices=list(SUITES) + ["all"])
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--list", action="store_true")

@@ -9,8 +9,8 @@ import statistics
 import time
 from typing import Any, Callable
 
-#: Threads used by both sides unless told otherwise (the benchmark machine has 2 cores).
-DEFAULT_THREADS = 2
+#: Threads used by both sides unless told otherwise (see docs/BENCHMARKS.md: 2 shared cores).
+DEFAULT_THREADS = 1
 
 
 def set_threads(n: int) -> None:

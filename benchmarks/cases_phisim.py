@@ -1,0 +1,207 @@
+"""phisim side of the benchmarks: one small function per case, timed in-process.
+
+Every case takes ``(size, dtype, repeats, device)`` and returns a result dict like the PhiFlow
+side's JSON line (``median_s``, ``repeats``, ``iterations`` ...). A case whose phisim module does
+not exist yet (or lacks the function) returns ``{"error": "n/a: ..."}`` instead of raising, so
+the runner can always produce its tables.
+
+Inputs come from ``benchmarks/inputs.py``: the same numbers the PhiFlow side uses.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from typing import Callable
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import inputs  # noqa: E402
+from timing import time_fn, time_steps  # noqa: E402
+
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+class NotAvailable(Exception):
+    """The phisim module or function a case needs does not exist (yet)."""
+
+
+def _need(module: str, *names: str):
+    """Import ``phisim.<module>`` and return the requested attributes, or raise NotAvailable."""
+    try:
+        mod = importlib.import_module(f"phisim.{module}")
+    except ImportError as e:
+        raise NotAvailable(f"phisim.{module} not available ({e})") from e
+    out = []
+    for n in names:
+        if not hasattr(mod, n):
+            raise NotAvailable(f"phisim.{module}.{n} not available")
+        out.append(getattr(mod, n))
+    return out[0] if len(out) == 1 else tuple(out)
+
+
+def _grid(resolution):
+    from phisim import Grid
+
+    return Grid(resolution)  # bounds None: dx = 1, as inputs.py assumes
+
+
+def _tensor(a, dtype, device):
+    return torch.as_tensor(np.asarray(a), dtype=_DTYPES[dtype], device=device)
+
+
+def _centered(arr, boundary, dtype, device):
+    from phisim import CenteredGrid
+
+    return CenteredGrid(_tensor(arr, dtype, device), _grid(arr.shape[1:]), boundary)
+
+
+def _staggered(comps, resolution, boundary, dtype, device):
+    from phisim import StaggeredGrid
+
+    return StaggeredGrid([_tensor(c, dtype, device) for c in comps], _grid(resolution), boundary)
+
+
+def _reps(size: str, repeats: int) -> int:
+    res, b = inputs.parse_size(size)
+    return 3 if int(np.prod(res)) * b >= 1024 ** 2 else repeats
+
+
+# ---- operators ----------------------------------------------------------------------------------
+
+def laplace(size: str, dtype: str, repeats: int, device: str, boundary: str) -> dict:
+    """``differential.laplace`` of a centred scalar with zero Dirichlet or periodic boundaries."""
+    lap = _need("differential", "laplace")
+    res, nb = inputs.parse_size(size)
+    u = _centered(inputs.scalar_field(res, nb, dtype=dtype), boundary, dtype, device)
+    return time_fn(lambda: lap(u), repeats=_reps(size, repeats), warmup=2, device=device, min_total_s=0.5)
+
+
+def advect(size: str, dtype: str, repeats: int, device: str, scheme: str) -> dict:
+    """Semi-Lagrangian or MacCormack advection of a centred scalar by a closed-box staggered velocity."""
+    fn = _need("advection", scheme)
+    res, nb = inputs.parse_size(size)
+    u = _centered(inputs.scalar_field(res, nb, dtype=dtype), "dirichlet", dtype, device)
+    v = _staggered(inputs.staggered_velocity(res, nb, amplitude=inputs.ADVECTION["velocity_amplitude"], dtype=dtype),
+                   res, "wall", dtype, device)
+    dt = inputs.ADVECTION["dt"]
+    return time_fn(lambda: fn(u, v, dt), repeats=_reps(size, repeats), warmup=2, device=device, min_total_s=0.5)
+
+
+# ---- Poisson ------------------------------------------------------------------------------------
+
+def poisson_cg(size: str, dtype: str, repeats: int, device: str) -> dict:
+    """CG (``linalg.cg``) on phisim's zero-Dirichlet Laplacian, rtol 1e-5, with iteration count."""
+    from phisim.linalg import Solve, cg
+
+    lap = _need("differential", "laplace")
+    res, nb = inputs.parse_size(size)
+    f = _centered(inputs.poisson_rhs(res, nb, dtype=dtype), "dirichlet", dtype, device)
+    grid, bc = f.grid, f.boundary
+    from phisim import CenteredGrid
+
+    def op(x):  # -laplace is SPD
+        return -lap(CenteredGrid(x, grid, bc)).values
+
+    p = inputs.POISSON
+    solve = Solve(rtol=p["rtol"], atol=p["atol"], max_iter=p["max_iter"])
+    info = {}
+
+    def once():
+        x, inf = cg(op, -f.values, solve=solve, return_info=True)
+        info["iterations"] = int(torch.as_tensor(inf.iterations).max())
+        return x
+
+    r = time_fn(once, repeats=3 if int(np.prod(res)) >= 512 ** 2 else repeats, warmup=1, device=device)
+    r["iterations"] = info["iterations"]
+    return r
+
+
+def poisson_direct(size: str, dtype: str, repeats: int, device: str) -> dict:
+    """The fast direct (DST) zero-Dirichlet Poisson solve of ``phisim.poisson``."""
+    solve = _need("poisson", "solve_poisson")
+    res, nb = inputs.parse_size(size)
+    f = _centered(inputs.poisson_rhs(res, nb, dtype=dtype), "dirichlet", dtype, device)
+    return time_fn(lambda: solve(f), repeats=_reps(size, repeats), warmup=2, device=device, min_total_s=0.5)
+
+
+# ---- heat ---------------------------------------------------------------------------------------
+
+def heat_spectral(size: str, dtype: str, repeats: int, device: str) -> dict:
+    """Exact spectral diffusion step on a periodic grid (``diffusion.spectral``)."""
+    fn = _need("diffusion", "diffuse_spectral")
+    res, nb = inputs.parse_size(size)
+    u = _centered(inputs.periodic_scalar_field(res, nb, dtype=dtype), "periodic", dtype, device)
+    h = inputs.HEAT
+    return time_fn(lambda: fn(u, h["dt"], viscosity=h["viscosity"]), repeats=_reps(size, repeats), warmup=2,
+                   device=device, min_total_s=0.5)
+
+
+# ---- fluid --------------------------------------------------------------------------------------
+
+def _smoke_setup(size: str, dtype: str, device: str):
+    step_fn = _need("fluid", "smoke_step")
+    res, nb = inputs.parse_size(size)
+    init = inputs.smoke_initial(res, nb, dtype=dtype)
+    smoke = _centered(init["smoke"], "neumann", dtype, device)
+    inflow = _centered(init["inflow"], "neumann", dtype, device)
+    v = _staggered(init["velocity"], res, "wall", dtype, device)
+    s = inputs.SMOKE
+    return step_fn, smoke, inflow, v, s
+
+
+def smoke_step(size: str, dtype: str, repeats: int, device: str) -> dict:
+    """One smoke step (MacCormack smoke, semi-Lagrangian velocity, buoyancy, closed-box projection)."""
+    step_fn, smoke, inflow, v, s = _smoke_setup(size, dtype, device)
+
+    def step(state):
+        return step_fn(state, s["dt"], inflow=inflow, buoyancy=s["buoyancy"], rtol=s["rtol"], atol=s["atol"])
+
+    timing, _ = time_steps(step, (smoke, v, None), repeats=repeats, warmup=2, device=device)
+    return timing
+
+
+def smoke_backward8(size: str, dtype: str, repeats: int, device: str) -> dict:
+    """Forward and backward through 8 smoke steps; gradient of sum(smoke^2) w.r.t. the initial velocity."""
+    step_fn, smoke, inflow, v, s = _smoke_setup(size, dtype, device)
+
+    def once():
+        vv = v.with_values([c.detach().requires_grad_(True) for c in v.values])
+        state = (smoke, vv, None)
+        for _ in range(8):
+            state = step_fn(state, s["dt"], inflow=inflow, buoyancy=s["buoyancy"], rtol=s["rtol"], atol=s["atol"])
+        loss = 0.5 * (state[0].values ** 2).sum()
+        return torch.autograd.grad(loss, vv.values)
+
+    return time_fn(once, repeats=3, warmup=1, device=device)
+
+
+#: case name -> function(size, dtype, repeats, device); names match ``peer_phiflow.CASES``.
+CASES: dict[str, Callable[..., dict]] = {
+    "laplace_dirichlet": lambda *a: laplace(*a, boundary="dirichlet"),
+    "laplace_periodic": lambda *a: laplace(*a, boundary="periodic"),
+    "advect_semi_lagrangian": lambda *a: advect(*a, scheme="semi_lagrangian"),
+    "advect_maccormack": lambda *a: advect(*a, scheme="mac_cormack"),
+    "poisson_cg": poisson_cg,
+    "poisson_direct": poisson_direct,
+    "heat_fourier": heat_spectral,
+    "smoke_step": smoke_step,
+    "smoke_backward8": smoke_backward8,
+}
+
+
+def run_case(case: str, size: str, dtype: str, repeats: int = 5, device: str = "cpu") -> dict:
+    """Run one phisim case; never raises (missing modules give ``n/a``, failures an ``error``)."""
+    base = {"case": case, "size": size, "dtype": dtype, "device": device}
+    if case not in CASES:
+        return {**base, "error": "n/a: no phisim case"}
+    try:
+        res = CASES[case](size, dtype, repeats, device)
+    except NotAvailable as e:
+        return {**base, "error": f"n/a: {e}"}
+    except Exception as e:  # report, do not crash the run
+        return {**base, "error": f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"}
+    res.pop("times_s", None)
+    return {**base, **res}
