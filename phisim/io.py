@@ -1,0 +1,979 @@
+"""HDF5 files for simulations and training results, in the layout of The Well (PolymathicAI/the_well).
+
+A file written by :class:`SimulationWriter` holds ``B`` trajectories (the batch) of ``T`` frames on one grid:
+
+.. code-block:: text
+
+    /                          attrs: dataset_name, grid_type='cartesian', n_spatial_dims, n_trajectories=B,
+                                      simulation_parameters=[names], and one attribute per parameter
+    /dimensions                attrs: spatial_dims=['x', 'y'(, 'z')]
+        time      (T,)         attrs: sample_varying=False, time_varying=True
+        x, y, z   (n_axis,)    cell-centre coordinates; sample_varying=False, time_varying=False
+    /boundary_conditions/<axis>_<type>       e.g. x_periodic, y_wall, y_open
+                               attrs: bc_type (PERIODIC | WALL | OPEN), associated_dims=[axis],
+                                      associated_fields=[], sample_varying=False, time_varying=False
+        mask      (n_axis,)    bool, True at the boundary cells (index 0 and/or -1) with this type
+    /scalars                   attrs: field_names=[parameter names]
+        <param>   ()           attrs: sample_varying=False, time_varying=False
+    /t0_fields                 attrs: field_names; scalar fields (B, T, *res)
+    /t1_fields                 attrs: field_names; vector fields (B, T, *res, d) at cell centres, channel LAST
+    /t2_fields                 attrs: field_names=[] (no tensor fields are written)
+        every field: attrs sample_varying=True, time_varying=True, dim_varying=[True] * d
+    -- phisim additions, which The Well's tools ignore --
+    /staggered/<name>_<axis>   (B, T, *face_shape(axis)): the exact MAC face values of a StaggeredGrid
+    /extras                    attrs: phisim_format, bounds (JSON), boundary (JSON), field_kinds (JSON)
+        config    ()           the run configuration as a JSON string (``"null"`` when none was given)
+    /training/<method>/        1-D curves written by :class:`TrainingLog`: iteration, loss, metric, ...
+
+Boundary types are derived from :class:`~phisim.boundary.Boundary` side by side: ``Periodic`` gives PERIODIC;
+``NoSlipWall``, ``FreeSlipWall``, ``Dirichlet`` and ``Neumann`` give WALL (a closed side with a prescribed
+value or flux); ``Open`` gives OPEN. The exact conditions (values, fluxes, wall velocities) are kept in
+``/extras`` so :func:`read_simulation` rebuilds the same ``Boundary``.
+
+Frames are written one at a time into resizable datasets (chunks of one sample and one frame, gzip with
+the shuffle filter) and the file is flushed after every frame. The ``time`` dataset grows last, so its
+length is the number of completed frames: a run killed mid-way leaves a file that :func:`read_simulation`
+reads with every completed frame (a partly written frame beyond ``len(time)`` is ignored).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+
+from .boundary import (
+    Boundary,
+    BoundaryCondition,
+    Dirichlet,
+    FreeSlipWall,
+    Neumann,
+    NoSlipWall,
+    Open,
+    Periodic,
+)
+from .errors import FileFormatError, ParameterError, ShapeError
+from .field import CenteredGrid, StaggeredGrid
+from .grid import AXIS_NAMES, Grid
+
+__all__ = [
+    "SimulationWriter",
+    "SimulationData",
+    "read_simulation",
+    "TrainingLog",
+    "read_training",
+    "well_bc_type",
+    "FIELD_KINDS",
+]
+
+FIELD_KINDS = ("scalar", "vector", "staggered")
+FORMAT_NAME = "phisim-well/1"
+_COMPRESSION = "gzip"
+
+PathLike = str | os.PathLike
+
+
+# ---- helpers ------------------------------------------------------------------------------------------
+
+
+def _str_array(names: Sequence[str]) -> np.ndarray:
+    """A numpy array of variable-length UTF-8 strings (also for an empty list)."""
+    return np.array([str(n) for n in names], dtype=h5py.string_dtype())
+
+
+def _attr_str(value) -> str:
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        return _attr_str(value.item())
+    return str(value)
+
+
+def _attr_str_list(value) -> list[str]:
+    if isinstance(value, (str, bytes)):
+        return [_attr_str(value)]
+    return [_attr_str(v) for v in np.atleast_1d(np.asarray(value, dtype=object))]
+
+
+def _json_default(obj):
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu().tolist()
+    if isinstance(obj, torch.dtype):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def _to_json(obj, what: str) -> str:
+    try:
+        return json.dumps(obj, default=_json_default, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(
+            f"{what} must be JSON-serialisable (numbers, strings, lists, dicts, numpy/torch arrays, "
+            f"dataclasses): {exc}"
+        ) from exc
+
+
+def _np_dtype(dtype) -> np.dtype:
+    if dtype is None:
+        return np.dtype(np.float32)
+    if isinstance(dtype, torch.dtype):
+        dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype, dtype)
+    try:
+        dt = np.dtype(dtype)
+    except TypeError as exc:
+        raise ParameterError(f"dtype {dtype!r} is not a floating dtype") from exc
+    if dt.kind != "f":
+        raise ParameterError(f"fields are stored as floating point; got dtype {dt}")
+    return dt
+
+
+def _as_numpy(values, what: str) -> np.ndarray:
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu()
+        if values.is_complex():
+            raise ShapeError(f"{what}: complex values cannot be stored; store real and imaginary parts")
+        return values.numpy()
+    arr = np.asarray(values)
+    if arr.dtype.kind not in "fiub":
+        raise ShapeError(f"{what}: expected a numeric array, got dtype {arr.dtype}")
+    return arr
+
+
+# ---- boundary <-> Well bc_type ------------------------------------------------------------------------
+
+
+def well_bc_type(condition: BoundaryCondition) -> str:
+    """The Well's ``bc_type`` of one phisim boundary condition.
+
+    Args:
+        condition: A phisim condition on one side of one axis.
+
+    Returns:
+        ``'PERIODIC'`` for :class:`Periodic`, ``'OPEN'`` for :class:`Open`, and ``'WALL'`` for
+        :class:`NoSlipWall`, :class:`FreeSlipWall`, :class:`Dirichlet` and :class:`Neumann` (a closed side
+        with a prescribed value or flux).
+
+    Raises:
+        ParameterError: For a condition type this module does not know.
+    """
+    if isinstance(condition, Periodic):
+        return "PERIODIC"
+    if isinstance(condition, Open):
+        return "OPEN"
+    if isinstance(condition, (NoSlipWall, FreeSlipWall, Dirichlet, Neumann)):
+        return "WALL"
+    raise ParameterError(f"no Well boundary type is known for condition {condition!r}")
+
+
+def _condition_to_json(c: BoundaryCondition) -> dict:
+    if isinstance(c, Periodic):
+        return {"type": "periodic"}
+    if isinstance(c, Open):
+        return {"type": "open"}
+    if isinstance(c, FreeSlipWall):
+        return {"type": "free_slip"}
+    if isinstance(c, NoSlipWall):
+        v = None if c.velocity is None else [float(x) for x in c.velocity]
+        return {"type": "no_slip", "velocity": v}
+    if isinstance(c, Dirichlet):
+        return {"type": "dirichlet", "value": _value_to_json(c.value)}
+    if isinstance(c, Neumann):
+        return {"type": "neumann", "flux": _value_to_json(c.flux)}
+    raise ParameterError(f"cannot store boundary condition {c!r}")
+
+
+def _value_to_json(v):
+    if isinstance(v, torch.Tensor):
+        return {"tensor": v.detach().cpu().tolist()}
+    if isinstance(v, np.ndarray):
+        return {"tensor": v.tolist()}
+    if isinstance(v, (tuple, list)):
+        return [float(x) for x in v]
+    return float(v)
+
+
+def _value_from_json(v):
+    if isinstance(v, dict):
+        return torch.tensor(v["tensor"])
+    if isinstance(v, list):
+        return tuple(float(x) for x in v)
+    return float(v)
+
+
+def _condition_from_json(d: dict) -> BoundaryCondition:
+    kind = d.get("type")
+    if kind == "periodic":
+        return Periodic()
+    if kind == "open":
+        return Open()
+    if kind == "free_slip":
+        return FreeSlipWall()
+    if kind == "no_slip":
+        v = d.get("velocity")
+        return NoSlipWall(None if v is None else tuple(float(x) for x in v))
+    if kind == "dirichlet":
+        return Dirichlet(_value_from_json(d["value"]))
+    if kind == "neumann":
+        return Neumann(_value_from_json(d["flux"]))
+    raise FileFormatError(f"unknown boundary condition {d!r} in /extras/boundary")
+
+
+_FROM_WELL = {"PERIODIC": Periodic, "WALL": NoSlipWall, "OPEN": Open}
+
+
+# ---- writer -------------------------------------------------------------------------------------------
+
+
+def _set_varying(obj, *, sample: bool, time: bool, dims: int | None = None) -> None:
+    obj.attrs["sample_varying"] = bool(sample)
+    obj.attrs["time_varying"] = bool(time)
+    if dims is not None:
+        obj.attrs["dim_varying"] = np.ones(dims, dtype=bool)
+
+
+class SimulationWriter:
+    """Write a batch of simulated trajectories to an HDF5 file in The Well's layout, one frame at a time.
+
+    The file layout is described in the module docstring. Every :meth:`append` writes one frame of every
+    declared field and flushes the file, so a run killed at any point leaves a readable file with all
+    completed frames.
+
+    Args:
+        path: File to create (parent folders are created; an existing file is replaced).
+        grid: The simulation grid.
+        boundary: The domain boundary (a :class:`~phisim.boundary.Boundary` or anything
+            :meth:`Boundary.create` accepts); it gives the Well ``boundary_conditions`` groups.
+        dataset_name: The Well ``dataset_name`` root attribute.
+        fields: Field name -> kind. ``'scalar'``: ``(B, *res)`` values, stored in ``/t0_fields``.
+            ``'vector'``: ``(B, d, *res)`` cell-centred values (stored channel-last in ``/t1_fields``);
+            a :class:`StaggeredGrid` given for the first frame turns the field into ``'staggered'``.
+            ``'staggered'``: a :class:`StaggeredGrid` or a sequence of ``d`` face arrays; stored averaged
+            to the cell centres in ``/t1_fields`` and exactly in ``/staggered/<name>_<axis>``.
+        parameters: Simulation parameters (name -> number), written as root attributes, listed in
+            ``simulation_parameters`` and stored in ``/scalars``.
+        batch_size: Number of trajectories ``B`` (the Well's ``n_trajectories``).
+        config: The run configuration (JSON-serialisable), stored in ``/extras/config``.
+        dtype: Storage dtype of fields and coordinates (default float32, as in The Well). Use
+            ``torch.float64`` for an exact double-precision round trip; other input is cast to it.
+        compression_level: gzip level 0-9.
+
+    Raises:
+        ParameterError: For unknown field kinds, bad names, non-numeric parameters, a non-positive
+            batch size or a non-serialisable config.
+
+    Example:
+        >>> with SimulationWriter("run.h5", grid, "periodic", dataset_name="plume",
+        ...                       fields={"density": "scalar", "velocity": "staggered"},
+        ...                       parameters={"viscosity": 0.01}, batch_size=4) as w:
+        ...     for step in range(n):
+        ...         w.append(step * dt, density=rho, velocity=v)  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        grid: Grid,
+        boundary,
+        *,
+        dataset_name: str,
+        fields: Mapping[str, str],
+        parameters: Mapping[str, float] | None = None,
+        batch_size: int,
+        config: Any = None,
+        dtype=None,
+        compression_level: int = 4,
+    ):
+        if not isinstance(grid, Grid):
+            raise ParameterError(f"grid must be a phisim Grid, got {type(grid).__name__}")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+            raise ParameterError(f"batch_size must be a positive int, got {batch_size!r}")
+        if not isinstance(dataset_name, str) or not dataset_name:
+            raise ParameterError("dataset_name must be a non-empty string")
+        if not fields:
+            raise ParameterError("declare at least one field, e.g. fields={'density': 'scalar'}")
+        if not 0 <= int(compression_level) <= 9:
+            raise ParameterError(f"compression_level must be in 0..9, got {compression_level}")
+        self.grid = grid
+        self.boundary = Boundary.create(boundary, grid.rank)
+        self.batch_size = int(batch_size)
+        self.dtype = _np_dtype(dtype)
+        self.kinds: dict[str, str] = {}
+        for name, kind in fields.items():
+            if not isinstance(name, str) or not name or "/" in name or name in ("time",):
+                raise ParameterError(f"invalid field name {name!r} (non-empty, no '/', not 'time')")
+            if kind not in FIELD_KINDS:
+                raise ParameterError(f"field {name!r}: kind must be one of {FIELD_KINDS}, got {kind!r}")
+            self.kinds[name] = kind
+        params = {}
+        for name, value in (parameters or {}).items():
+            if not isinstance(name, str) or not name or "/" in name:
+                raise ParameterError(f"invalid parameter name {name!r}")
+            if isinstance(value, torch.Tensor) and value.numel() == 1:
+                value = value.item()
+            if isinstance(value, np.generic):
+                value = value.item()
+            if not isinstance(value, (int, float, bool)):
+                raise ParameterError(
+                    f"parameter {name!r} = {value!r} is not a number; put non-numeric settings in config="
+                )
+            params[name] = value
+        self.parameters = params
+        config_json = _to_json(config, "config")
+        self._level = int(compression_level)
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._file = h5py.File(self.path, "w")
+        except OSError as exc:
+            raise FileFormatError(f"cannot create HDF5 file {self.path}: {exc}") from exc
+        self._n = 0
+        self._last_time = -math.inf
+        try:
+            self._write_header(dataset_name, config_json)
+            self._file.flush()
+        except BaseException:
+            self._file.close()
+            raise
+
+    # -- layout --
+    def _write_header(self, dataset_name: str, config_json: str) -> None:
+        f, g, B, d = self._file, self.grid, self.batch_size, self.grid.rank
+        f.attrs["dataset_name"] = dataset_name
+        f.attrs["grid_type"] = "cartesian"
+        f.attrs["n_spatial_dims"] = d
+        f.attrs["n_trajectories"] = B
+        f.attrs["simulation_parameters"] = _str_array(list(self.parameters))
+        for name, value in self.parameters.items():
+            f.attrs[name] = value
+
+        dims = f.create_group("dimensions")
+        dims.attrs["spatial_dims"] = _str_array(AXIS_NAMES[:d])
+        t = dims.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+        _set_varying(t, sample=False, time=True)
+        for a in range(d):
+            c = dims.create_dataset(AXIS_NAMES[a], data=g.center_coords(a, torch.float64).numpy().astype(self.dtype))
+            _set_varying(c, sample=False, time=False)
+
+        bcs = f.create_group("boundary_conditions")
+        for a in range(d):
+            by_type: dict[str, list[int]] = {}
+            for side, cond in zip((0, -1), self.boundary.sides[a]):
+                by_type.setdefault(well_bc_type(cond), []).append(side)
+            for bc_type, sides in by_type.items():
+                grp = bcs.create_group(f"{AXIS_NAMES[a]}_{bc_type.lower()}")
+                grp.attrs["bc_type"] = bc_type
+                grp.attrs["associated_dims"] = _str_array([AXIS_NAMES[a]])
+                grp.attrs["associated_fields"] = _str_array([])
+                _set_varying(grp, sample=False, time=False)
+                mask = np.zeros(g.resolution[a], dtype=bool)
+                mask[sides] = True
+                grp.create_dataset("mask", data=mask)
+
+        sc = f.create_group("scalars")
+        sc.attrs["field_names"] = _str_array(list(self.parameters))
+        for name, value in self.parameters.items():
+            ds = sc.create_dataset(name, data=np.asarray(value, dtype=np.float64))
+            _set_varying(ds, sample=False, time=False)
+
+        groups = {i: f.create_group(f"t{i}_fields") for i in range(3)}
+        for i in range(3):
+            names = [n for n, k in self.kinds.items() if (k == "scalar") == (i == 0)] if i < 2 else []
+            groups[i].attrs["field_names"] = _str_array(names)
+        for name, kind in self.kinds.items():
+            if kind == "scalar":
+                self._create(groups[0], name, g.resolution)
+            else:
+                self._create(groups[1], name, g.resolution + (d,))
+        f.create_group("staggered")
+        for name, kind in self.kinds.items():
+            if kind == "staggered":
+                self._create_staggered(name)
+
+        ex = f.create_group("extras")
+        ex.attrs["phisim_format"] = FORMAT_NAME
+        ex.attrs["bounds"] = json.dumps([list(b) for b in g.bounds])
+        ex.attrs["boundary"] = json.dumps(
+            [[_condition_to_json(c) for c in side] for side in self.boundary.sides]
+        )
+        ex.attrs["field_kinds"] = json.dumps(self.kinds)
+        ex.create_dataset("config", data=config_json, dtype=h5py.string_dtype())
+
+    def _create(self, group, name: str, frame_shape: tuple[int, ...]):
+        kw = {"compression": _COMPRESSION, "compression_opts": self._level, "shuffle": True} if self._level else {}
+        ds = group.create_dataset(
+            name,
+            shape=(self.batch_size, 0, *frame_shape),
+            maxshape=(self.batch_size, None, *frame_shape),
+            chunks=(1, 1, *frame_shape),
+            dtype=self.dtype,
+            **kw,
+        )
+        _set_varying(ds, sample=True, time=True, dims=self.grid.rank)
+        return ds
+
+    def _create_staggered(self, name: str) -> None:
+        for a in range(self.grid.rank):
+            ds = self._create(self._file["staggered"], f"{name}_{AXIS_NAMES[a]}", self.grid.face_shape(a))
+            ds.attrs["component"] = a
+            ds.attrs["field"] = name
+        self.kinds[name] = "staggered"
+        self._file["extras"].attrs["field_kinds"] = json.dumps(self.kinds)
+
+    # -- frames --
+    @property
+    def n_frames(self) -> int:
+        """Number of frames written so far."""
+        return self._n
+
+    @property
+    def file(self) -> h5py.File:
+        """The open ``h5py.File`` (e.g. to give :class:`TrainingLog` a group of the same file)."""
+        self._check_open()
+        return self._file
+
+    def _check_open(self) -> None:
+        if self._file is None or not self._file.id.valid:
+            raise ParameterError(f"SimulationWriter for {self.path} is closed")
+
+    def _frame_arrays(self, name: str, value) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """(centre array in storage layout, staggered components or None) for one frame of one field."""
+        kind, g, B, d = self.kinds[name], self.grid, self.batch_size, self.grid.rank
+        if isinstance(value, (CenteredGrid, StaggeredGrid)) and value.grid != g:
+            raise ShapeError(f"field {name!r} lives on {value.grid}, the file on {g}")
+        if kind == "scalar":
+            if isinstance(value, StaggeredGrid) or (isinstance(value, CenteredGrid) and value.is_vector):
+                raise ShapeError(f"field {name!r} is declared 'scalar' but got a vector field")
+            arr = _as_numpy(value.values if isinstance(value, CenteredGrid) else value, name)
+            if arr.shape != (B, *g.resolution):
+                raise ShapeError(f"scalar field {name!r} must have shape {(B, *g.resolution)}, got {arr.shape}")
+            return arr, None
+        stag = None
+        if isinstance(value, StaggeredGrid):
+            if kind == "vector":
+                if self._n > 0:
+                    raise ShapeError(
+                        f"field {name!r} got a StaggeredGrid after centred frames; declare it 'staggered'"
+                    )
+                self._create_staggered(name)
+                kind = "staggered"
+            stag = tuple(_as_numpy(v, name) for v in value.values)
+            centred = value.at_centers().values
+        elif kind == "staggered":
+            if isinstance(value, CenteredGrid) or not isinstance(value, (tuple, list)) or len(value) != d:
+                raise ShapeError(
+                    f"staggered field {name!r} needs a StaggeredGrid or a sequence of {d} face arrays"
+                )
+            stag = tuple(_as_numpy(v, f"{name}[{i}]") for i, v in enumerate(value))
+            for i, s in enumerate(stag):
+                if s.shape != (B, *g.face_shape(i)):
+                    raise ShapeError(
+                        f"staggered field {name!r} component {i} must have shape {(B, *g.face_shape(i))}, "
+                        f"got {s.shape}"
+                    )
+            centred = StaggeredGrid(tuple(torch.as_tensor(s) for s in stag), g, self.boundary).at_centers().values
+        else:
+            centred = value.values if isinstance(value, CenteredGrid) else value
+        arr = _as_numpy(centred, name)
+        if arr.shape != (B, d, *g.resolution):
+            raise ShapeError(f"vector field {name!r} must have shape {(B, d, *g.resolution)}, got {arr.shape}")
+        return np.moveaxis(arr, 1, -1), stag
+
+    def append(self, time: float, **fields) -> None:
+        """Write one frame of every declared field, then flush the file.
+
+        Args:
+            time: The frame's simulation time (finite, larger than the previous frame's).
+            **fields: One value per declared field: a :class:`CenteredGrid`, :class:`StaggeredGrid`, torch
+                tensor or numpy array with the batch axis first (see the class docstring for shapes).
+
+        Raises:
+            ParameterError: For missing or unknown field names, a non-increasing time or a closed writer.
+            ShapeError: For values whose shape, batch size or kind does not match the declaration.
+        """
+        self._check_open()
+        missing = [n for n in self.kinds if n not in fields]
+        unknown = [n for n in fields if n not in self.kinds]
+        if missing or unknown:
+            raise ParameterError(
+                f"append needs exactly the declared fields {list(self.kinds)}; missing {missing}, unknown {unknown}"
+            )
+        try:
+            t = float(time)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"time must be a number, got {time!r}") from exc
+        if not math.isfinite(t) or t <= self._last_time:
+            raise ParameterError(f"time must be finite and increasing: got {t} after {self._last_time}")
+        frames = {name: self._frame_arrays(name, value) for name, value in fields.items()}
+        f, n = self._file, self._n
+        for name, (arr, stag) in frames.items():
+            ds = f["t0_fields" if self.kinds[name] == "scalar" else "t1_fields"][name]
+            ds.resize(n + 1, axis=1)
+            ds[:, n] = arr.astype(self.dtype, copy=False)
+            if stag is not None:
+                for a, comp in enumerate(stag):
+                    sds = f["staggered"][f"{name}_{AXIS_NAMES[a]}"]
+                    sds.resize(n + 1, axis=1)
+                    sds[:, n] = comp.astype(self.dtype, copy=False)
+        tds = f["dimensions"]["time"]
+        tds.resize((n + 1,))
+        tds[n] = t
+        f.flush()
+        self._n = n + 1
+        self._last_time = t
+
+    def training_log(self, method: str, attrs: Mapping[str, Any] | None = None) -> TrainingLog:
+        """A :class:`TrainingLog` writing into ``/training/<method>`` of this file."""
+        self._check_open()
+        return TrainingLog(self._file, method, attrs=attrs)
+
+    def close(self) -> None:
+        """Flush and close the file (idempotent)."""
+        if self._file is not None and self._file.id.valid:
+            self._file.flush()
+            self._file.close()
+
+    def __enter__(self) -> SimulationWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"SimulationWriter({str(self.path)!r}, {self.grid}, fields={self.kinds}, frames={self._n})"
+
+
+# ---- reader -------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SimulationData:
+    """The content of a simulation file (see :func:`read_simulation`).
+
+    Attributes:
+        path: The file.
+        dataset_name: The Well ``dataset_name``.
+        grid: The grid (bounds from ``/extras`` or, for foreign files, from the cell-centre coordinates).
+        boundary: The boundary (exact from ``/extras``; for foreign files built from the Well types:
+            PERIODIC -> Periodic, WALL -> NoSlipWall, OPEN -> Open).
+        times: ``(T,)`` frame times.
+        fields: Name -> values in phisim layout: scalars ``(B, T, *res)``, vectors ``(B, T, d, *res)``
+            (cell centres, channel axis after time). Numpy arrays, or torch tensors with ``as_torch=True``.
+        staggered: Name -> tuple of ``d`` exact face arrays ``(B, T, *face_shape(i))``.
+        kinds: Name -> ``'scalar'``, ``'vector'`` or ``'staggered'``.
+        parameters: Simulation parameters from the root attributes.
+        config: The run configuration (parsed JSON) or ``None``.
+        training: Method -> curve name -> 1-D array (``/training``).
+    """
+
+    path: Path
+    dataset_name: str
+    grid: Grid
+    boundary: Boundary
+    times: np.ndarray
+    fields: dict[str, Any]
+    staggered: dict[str, tuple]
+    kinds: dict[str, str]
+    parameters: dict[str, Any]
+    config: Any = None
+    training: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames ``T``."""
+        return int(len(self.times))
+
+    @property
+    def batch_size(self) -> int:
+        """Number of trajectories ``B``."""
+        first = next(iter(self.fields.values()), None)
+        return 0 if first is None else int(first.shape[0])
+
+    def frame(self, name: str, index: int) -> CenteredGrid | StaggeredGrid:
+        """Frame ``index`` of field ``name`` as a field (a ``StaggeredGrid`` for staggered fields).
+
+        Raises:
+            ParameterError: For an unknown name or an index out of range.
+        """
+        if name not in self.kinds:
+            raise ParameterError(f"no field {name!r} in {self.path}; fields: {list(self.kinds)}")
+        if not -self.n_frames <= index < self.n_frames:
+            raise ParameterError(f"frame {index} out of range for {self.n_frames} frames")
+        if self.kinds[name] == "staggered":
+            comps = tuple(torch.as_tensor(c[:, index]) for c in self.staggered[name])
+            return StaggeredGrid(comps, self.grid, self.boundary)
+        return CenteredGrid(torch.as_tensor(self.fields[name][:, index]), self.grid, self.boundary)
+
+
+def _open_for_read(path: PathLike) -> h5py.File:
+    p = Path(path)
+    if not p.exists():
+        raise FileFormatError(f"{p} does not exist")
+    if p.is_dir():
+        raise FileFormatError(f"{p} is a directory, not an HDF5 file")
+    try:
+        return h5py.File(p, "r")
+    except OSError as exc:
+        size = p.stat().st_size
+        raise FileFormatError(
+            f"{p} ({size} bytes) is not a readable HDF5 file (corrupt, truncated or another format): {exc}"
+        ) from exc
+
+
+def _need(group, key: str, path: Path, kind=None):
+    try:
+        obj = group[key]
+    except (KeyError, OSError, RuntimeError, ValueError) as exc:
+        where = f"{group.name.rstrip('/')}/{key}"
+        raise FileFormatError(
+            f"{path}: missing or unreadable {where} ({exc}); not a Well/phisim simulation file or a damaged one"
+        ) from exc
+    if kind is not None and not isinstance(obj, kind):
+        raise FileFormatError(f"{path}: {obj.name} should be a {kind.__name__}")
+    return obj
+
+
+def _need_attr(obj, key: str, path: Path):
+    if key not in obj.attrs:
+        raise FileFormatError(f"{path}: {obj.name} lacks the attribute {key!r} required by The Well's layout")
+    return obj.attrs[key]
+
+
+def _grid_from_coords(coords: list[np.ndarray], path: Path) -> Grid:
+    bounds = []
+    for a, c in enumerate(coords):
+        c = np.asarray(c, dtype=np.float64)
+        if c.ndim != 1 or len(c) == 0:
+            raise FileFormatError(f"{path}: coordinate {AXIS_NAMES[a]} must be a non-empty 1-D array")
+        dx = float(c[1] - c[0]) if len(c) > 1 else 1.0
+        if dx <= 0:
+            raise FileFormatError(f"{path}: coordinate {AXIS_NAMES[a]} is not increasing")
+        bounds.append((float(c[0]) - dx / 2, float(c[-1]) + dx / 2))
+    return Grid(tuple(len(c) for c in coords), bounds)
+
+
+def _read_data(ds, T: int, expected_tail: tuple[int, ...], B: int, path: Path) -> np.ndarray:
+    shape = ds.shape
+    if len(shape) != 2 + len(expected_tail) or shape[0] != B or tuple(shape[2:]) != expected_tail:
+        raise FileFormatError(
+            f"{path}: {ds.name} has shape {shape}, expected (B={B}, T, {', '.join(map(str, expected_tail))})"
+        )
+    if shape[1] < T:
+        raise FileFormatError(f"{path}: {ds.name} holds {shape[1]} frames but /dimensions/time lists {T}")
+    try:
+        return ds[:, :T]
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise FileFormatError(f"{path}: cannot read {ds.name} (damaged data): {exc}") from exc
+
+
+def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> SimulationData:
+    """Read a file written by :class:`SimulationWriter` (or another file in The Well's layout).
+
+    Args:
+        path: The HDF5 file.
+        as_torch: Return field values as torch tensors (on ``device``) instead of numpy arrays.
+        device: Torch device for ``as_torch``.
+
+    Returns:
+        A :class:`SimulationData` with every completed frame. Of a foreign Well file only fields that vary
+        over samples, time and every spatial axis are read; tensor (t2) fields are skipped.
+
+    Raises:
+        FileFormatError: If the file does not exist, is not HDF5, is truncated, lacks a required group or
+            attribute, or holds datasets whose shapes do not fit its grid.
+    """
+    p = Path(path)
+    with _open_for_read(p) as f:
+        try:
+            return _read(f, p, as_torch, device)
+        except FileFormatError:
+            raise
+        except (OSError, RuntimeError, KeyError) as exc:
+            raise FileFormatError(f"{p}: damaged HDF5 content: {exc}") from exc
+
+
+def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
+    dataset_name = _attr_str(_need_attr(f, "dataset_name", p))
+    grid_type = _attr_str(_need_attr(f, "grid_type", p))
+    if grid_type != "cartesian":
+        raise FileFormatError(f"{p}: grid_type {grid_type!r} is not supported (only 'cartesian')")
+    ndim = int(_need_attr(f, "n_spatial_dims", p))
+    B = int(_need_attr(f, "n_trajectories", p))
+    dims = _need(f, "dimensions", p, h5py.Group)
+    spatial = _attr_str_list(_need_attr(dims, "spatial_dims", p))
+    if len(spatial) != ndim or not 1 <= ndim <= 3:
+        raise FileFormatError(f"{p}: spatial_dims {spatial} does not match n_spatial_dims={ndim}")
+    tds = _need(dims, "time", p, h5py.Dataset)
+    if tds.ndim != 1:
+        raise FileFormatError(f"{p}: /dimensions/time must be 1-D (sample-varying times are not supported)")
+    times = np.asarray(tds[:], dtype=np.float64)
+    T = len(times)
+    coords = [np.asarray(_need(dims, name, p, h5py.Dataset)[()]) for name in spatial]
+
+    extras = f.get("extras")
+    grid = None
+    boundary = None
+    kinds: dict[str, str] = {}
+    config = None
+    if isinstance(extras, h5py.Group) and "bounds" in extras.attrs:
+        try:
+            bounds = json.loads(_attr_str(extras.attrs["bounds"]))
+            grid = Grid(tuple(len(c) for c in coords), [tuple(b) for b in bounds])
+            sides = json.loads(_attr_str(extras.attrs["boundary"]))
+            boundary = Boundary(tuple((_condition_from_json(lo), _condition_from_json(hi)) for lo, hi in sides))
+            kinds = dict(json.loads(_attr_str(extras.attrs.get("field_kinds", "{}"))))
+            if "config" in extras:
+                config = json.loads(_attr_str(extras["config"][()]))
+        except (ValueError, TypeError, KeyError) as exc:
+            raise FileFormatError(f"{p}: /extras holds malformed phisim metadata: {exc}") from exc
+    if grid is None:
+        grid = _grid_from_coords(coords, p)
+    if boundary is None:
+        boundary = _boundary_from_well(f, grid, spatial, p)
+    if boundary.rank != grid.rank:
+        raise FileFormatError(f"{p}: boundary has {boundary.rank} axes, the grid {grid.rank}")
+
+    parameters = {}
+    for name in _attr_str_list(f.attrs.get("simulation_parameters", _str_array([]))):
+        if name in f.attrs:
+            v = f.attrs[name]
+            parameters[name] = v.item() if isinstance(v, np.generic) else v
+
+    res, d = grid.resolution, grid.rank
+    fields: dict[str, Any] = {}
+    for order in (0, 1):
+        grp = _need(f, f"t{order}_fields", p, h5py.Group)
+        for name in _attr_str_list(grp.attrs.get("field_names", _str_array([]))):
+            ds = _need(grp, name, p, h5py.Dataset)
+            varying = (bool(ds.attrs.get("sample_varying", True)) and bool(ds.attrs.get("time_varying", True))
+                       and bool(np.all(ds.attrs.get("dim_varying", True))))
+            if not varying:
+                continue
+            tail = res if order == 0 else res + (d,)
+            arr = _read_data(ds, T, tail, B, p)
+            fields[name] = arr if order == 0 else np.moveaxis(arr, -1, 2)
+            kinds.setdefault(name, "scalar" if order == 0 else "vector")
+    _need(f, "t2_fields", p, h5py.Group)
+    kinds = {n: k for n, k in kinds.items() if n in fields}
+
+    staggered = {}
+    for name, kind in kinds.items():
+        if kind != "staggered":
+            continue
+        grp = _need(f, "staggered", p, h5py.Group)
+        staggered[name] = tuple(
+            _read_data(_need(grp, f"{name}_{AXIS_NAMES[a]}", p, h5py.Dataset), T, grid.face_shape(a), B, p)
+            for a in range(d)
+        )
+
+    training = _read_training_group(f["training"], p) if isinstance(f.get("training"), h5py.Group) else {}
+    if as_torch:
+        fields = {n: torch.as_tensor(v, device=device) for n, v in fields.items()}
+        staggered = {n: tuple(torch.as_tensor(c, device=device) for c in v) for n, v in staggered.items()}
+    return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters, config,
+                          training)
+
+
+def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:
+    sides: list[list[BoundaryCondition]] = [[Open(), Open()] for _ in range(grid.rank)]
+    bcs = f.get("boundary_conditions")
+    if not isinstance(bcs, h5py.Group):
+        raise FileFormatError(f"{p}: missing group /boundary_conditions")
+    for key in bcs:
+        grp = bcs[key]
+        bc_type = _attr_str(_need_attr(grp, "bc_type", p)).upper()
+        if bc_type not in _FROM_WELL:
+            raise FileFormatError(f"{p}: {grp.name} has unknown bc_type {bc_type!r} (PERIODIC, WALL, OPEN)")
+        assoc = _attr_str_list(_need_attr(grp, "associated_dims", p))
+        mask = np.asarray(_need(grp, "mask", p, h5py.Dataset)[()], dtype=bool)
+        if len(assoc) != 1 or assoc[0] not in spatial or mask.ndim != 1:
+            continue  # boundaries not aligned with one axis do not map onto a phisim Boundary
+        a = spatial.index(assoc[0])
+        for side, idx in ((0, 0), (1, -1)):
+            if mask.size and mask[idx]:
+                sides[a][side] = _FROM_WELL[bc_type]()
+    try:
+        return Boundary(tuple((lo, hi) for lo, hi in sides))
+    except Exception as exc:  # inconsistent periodic sides
+        raise FileFormatError(f"{p}: inconsistent boundary_conditions: {exc}") from exc
+
+
+# ---- training logs ------------------------------------------------------------------------------------
+
+
+class TrainingLog:
+    """Append learning curves to ``/training/<method>`` of an HDF5 file, one record at a time.
+
+    Each curve is a resizable 1-D float64 dataset next to an int64 ``iteration`` dataset of the same
+    length. A record may leave out curves (they get NaN) and may introduce new ones (earlier entries are
+    NaN), so e.g. a validation metric can be logged every 10th iteration. The file is flushed after every
+    record, and re-opening an existing log continues it.
+
+    Args:
+        target: A file path (opened in append mode and closed by :meth:`close`) or an open ``h5py.Group``
+            / ``h5py.File`` (left open; see :meth:`SimulationWriter.training_log`).
+        method: The method name, e.g. ``'adam'``, ``'physgrad'``, ``'hig'``.
+        attrs: Optional settings stored as attributes of the method group (numbers or strings;
+            anything else is stored as JSON).
+
+    Raises:
+        ParameterError: For an invalid method name.
+        FileFormatError: If the file cannot be opened or holds a malformed log.
+
+    Example:
+        >>> with TrainingLog("results.h5", "adam", attrs={"lr": 1e-3}) as log:
+        ...     for it in range(100):
+        ...         log.append(it, loss=loss_value, metric=metric_value)  # doctest: +SKIP
+    """
+
+    def __init__(self, target: PathLike | h5py.Group, method: str, *, attrs: Mapping[str, Any] | None = None):
+        if not isinstance(method, str) or not method or "/" in method:
+            raise ParameterError(f"method must be a non-empty name without '/', got {method!r}")
+        self.method = method
+        if isinstance(target, h5py.Group):
+            self._file = None
+            root = target
+        else:
+            path = Path(target)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self._file = h5py.File(path, "a")
+            except OSError as exc:
+                raise FileFormatError(f"cannot open {path} for appending a training log: {exc}") from exc
+            root = self._file
+        try:
+            self.group = root.require_group("training").require_group(method)
+        except (TypeError, ValueError) as exc:
+            self.close()
+            raise FileFormatError(f"{root.file.filename}: /training/{method} exists and is not a group") from exc
+        for k, v in (attrs or {}).items():
+            self.group.attrs[k] = v if isinstance(v, (int, float, str, bool, np.generic)) else _to_json(v, k)
+        if "iteration" not in self.group:
+            self.group.create_dataset("iteration", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        self._n = int(self.group["iteration"].shape[0])
+        for name, ds in self.group.items():
+            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 or ds.shape[0] != self._n:
+                self.close()
+                raise FileFormatError(
+                    f"{self.group.name}/{name} is not a 1-D curve of the log's length {self._n}"
+                )
+
+    @property
+    def n_records(self) -> int:
+        """Number of records appended so far (including those of an earlier session)."""
+        return self._n
+
+    def append(self, iteration: int, **values: float) -> None:
+        """Append one record and flush.
+
+        Args:
+            iteration: The iteration (or step/epoch) number.
+            **values: Curve name -> number (python float, numpy scalar or 1-element tensor).
+
+        Raises:
+            ParameterError: For no values, non-numeric values or a closed log.
+        """
+        if not self.group.id.valid:
+            raise ParameterError(f"TrainingLog {self.method!r} is closed")
+        if not values:
+            raise ParameterError("append needs at least one value, e.g. log.append(it, loss=0.5)")
+        nums = {}
+        for name, v in values.items():
+            if name == "iteration" or "/" in name:
+                raise ParameterError(f"invalid curve name {name!r}")
+            if isinstance(v, torch.Tensor):
+                if v.numel() != 1:
+                    raise ParameterError(f"curve {name!r}: expected one number, got a tensor of shape {tuple(v.shape)}")
+                v = v.item()
+            try:
+                nums[name] = float(v)
+            except (TypeError, ValueError) as exc:
+                raise ParameterError(f"curve {name!r}: {v!r} is not a number") from exc
+        n = self._n
+        for name in nums:
+            if name not in self.group:
+                ds = self.group.create_dataset(name, shape=(n,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+                if n:
+                    ds[:] = np.nan
+        for name, ds in self.group.items():
+            ds.resize((n + 1,))
+            if name == "iteration":
+                ds[n] = int(iteration)
+            else:
+                ds[n] = nums.get(name, np.nan)
+        self.group.file.flush()
+        self._n = n + 1
+
+    def curves(self) -> dict[str, np.ndarray]:
+        """All curves of this method (``iteration`` included) as numpy arrays."""
+        return {name: ds[()] for name, ds in self.group.items()}
+
+    def close(self) -> None:
+        """Flush; close the file if this log opened it."""
+        if self._file is not None and self._file.id.valid:
+            self._file.flush()
+            self._file.close()
+
+    def __enter__(self) -> TrainingLog:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _read_training_group(grp: h5py.Group, p: Path) -> dict[str, dict[str, np.ndarray]]:
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for method, g in grp.items():
+        if not isinstance(g, h5py.Group) or "iteration" not in g:
+            raise FileFormatError(f"{p}: {g.name} is not a training log (no 'iteration' dataset)")
+        n = g["iteration"].shape[0]
+        curves = {}
+        for name, ds in g.items():
+            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
+                raise FileFormatError(f"{p}: {ds.name} is not a 1-D curve")
+            curves[name] = ds[:n]
+        out[method] = curves
+    return out
+
+
+def read_training(path: PathLike) -> dict[str, dict[str, np.ndarray]]:
+    """Read every training log of a file.
+
+    Args:
+        path: The HDF5 file.
+
+    Returns:
+        Method -> curve name -> 1-D array (``iteration`` included); empty if the file has no ``/training``.
+
+    Raises:
+        FileFormatError: If the file is missing, not HDF5, or its ``/training`` group is malformed.
+    """
+    p = Path(path)
+    with _open_for_read(p) as f:
+        grp = f.get("training")
+        if grp is None:
+            return {}
+        if not isinstance(grp, h5py.Group):
+            raise FileFormatError(f"{p}: /training is not a group")
+        try:
+            return _read_training_group(grp, p)
+        except (OSError, RuntimeError) as exc:
+            raise FileFormatError(f"{p}: damaged /training group: {exc}") from exc
