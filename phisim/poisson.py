@@ -169,8 +169,14 @@ def _normalize_values(values, rank: int, kinds: Kinds):
 # eigenvalues and spectral application
 
 
-def _axis_eigs(n: int, pair: tuple[str, str], dx: float, halved: bool) -> torch.Tensor:
+def _axis_eigs(n: int, pair: tuple[str, str], dx: float, halved: bool, continuous: bool = False) -> torch.Tensor:
     k = torch.arange(n, dtype=torch.float64)
+    if continuous:  # eigenvalues -(wavenumber)^2 of the continuous Laplacian for the same modes
+        if pair[0] == "periodic":
+            lam = -(2 * math.pi * torch.minimum(k, n - k) / (n * dx)) ** 2
+            return lam[: n // 2 + 1] if halved else lam
+        shift = {("dirichlet", "dirichlet"): 1.0, ("neumann", "neumann"): 0.0}.get(pair, 0.5)
+        return -(math.pi * (k + shift) / (n * dx)) ** 2
     if pair[0] == "periodic":
         lam = -4 * torch.sin(math.pi * k / n) ** 2
         if halved:
@@ -192,7 +198,7 @@ def _layout(kinds: Kinds) -> tuple[list[int], list[int]]:
 
 
 def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.dtype = torch.float64,
-                          device=None, halved: bool = True) -> torch.Tensor:
+                          device=None, halved: bool = True, spectrum: str = "stencil") -> torch.Tensor:
     """Eigenvalues of the face-boundary cell-centred Laplacian stencil in the solver's spectral layout.
 
     Args:
@@ -202,6 +208,8 @@ def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.
         dtype: Output dtype.
         device: Output device.
         halved: Whether the last periodic axis is stored as ``n//2 + 1`` rfft bins (solver layout).
+        spectrum: ``'stencil'`` (eigenvalues of the discrete stencil, ``-4 sin²(θ/2)/dx²``) or
+            ``'continuous'`` (``-κ²`` of the continuous Laplacian for the same modes, ``κ = θ/dx``).
 
     Returns:
         Tensor of shape ``resolution`` (last periodic axis halved when ``halved``) holding
@@ -215,16 +223,22 @@ def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.
     rank = len(resolution)
     kinds = normalize_kinds(kinds, rank)
     dx = _normalize_dx(dx, rank)
-    return _eigs_cached(resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved)
+    _check_spectrum(spectrum)
+    return _eigs_cached(resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved, spectrum == "continuous")
+
+
+def _check_spectrum(spectrum: str) -> None:
+    if spectrum not in ("stencil", "continuous"):
+        raise ParameterError(f"spectrum must be 'stencil' or 'continuous', got {spectrum!r}")
 
 
 @lru_cache(maxsize=128)
-def _eigs_cached(resolution, dx, kinds, dtype, device, halved) -> torch.Tensor:
+def _eigs_cached(resolution, dx, kinds, dtype, device, halved, continuous=False) -> torch.Tensor:
     _, per = _layout(kinds)
     last_per = per[-1] if per else None
     total = torch.zeros((), dtype=torch.float64)
     for a, n in enumerate(resolution):
-        lam = _axis_eigs(n, kinds[a], dx[a], halved and a == last_per)
+        lam = _axis_eigs(n, kinds[a], dx[a], halved and a == last_per, continuous)
         shape = [1] * len(resolution)
         shape[a] = -1
         total = total + lam.reshape(shape)
@@ -235,7 +249,8 @@ def _singular(kinds: Kinds) -> bool:
     return all("dirichlet" not in p for p in kinds)
 
 
-def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None) -> torch.Tensor:
+def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None,
+                   spectrum: str = "stencil") -> torch.Tensor:
     """Apply a function of the Laplacian, ``φ(∇²_h) x``, exactly by diagonalisation.
 
     Args:
@@ -245,6 +260,7 @@ def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None)
         fn: Maps the eigenvalue tensor (solver layout, see :func:`laplacian_eigenvalues`, float64)
             to the per-mode multipliers (real, same shape, broadcastable).
         engine: FFT engine (see :func:`phisim.fft.resolve_engine`).
+        spectrum: ``'stencil'`` or ``'continuous'`` eigenvalues (see :func:`laplacian_eigenvalues`).
 
     Returns:
         ``φ(∇²_h) x``, shape and dtype of ``x``; differentiable w.r.t. ``x``.
@@ -255,7 +271,8 @@ def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None)
     rank = _check_rhs(x, "x")
     kinds = normalize_kinds(kinds, rank)
     dx = _normalize_dx(dx, rank)
-    lam = _eigs_cached(tuple(x.shape[1:]), dx, kinds, torch.float64, x.device, True)
+    _check_spectrum(spectrum)
+    lam = _eigs_cached(tuple(x.shape[1:]), dx, kinds, torch.float64, x.device, True, spectrum == "continuous")
     mult = fn(lam)
     return _apply_multiplier(x, kinds, mult, engine)
 

@@ -1,0 +1,334 @@
+"""Diffusion ``∂u/∂t = ν ∇²u``: explicit, implicit and spectral (exact per mode) time steps.
+
+Space is discretised with the second-order cell-centred stencil and face boundary values of
+:mod:`phisim.poisson` (``∇²_h u = L₀ u + b``, ``b`` from non-zero boundary values). The three methods
+integrate this semi-discrete system in time:
+
+* ``'explicit'``: forward Euler, first order in ``dt``; stable while
+  ``dt/substeps ≤ 1 / (2 ν Σ_axes 1/dx²)`` (otherwise :class:`~phisim.errors.ParameterError`);
+* ``'implicit'``: backward Euler ``(I - ν dt ∇²_h) u' = u``, first order, unconditionally stable;
+  solved by :func:`phisim.linalg.cg` with the exact spectral inverse as preconditioner;
+* ``'spectral'`` (default): exact in time, ``û(t) = e^{νtλ} û₀ + νt φ₁(νtλ) b̂`` per mode of the
+  DST/DCT/FFT basis (``φ₁(z) = (e^z - 1)/z``), with ``λ`` the stencil eigenvalues; with
+  ``spectrum='continuous'`` the continuous ``λ = -κ²`` (spectrally accurate in space for smooth
+  data; zero boundary values only).
+
+:func:`fourier_heat` is the periodic heat operator of the paper's heat experiment (E4):
+``ŷ(k) = x̂(k) exp(-4π² |k|² ν t)`` with numpy's ``fftfreq`` wavenumbers in cycles per cell (dx = 1);
+its decay factors are computed once per (resolution, ν t, dtype, device).
+
+Reference for the time integrators: Hairer & Wanner, *Solving ODEs II* (stability of explicit and
+implicit Euler); exponential integrator ``φ₁``: Hochbruck & Ostermann (2010), Acta Numerica 19.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import lru_cache
+
+import torch
+
+from . import fft as _fft
+from .checks import check_dt, check_nonnegative
+from .errors import BoundaryError, NonFiniteError, ParameterError
+from .poisson import (
+    _check_rhs,
+    _laplace_zero,
+    _normalize_dx,
+    boundary_source,
+    normalize_kinds,
+    spectral_apply,
+)
+
+__all__ = [
+    "DIFFUSION_METHODS",
+    "explicit_stability_limit",
+    "diffuse_values",
+    "diffuse",
+    "fourier_k2",
+    "heat_decay_factors",
+    "fourier_heat",
+]
+
+DIFFUSION_METHODS = ("spectral", "implicit", "explicit")
+
+
+def explicit_stability_limit(dx, viscosity: float) -> float:
+    """Largest stable forward-Euler step of the stencil diffusion, ``1 / (2 ν Σ 1/dx²)``.
+
+    Args:
+        dx: Spacing per axis (a sequence; a float means one axis).
+        viscosity: Diffusivity ``ν >= 0``.
+
+    Returns:
+        The limit (``inf`` for ``ν = 0``).
+
+    Raises:
+        ParameterError: For a negative/non-finite viscosity or invalid dx.
+    """
+    nu = float(check_nonnegative(viscosity, "viscosity"))
+    dx = (float(dx),) if isinstance(dx, (int, float)) else tuple(float(d) for d in dx)
+    dx = _normalize_dx(dx, len(dx))
+    if nu == 0:
+        return math.inf
+    return 1.0 / (2.0 * nu * sum(1.0 / d**2 for d in dx))
+
+
+def _phi1(z: torch.Tensor) -> torch.Tensor:
+    small = z.abs() < 1e-8
+    safe = torch.where(small, torch.ones_like(z), z)
+    return torch.where(small, 1.0 + z / 2, torch.expm1(safe) / safe)
+
+
+def diffuse_values(u: torch.Tensor, dt, *, viscosity, dx=1.0, kinds="periodic", values=None,
+                   method: str = "spectral", substeps: int = 1, solve=None, spectrum: str = "stencil",
+                   engine: str | None = None) -> torch.Tensor:
+    """Advance ``∂u/∂t = ν ∇²_h u`` by ``dt`` on a tensor ``(B, *resolution)``.
+
+    Args:
+        u: Values ``(B, *resolution)`` (1-3 spatial axes), float32/float64.
+        dt: Time step ``>= 0`` (float or 0-d tensor; a tensor keeps gradients in the spectral method).
+        viscosity: Diffusivity ``ν >= 0`` (float or 0-d tensor).
+        dx: Cell spacing (float or one per axis).
+        kinds: Boundary kinds per axis (see :func:`phisim.poisson.normalize_kinds`).
+        values: Boundary values (see :func:`phisim.poisson.boundary_source`); fixed during the step.
+        method: ``'spectral'`` (exact in time), ``'implicit'`` (backward Euler) or ``'explicit'``
+            (forward Euler).
+        substeps: Number of equal sub-steps for the explicit/implicit methods (ignored by spectral).
+        solve: :class:`phisim.linalg.Solve` for the implicit method (default ``Solve(rtol=1e-10)``
+            in float64, ``Solve()`` in float32).
+        spectrum: Spectral method only: ``'stencil'`` (exact for the discrete operator; default) or
+            ``'continuous'`` (exact Fourier/sine/cosine decay ``e^{-νκ²t}``; zero boundary values only).
+        engine: FFT engine.
+
+    Returns:
+        ``u`` after ``dt``; same shape, dtype and device; differentiable.
+
+    Raises:
+        ParameterError: Negative/non-finite ``dt`` or ``viscosity``, unknown method, bad substeps, or
+            an explicit step above the stability limit (the message gives the substeps needed).
+        BoundaryError, ShapeError: Invalid kinds, values or shapes.
+        NonFiniteError: NaN/Inf in ``u``.
+    """
+    rank = _check_rhs(u, "u")
+    dt = check_dt(dt)
+    nu = check_nonnegative(viscosity, "viscosity")
+    if method not in DIFFUSION_METHODS:
+        raise ParameterError(f"method must be one of {DIFFUSION_METHODS}, got {method!r}")
+    if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
+        raise ParameterError(f"substeps must be an int >= 1, got {substeps!r}")
+    if not bool(torch.isfinite(u).all()):
+        raise NonFiniteError("diffuse: the state contains NaN or Inf")
+    kinds = normalize_kinds(kinds, rank)
+    dx = _normalize_dx(dx, rank)
+    tau = dt * nu  # ν t, a float or a 0-d tensor
+    b = boundary_source(u, dx, kinds, values)
+    if method == "spectral":
+        if spectrum == "continuous" and b is not None:
+            raise BoundaryError("spectrum='continuous' supports zero boundary values only; use spectrum='stencil'")
+
+        def decay(lam):
+            return torch.exp(lam * tau)
+
+        out = spectral_apply(u, dx, kinds, decay, engine=engine, spectrum=spectrum)
+        if b is not None:
+            out = out + spectral_apply(b, dx, kinds, lambda lam: tau * _phi1(lam * tau), engine=engine)
+        return out
+    h = tau / substeps
+    if method == "explicit":
+        limit = explicit_stability_limit(dx, float(nu))
+        step = float(dt) / substeps
+        if step > limit * (1 + 1e-12):
+            need = math.ceil(float(dt) / limit)
+            raise ParameterError(f"explicit diffusion is unstable: dt/substeps = {step:g} exceeds the limit "
+                                 f"1/(2 ν Σ 1/dx²) = {limit:g}; use substeps >= {need}, method='implicit' or "
+                                 "method='spectral'")
+        for _ in range(substeps):
+            lap = _laplace_zero(u, dx, kinds)
+            if b is not None:
+                lap = lap + b
+            u = u + h * lap
+        return u
+    # implicit
+    from .linalg import Solve, cg
+
+    if solve is None:
+        solve = Solve(rtol=1e-10) if u.dtype == torch.float64 else Solve()
+
+    def operator(x: torch.Tensor) -> torch.Tensor:
+        return x - h * _laplace_zero(x, dx, kinds)
+
+    def precond(r: torch.Tensor) -> torch.Tensor:
+        return spectral_apply(r, dx, kinds, lambda lam: 1.0 / (1.0 - lam * float(h)), engine=engine)
+
+    for _ in range(substeps):
+        rhs = u if b is None else u + h * b
+        u = cg(operator, rhs, u.detach(), solve=solve, preconditioner=precond)
+    return u
+
+
+def _component_kinds(boundary, component: int | None):
+    """Per-side kinds/values of one field component, from the boundary's ghost rules."""
+    kinds, values = [], []
+    for axis, (lo, hi) in enumerate(boundary.sides):
+        if component is None:
+            role = "scalar"
+        else:
+            role = "normal" if component == axis else "tangential"
+        pk, pv = [], []
+        for cond in (lo, hi):
+            rule = cond.rule(role, component)
+            if rule[0] == "periodic":
+                pk.append("periodic")
+                pv.append(None)
+            elif rule[0] in ("odd", "even"):
+                pk.append("dirichlet" if rule[0] == "odd" else "neumann")
+                pv.append(rule[1])
+            else:
+                raise BoundaryError(f"boundary condition {cond!r} has an unknown ghost rule {rule!r}")
+        kinds.append(tuple(pk))
+        values.append(tuple(pv))
+    return tuple(kinds), tuple(values)
+
+
+def diffuse(field, dt, *, viscosity, method: str = "spectral", substeps: int = 1, solve=None,
+            spectrum: str = "stencil", engine: str | None = None):
+    """Diffuse a cell-centred field for a time ``dt``: ``∂u/∂t = ν ∇²u`` with the field's boundary.
+
+    Boundary values sit on the cell face (see :mod:`phisim.boundary`). Vector fields diffuse each
+    component with the condition its role implies (normal / tangential velocity at each side).
+
+    Args:
+        field: A :class:`phisim.field.CenteredGrid` (scalar ``(B, *res)`` or vector ``(B, C, *res)``).
+        dt: Time step ``>= 0``.
+        viscosity: Diffusivity ``ν >= 0``.
+        method: ``'spectral'`` (default, exact in time), ``'implicit'`` or ``'explicit'``.
+        substeps: Sub-steps for the explicit/implicit methods.
+        solve: :class:`phisim.linalg.Solve` for the implicit method.
+        spectrum: ``'stencil'`` or ``'continuous'`` (spectral method; see :func:`diffuse_values`).
+        engine: FFT engine.
+
+    Returns:
+        A new CenteredGrid on the same grid with the same boundary.
+
+    Raises:
+        ParameterError: Bad dt/viscosity/method, unstable explicit step, or a non-CenteredGrid field
+            (StaggeredGrid diffusion is not provided here).
+        BoundaryError, ShapeError, NonFiniteError: See :func:`diffuse_values`.
+    """
+    from .field import CenteredGrid
+
+    if not isinstance(field, CenteredGrid):
+        raise ParameterError(f"diffuse expects a CenteredGrid, got {type(field).__name__}; resample a "
+                             "StaggeredGrid with .at_centers() or diffuse its values with diffuse_values")
+    grid = field.grid
+    kw = dict(viscosity=viscosity, dx=grid.dx, method=method, substeps=substeps, solve=solve,
+              spectrum=spectrum, engine=engine)
+    if not field.is_vector:
+        kinds, values = _component_kinds(field.boundary, None)
+        return field.with_values(diffuse_values(field.values, dt, kinds=kinds, values=values, **kw))
+    comps = []
+    for c in range(field.values.shape[1]):
+        kinds, values = _component_kinds(field.boundary, c if field.values.shape[1] == grid.rank else None)
+        values = tuple(tuple(_slice_channel(v, c) for v in pair) for pair in values)
+        comps.append(diffuse_values(field.values[:, c], dt, kinds=kinds, values=values, **kw))
+    return field.with_values(torch.stack(comps, dim=1))
+
+
+def _slice_channel(v, c: int):
+    if isinstance(v, torch.Tensor) and v.ndim >= 2 and v.shape[1] > 1:
+        return v[:, c]
+    return v
+
+
+# ----------------------------------------------------------------------------------------------
+# the periodic heat operator of E4
+
+
+def fourier_k2(resolution: Sequence[int], *, real: bool = True, dtype: torch.dtype = torch.float64,
+               device=None) -> torch.Tensor:
+    """``|k|²`` with numpy's ``fftfreq`` wavenumbers in cycles per cell (dx = 1).
+
+    Args:
+        resolution: Cells per axis.
+        real: rfft layout (last axis ``n//2 + 1`` bins, ``rfftfreq``) when True, full FFT layout otherwise.
+        dtype: Output dtype.
+        device: Output device.
+
+    Returns:
+        Tensor of shape ``resolution`` (last axis halved when ``real``).
+
+    Raises:
+        ParameterError: For a non-positive resolution.
+    """
+    resolution = tuple(int(n) for n in resolution)
+    if not resolution or any(n < 1 for n in resolution):
+        raise ParameterError(f"resolution must have positive entries, got {resolution}")
+    return _k2_cached(resolution, real, dtype, torch.device(device or "cpu"))
+
+
+@lru_cache(maxsize=64)
+def _k2_cached(resolution, real, dtype, device) -> torch.Tensor:
+    total = torch.zeros((), dtype=torch.float64)
+    for a, n in enumerate(resolution):
+        last = a == len(resolution) - 1
+        k = torch.fft.rfftfreq(n, dtype=torch.float64) if (real and last) else torch.fft.fftfreq(n, dtype=torch.float64)
+        shape = [1] * len(resolution)
+        shape[a] = -1
+        total = total + (k**2).reshape(shape)
+    return total.to(dtype=dtype, device=device)
+
+
+def heat_decay_factors(resolution: Sequence[int], dt: float, *, viscosity: float = 1.0,
+                       dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+    """``exp(-4π² |k|² ν dt)`` in the rfft layout (cached per resolution, ν dt, dtype and device).
+
+    Args:
+        resolution: Cells per axis.
+        dt: Time ``>= 0``.
+        viscosity: Diffusivity ``ν >= 0`` (E4 uses ``ν dt = 8``).
+        dtype: Output dtype (float64 recommended: factors underflow to 0 for high modes).
+        device: Output device.
+
+    Returns:
+        Real tensor of shape ``resolution`` with the last axis halved.
+
+    Raises:
+        ParameterError: For negative/non-finite dt or viscosity.
+    """
+    t = float(check_dt(dt)) * float(check_nonnegative(viscosity, "viscosity"))
+    resolution = tuple(int(n) for n in resolution)
+    return _decay_cached(resolution, t, dtype, torch.device(device or "cpu"))
+
+
+@lru_cache(maxsize=64)
+def _decay_cached(resolution, nu_t, dtype, device) -> torch.Tensor:
+    k2 = _k2_cached(resolution, True, torch.float64, torch.device("cpu"))
+    return torch.exp(-4 * math.pi**2 * k2 * nu_t).to(dtype=dtype, device=device)
+
+
+def fourier_heat(x: torch.Tensor, dt: float, *, viscosity: float = 1.0, engine: str | None = None) -> torch.Tensor:
+    """Periodic heat operator of E4: ``ŷ(k) = x̂(k) exp(-4π² |k|² ν dt)``, batched.
+
+    Wavenumbers are numpy's ``fftfreq`` in cycles per cell with dx = 1 (as PhiFlow's
+    ``diffuse.fourier``); the decay factors are precomputed once per shape/dtype/device.
+
+    Args:
+        x: Tensor ``(B, *resolution)`` (1-3 spatial axes), float32/float64 (E4 uses float64).
+        dt: Time ``>= 0`` (E4: ``ν dt = 8``).
+        viscosity: Diffusivity ``ν >= 0``.
+        engine: FFT engine.
+
+    Returns:
+        ``y`` with ``x``'s shape and dtype; linear, self-adjoint and differentiable in ``x``.
+
+    Raises:
+        ParameterError: Negative/non-finite dt or viscosity, or a non-float tensor.
+        ShapeError: Wrong rank.
+    """
+    rank = _check_rhs(x, "x")
+    res = tuple(x.shape[1:])
+    decay = heat_decay_factors(res, dt, viscosity=viscosity, dtype=x.dtype, device=x.device)
+    axes = tuple(range(1, rank + 1))
+    return _fft.irfftn(_fft.rfftn(x, axes, engine=engine) * decay, res, axes, engine=engine)
