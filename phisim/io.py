@@ -436,7 +436,8 @@ class SimulationWriter:
             ds.attrs["component"] = a
             ds.attrs["field"] = name
         self.kinds[name] = "staggered"
-        self._file["extras"].attrs["field_kinds"] = json.dumps(self.kinds)
+        if "extras" in self._file:
+            self._file["extras"].attrs["field_kinds"] = json.dumps(self.kinds)
 
     # -- frames --
     @property
