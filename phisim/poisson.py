@@ -648,10 +648,11 @@ def masked_poisson_solve(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="n
 
     out = cg(operator, -f, x0, solve=solve, preconditioner=spectral_pre if preconditioner else None,
              return_info=return_info, project=project if singular else None)
-    if return_info:
-        x, info = out
-        return x * m, info
-    return out * m
+    x, info = out if return_info else (out, None)
+    x = x * m
+    if singular:  # the gauge: zero mean over fluid cells
+        x = project(x)
+    return (x, info) if return_info else x
 
 
 # ----------------------------------------------------------------------------------------------
