@@ -14,6 +14,8 @@ from .boundary import (
     set_boundary_faces,
 )
 from .checks import check_dt, check_finite, check_nonnegative, check_positive
+from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
+from .diffusion import diffuse, diffuse_values, explicit_stability_limit, fourier_heat, heat_decay_factors
 from .errors import (
     BoundaryError,
     FileFormatError,
@@ -24,9 +26,10 @@ from .errors import (
     ShapeError,
     SolveError,
 )
-from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
+from .fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
 from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
 from .grid import Grid
+from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
@@ -37,4 +40,7 @@ __all__ = [
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
     "check_dt", "check_finite", "check_nonnegative", "check_positive",
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
+    "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
+    "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
+    "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
 ]
