@@ -6,7 +6,8 @@ For ``lambda = 1`` and ``lambda = 0.01`` it trains Adam, Gauss-Newton and HIG fr
 network on the same stream of mini-batches and records
 
 * the validation loss (512 evenly spaced ``x``),
-* mean and standard deviation of the hidden tanh activations over the validation inputs (saturation),
+* the mean of the hidden tanh activations and their standard deviation over the validation inputs
+  (per neuron, averaged over the 7 neurons): a saturated neuron has a spread near zero,
 * the path in y-space (``P(f(x0))``) of one sample ``x0``.
 
 Outputs (in ``--out``): ``hig_toy_lambda<lam>.h5`` with ``/training/<method>/{iteration, loss,
@@ -101,7 +102,7 @@ def train(method: str, lam: float, args: argparse.Namespace) -> dict[str, np.nda
             rec["iteration"].append(it)
             rec["loss"].append(float(squared_error(physics(net(xv)), tv).mean()))
             rec["act_mean"].append(float(hidden.mean()))
-            rec["act_std"].append(float(hidden.std()))
+            rec["act_std"].append(float(hidden.std(dim=0).mean()))  # spread over inputs, per neuron
             rec["y_path"].append(physics(net(x0))[0].tolist())
             rec["time"].append(time.perf_counter() - t_start)
 
@@ -140,7 +141,7 @@ def plot(results: dict[str, dict[str, np.ndarray]], lam: float, sample_target: n
     ax[2].plot(*first["y_path"][0], "o", color="lightgray", ms=8, label="start")
     ax[2].plot(*sample_target, "ko", ms=6, label="target")
     ax[0].set(xlabel="iteration", ylabel="validation loss", title=f"loss, lambda = {lam:g}")
-    ax[1].set(xlabel="iteration", ylabel="tanh activation", title="hidden activations: mean +- std")
+    ax[1].set(xlabel="iteration", ylabel="tanh activation", title="hidden tanh: mean +- spread over inputs")
     ax[2].set(xlabel="y1", ylabel="lambda * y2", title="y-space path of one sample")
     for a in ax:
         a.legend(fontsize=7)
