@@ -30,7 +30,8 @@ def _points() -> tuple[torch.Tensor, torch.Tensor]:
 
 def _coupled(x: torch.Tensor) -> torch.Tensor:
     """A nonlinear, coupled 3 -> 2 test forward, sample-independent."""
-    return torch.stack([torch.sin(x[:, 0]) * x[:, 1] + x[:, 2] ** 3, x[:, 0] ** 2 + torch.exp(x[:, 1] / 3)], dim=-1)
+    first = torch.sin(x[:, 0]) * x[:, 1] + x[:, 2] ** 3
+    return torch.stack([first, x[:, 0] ** 2 + torch.exp(x[:, 1] / 3)], dim=-1)
 
 
 # ------------------------------------------------------------------------------------------- Jacobians
@@ -50,7 +51,8 @@ def test_batch_jacobian_and_hessian_match_autograd_functional():
         def li(z, i=i):
             return 0.5 * ((_coupled(z[None]) - t[i : i + 1]) ** 2).sum()
 
-        torch.testing.assert_close(hess[i], torch.autograd.functional.hessian(li, x[i]), rtol=1e-12, atol=1e-12)
+        ref_h = torch.autograd.functional.hessian(li, x[i])
+        torch.testing.assert_close(hess[i], ref_h, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(g[i], torch.autograd.functional.jacobian(li, x[i]), rtol=1e-12, atol=1e-12)
 
 
@@ -93,7 +95,8 @@ def test_generic_solvers_match_analytic_inverse_on_e1(solver, op):
     got = solver(op, target, x0)
     tol = 1e-5 if isinstance(solver, LBFGSBSolver) else 1e-12
     torch.testing.assert_close(got, analytic, rtol=0, atol=tol)
-    torch.testing.assert_close(SolverOperator(op, solver).local_inverse(target, x0), analytic, rtol=0, atol=tol)
+    via_adapter = SolverOperator(op, solver).local_inverse(target, x0)
+    torch.testing.assert_close(via_adapter, analytic, rtol=0, atol=tol)
 
 
 def test_newton_and_inverse_gradient_are_exact_in_one_step_on_linear_toy():
@@ -139,7 +142,8 @@ def test_saddle_free_newton_descends_where_plain_newton_ascends():
 
     assert loss(plain) > loss(x0) > loss(free)
     # Iterated, saddle-free Newton reaches the nearby root x = 1.
-    torch.testing.assert_close(NewtonSolver(max_iter=30, saddle_free=True)(sq, t, x0), torch.ones(1, 1, dtype=F64))
+    iterated = NewtonSolver(max_iter=30, saddle_free=True)(sq, t, x0)
+    torch.testing.assert_close(iterated, torch.ones(1, 1, dtype=F64))
 
 
 def test_clipped_steps_are_bounded():

@@ -1,4 +1,4 @@
-"""Tests of inverse.operators: the E1 toys and the E2 sine pair (forward gradients, local inverses, errors)."""
+"""Tests of inverse.operators: the E1 toys and the E2 sine pair (gradients, local inverses, errors)."""
 
 from __future__ import annotations
 
@@ -74,7 +74,8 @@ def test_square_toy_inverse_picks_the_side_of_x0():
 
 
 def test_square_toy_negative_target_gives_zero():
-    got = SquareToy().local_inverse(torch.tensor([[1.0, -4.0]], dtype=F64), torch.tensor([[0.0, 3.0]], dtype=F64))
+    x0 = torch.tensor([[0.0, 3.0]], dtype=F64)
+    got = SquareToy().local_inverse(torch.tensor([[1.0, -4.0]], dtype=F64), x0)
     assert torch.equal(got, torch.tensor([[1.0, 0.0]], dtype=F64))
 
 
@@ -125,7 +126,8 @@ def test_sine_minimum_matches_paper_formula_and_outermost_minima():
         x_n = a / (1.5 * math.pi + 2 * math.pi * n)
         n_paper = round(a / (2 * math.pi * x_n) - 0.75)
         assert n_paper == n
-        got = Sine(a).local_inverse(torch.tensor([[-1.0]], dtype=F64), torch.tensor([[x_n * 1.01]], dtype=F64))
+        x0 = torch.tensor([[x_n * 1.01]], dtype=F64)
+        got = Sine(a).local_inverse(torch.tensor([[-1.0]], dtype=F64), x0)
         assert got.item() == pytest.approx(x_n, rel=1e-13)
     # Far out on the positive side the closest minimum is the outermost positive one, n = 0 (rounding
     # alone would give n = -1, a negative x).

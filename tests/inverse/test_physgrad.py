@@ -25,7 +25,11 @@ F64 = torch.float64
 def _nonlinear(x: torch.Tensor) -> torch.Tensor:
     """A nonlinear, coupled 2 -> 3 forward process (sample-independent)."""
     return torch.stack(
-        [torch.sin(2 * x[:, 0]) * x[:, 1], x[:, 0] ** 2 - torch.exp(x[:, 1] / 2), torch.tanh(x[:, 0] * x[:, 1])],
+        [
+            torch.sin(2 * x[:, 0]) * x[:, 1],
+            x[:, 0] ** 2 - torch.exp(x[:, 1] / 2),
+            torch.tanh(x[:, 0] * x[:, 1]),
+        ],
         dim=-1,
     )
 
@@ -112,7 +116,7 @@ def test_pg_trajectory_is_scale_invariant_and_gd_is_not():
     torch.testing.assert_close(gd[100.0][-1, 1], 3.0 * (1 - 2e-5 * 1e4) ** 12 * torch.ones((), dtype=F64))
 
 
-# ------------------------------------------------------------------------------------------- Newton steps in y
+# ------------------------------------------------------------------------------------- Newton steps in y
 
 
 def test_l2_newton_step():
