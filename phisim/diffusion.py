@@ -81,9 +81,20 @@ def _phi1(z: torch.Tensor) -> torch.Tensor:
     return torch.where(small, 1.0 + z / 2, torch.expm1(safe) / safe)
 
 
-def diffuse_values(u: torch.Tensor, dt, *, viscosity, dx=1.0, kinds="periodic", values=None,
-                   method: str = "spectral", substeps: int = 1, solve=None, spectrum: str = "stencil",
-                   engine: str | None = None) -> torch.Tensor:
+def diffuse_values(
+    u: torch.Tensor,
+    dt,
+    *,
+    viscosity,
+    dx=1.0,
+    kinds="periodic",
+    values=None,
+    method: str = "spectral",
+    substeps: int = 1,
+    solve=None,
+    spectrum: str = "stencil",
+    engine: str | None = None,
+) -> torch.Tensor:
     """Advance ``∂u/∂t = ν ∇²_h u`` by ``dt`` on a tensor ``(B, *resolution)``.
 
     Args:
@@ -126,7 +137,9 @@ def diffuse_values(u: torch.Tensor, dt, *, viscosity, dx=1.0, kinds="periodic", 
     b = boundary_source(u, dx, kinds, values)
     if method == "spectral":
         if spectrum == "continuous" and b is not None:
-            raise BoundaryError("spectrum='continuous' supports zero boundary values only; use spectrum='stencil'")
+            raise BoundaryError(
+                "spectrum='continuous' supports zero boundary values only; use spectrum='stencil'"
+            )
 
         def decay(lam):
             return torch.exp(lam * tau)
@@ -141,9 +154,11 @@ def diffuse_values(u: torch.Tensor, dt, *, viscosity, dx=1.0, kinds="periodic", 
         step = float(dt) / substeps
         if step > limit * (1 + 1e-12):
             need = math.ceil(float(dt) / limit)
-            raise ParameterError(f"explicit diffusion is unstable: dt/substeps = {step:g} exceeds the limit "
-                                 f"1/(2 ν Σ 1/dx²) = {limit:g}; use substeps >= {need}, method='implicit' or "
-                                 "method='spectral'")
+            raise ParameterError(
+                f"explicit diffusion is unstable: dt/substeps = {step:g} exceeds the limit "
+                f"1/(2 ν Σ 1/dx²) = {limit:g}; use substeps >= {need}, method='implicit' or "
+                "method='spectral'"
+            )
         for _ in range(substeps):
             lap = _laplace_zero(u, dx, kinds)
             if b is not None:
@@ -192,8 +207,17 @@ def _component_kinds(boundary, component: int | None):
     return tuple(kinds), tuple(values)
 
 
-def diffuse(field, dt, *, viscosity, method: str = "spectral", substeps: int = 1, solve=None,
-            spectrum: str = "stencil", engine: str | None = None):
+def diffuse(
+    field,
+    dt,
+    *,
+    viscosity,
+    method: str = "spectral",
+    substeps: int = 1,
+    solve=None,
+    spectrum: str = "stencil",
+    engine: str | None = None,
+):
     """Diffuse a cell-centred field for a time ``dt``: ``∂u/∂t = ν ∇²u`` with the field's boundary.
 
     Boundary values sit on the cell face (see :mod:`phisim.boundary`). Vector fields diffuse each
@@ -220,11 +244,20 @@ def diffuse(field, dt, *, viscosity, method: str = "spectral", substeps: int = 1
     from .field import CenteredGrid
 
     if not isinstance(field, CenteredGrid):
-        raise ParameterError(f"diffuse expects a CenteredGrid, got {type(field).__name__}; resample a "
-                             "StaggeredGrid with .at_centers() or diffuse its values with diffuse_values")
+        raise ParameterError(
+            f"diffuse expects a CenteredGrid, got {type(field).__name__}; resample a "
+            "StaggeredGrid with .at_centers() or diffuse its values with diffuse_values"
+        )
     grid = field.grid
-    kw = dict(viscosity=viscosity, dx=grid.dx, method=method, substeps=substeps, solve=solve,
-              spectrum=spectrum, engine=engine)
+    kw = dict(
+        viscosity=viscosity,
+        dx=grid.dx,
+        method=method,
+        substeps=substeps,
+        solve=solve,
+        spectrum=spectrum,
+        engine=engine,
+    )
     if not field.is_vector:
         kinds, values = _component_kinds(field.boundary, None)
         return field.with_values(diffuse_values(field.values, dt, kinds=kinds, values=values, **kw))
@@ -246,8 +279,9 @@ def _slice_channel(v, c: int):
 # the periodic heat operator of E4
 
 
-def fourier_k2(resolution: Sequence[int], *, real: bool = True, dtype: torch.dtype = torch.float64,
-               device=None) -> torch.Tensor:
+def fourier_k2(
+    resolution: Sequence[int], *, real: bool = True, dtype: torch.dtype = torch.float64, device=None
+) -> torch.Tensor:
     """``|k|²`` with numpy's ``fftfreq`` wavenumbers in cycles per cell (dx = 1).
 
     Args:
@@ -273,15 +307,25 @@ def _k2_cached(resolution, real, dtype, device) -> torch.Tensor:
     total = torch.zeros((), dtype=torch.float64)
     for a, n in enumerate(resolution):
         last = a == len(resolution) - 1
-        k = torch.fft.rfftfreq(n, dtype=torch.float64) if (real and last) else torch.fft.fftfreq(n, dtype=torch.float64)
+        k = (
+            torch.fft.rfftfreq(n, dtype=torch.float64)
+            if (real and last)
+            else torch.fft.fftfreq(n, dtype=torch.float64)
+        )
         shape = [1] * len(resolution)
         shape[a] = -1
         total = total + (k**2).reshape(shape)
     return total.to(dtype=dtype, device=device)
 
 
-def heat_decay_factors(resolution: Sequence[int], dt: float, *, viscosity: float = 1.0,
-                       dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+def heat_decay_factors(
+    resolution: Sequence[int],
+    dt: float,
+    *,
+    viscosity: float = 1.0,
+    dtype: torch.dtype = torch.float64,
+    device=None,
+) -> torch.Tensor:
     """``exp(-4π² |k|² ν dt)`` in the rfft layout (cached per resolution, ν dt, dtype and device).
 
     Args:
@@ -308,7 +352,9 @@ def _decay_cached(resolution, nu_t, dtype, device) -> torch.Tensor:
     return torch.exp(-4 * math.pi**2 * k2 * nu_t).to(dtype=dtype, device=device)
 
 
-def fourier_heat(x: torch.Tensor, dt: float, *, viscosity: float = 1.0, engine: str | None = None) -> torch.Tensor:
+def fourier_heat(
+    x: torch.Tensor, dt: float, *, viscosity: float = 1.0, engine: str | None = None
+) -> torch.Tensor:
     """Periodic heat operator of E4: ``ŷ(k) = x̂(k) exp(-4π² |k|² ν dt)``, batched.
 
     Wavenumbers are numpy's ``fftfreq`` in cycles per cell with dx = 1 (as PhiFlow's

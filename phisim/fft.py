@@ -74,8 +74,14 @@ __all__ = [
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
 R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4")
-_FFTW_KIND = {"dct2": "FFTW_REDFT10", "dct3": "FFTW_REDFT01", "dst2": "FFTW_RODFT10", "dst3": "FFTW_RODFT01",
-              "dct4": "FFTW_REDFT11", "dst4": "FFTW_RODFT11"}
+_FFTW_KIND = {
+    "dct2": "FFTW_REDFT10",
+    "dct3": "FFTW_REDFT01",
+    "dst2": "FFTW_RODFT10",
+    "dst3": "FFTW_RODFT01",
+    "dct4": "FFTW_REDFT11",
+    "dst4": "FFTW_RODFT11",
+}
 _ENGINES = ("auto", "torch", "pyfftw")
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 
@@ -179,8 +185,10 @@ def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
         return "torch"
     if engine == "pyfftw":
         if x.device.type != "cpu":
-            raise ParameterError(f"the pyfftw engine works on CPU tensors only, got device {x.device}; "
-                                 "use engine='torch' or 'auto'")
+            raise ParameterError(
+                f"the pyfftw engine works on CPU tensors only, got device {x.device}; "
+                "use engine='torch' or 'auto'"
+            )
         if not _HAVE_PYFFTW:
             if not _WARNED_NO_PYFFTW:
                 warnings.warn("pyfftw is not installed; falling back to the torch FFT engine", stacklevel=3)
@@ -192,8 +200,10 @@ def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
         return "torch"
     if not _HAVE_PYFFTW:
         if not _WARNED_NO_PYFFTW:
-            warnings.warn("pyfftw is not installed; using torch.fft on the CPU (slower real-to-real "
-                          "transforms)", stacklevel=3)
+            warnings.warn(
+                "pyfftw is not installed; using torch.fft on the CPU (slower real-to-real transforms)",
+                stacklevel=3,
+            )
             _WARNED_NO_PYFFTW = True
         return "torch"
     return "pyfftw"
@@ -248,7 +258,7 @@ def _torch_dct2_last(x: torch.Tensor) -> torch.Tensor:
     v = torch.cat([x[..., ::2], x[..., 1::2].flip(-1)], dim=-1)
     z = torch.fft.rfft(v, dim=-1) * _twiddle(n, -1, x.dtype, x.device)
     lower = 2 * z.real
-    upper = (-2 * z.imag[..., 1:n - n // 2]).flip(-1)
+    upper = (-2 * z.imag[..., 1 : n - n // 2]).flip(-1)
     return torch.cat([lower, upper], dim=-1)
 
 
@@ -328,8 +338,14 @@ _PLANS: dict[tuple, _Plan] = {}
 _PLAN_LOCK = threading.Lock()
 
 
-def _get_plan(op: str, shape: tuple[int, ...], dtype: np.dtype, axes: tuple[int, ...],
-              kinds: tuple[str, ...] = (), out_n: tuple[int, ...] = ()) -> _Plan:
+def _get_plan(
+    op: str,
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    axes: tuple[int, ...],
+    kinds: tuple[str, ...] = (),
+    out_n: tuple[int, ...] = (),
+) -> _Plan:
     s = _SETTINGS
     key = (op, shape, np.dtype(dtype).str, axes, kinds, out_n, s.threads, s.planner_effort)
     plan = _PLANS.get(key)
@@ -400,8 +416,9 @@ class _PyfftwR2R(torch.autograd.Function):
         out = _PyfftwR2R.apply(g, tuple(_ADJOINT[k] for k in kinds), axes)
         for kind, ax in zip(kinds, axes):
             if kind in ("dct3", "dst3"):
-                out = out * _axis_vector(_edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device),
-                                         out.ndim, ax)
+                out = out * _axis_vector(
+                    _edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device), out.ndim, ax
+                )
         return out, None, None
 
 
@@ -456,8 +473,13 @@ def _np_dtype(dtype: torch.dtype) -> np.dtype:
 # public transforms
 
 
-def r2rn(x: torch.Tensor, kinds: Sequence[str] | str, axes: Sequence[int] | int | None = None, *,
-         engine: str | None = None) -> torch.Tensor:
+def r2rn(
+    x: torch.Tensor,
+    kinds: Sequence[str] | str,
+    axes: Sequence[int] | int | None = None,
+    *,
+    engine: str | None = None,
+) -> torch.Tensor:
     """Unnormalised real-to-real transforms, one kind per axis (FFTW/scipy ``norm='backward'`` definitions).
 
     With ``N`` the length of an axis and ``n, k = 0..N-1``:
@@ -465,7 +487,8 @@ def r2rn(x: torch.Tensor, kinds: Sequence[str] | str, axes: Sequence[int] | int 
     * ``'dct2'``: ``y_k = 2 Σ_n x_n cos(π k (2n+1) / 2N)``
     * ``'dct3'``: ``y_k = x_0 + 2 Σ_{n≥1} x_n cos(π n (2k+1) / 2N)``  (``dct3(dct2(x)) = 2N x``)
     * ``'dst2'``: ``y_k = 2 Σ_n x_n sin(π (k+1)(2n+1) / 2N)``
-    * ``'dst3'``: ``y_k = (-1)^k x_{N-1} + 2 Σ_{n<N-1} x_n sin(π (n+1)(2k+1) / 2N)``  (``dst3(dst2(x)) = 2N x``)
+    * ``'dst3'``: ``y_k = (-1)^k x_{N-1} + 2 Σ_{n<N-1} x_n sin(π (n+1)(2k+1) / 2N)``
+      (``dst3(dst2(x)) = 2N x``)
     * ``'dct4'``: ``y_k = 2 Σ_n x_n cos(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dct4(dct4(x)) = 2N x``)
     * ``'dst4'``: ``y_k = 2 Σ_n x_n sin(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dst4(dst4(x)) = 2N x``)
 
@@ -502,7 +525,9 @@ def r2rn(x: torch.Tensor, kinds: Sequence[str] | str, axes: Sequence[int] | int 
     return _torch_r2rn(x, kinds, axes)
 
 
-def rfftn(x: torch.Tensor, axes: Sequence[int] | int | None = None, *, engine: str | None = None) -> torch.Tensor:
+def rfftn(
+    x: torch.Tensor, axes: Sequence[int] | int | None = None, *, engine: str | None = None
+) -> torch.Tensor:
     """Real-to-complex n-dimensional FFT (unnormalised forward, like ``torch.fft.rfftn``).
 
     Args:
@@ -526,8 +551,9 @@ def rfftn(x: torch.Tensor, axes: Sequence[int] | int | None = None, *, engine: s
     return torch.fft.rfftn(x, dim=axes)
 
 
-def irfftn(X: torch.Tensor, s: Sequence[int], axes: Sequence[int] | int | None = None, *,
-           engine: str | None = None) -> torch.Tensor:
+def irfftn(
+    X: torch.Tensor, s: Sequence[int], axes: Sequence[int] | int | None = None, *, engine: str | None = None
+) -> torch.Tensor:
     """Inverse of :func:`rfftn` (normalised by ``1/prod(s)``, like ``torch.fft.irfftn``).
 
     Args:
@@ -544,7 +570,9 @@ def irfftn(X: torch.Tensor, s: Sequence[int], axes: Sequence[int] | int | None =
         ShapeError: For an out-of-range or repeated axis.
     """
     if not isinstance(X, torch.Tensor) or X.dtype not in (torch.complex64, torch.complex128):
-        raise ParameterError(f"irfftn expects a complex64/complex128 tensor, got {getattr(X, 'dtype', type(X))}")
+        raise ParameterError(
+            f"irfftn expects a complex64/complex128 tensor, got {getattr(X, 'dtype', type(X))}"
+        )
     s = tuple(int(n) for n in s)
     if axes is None:
         axes = tuple(range(X.ndim - len(s), X.ndim))
@@ -552,7 +580,9 @@ def irfftn(X: torch.Tensor, s: Sequence[int], axes: Sequence[int] | int | None =
     if len(s) != len(axes):
         raise ParameterError(f"irfftn: s={s} and axes={axes} differ in length")
     if X.shape[axes[-1]] != s[-1] // 2 + 1 or any(X.shape[a] != n for a, n in zip(axes[:-1], s[:-1])):
-        raise ShapeError(f"irfftn: input shape {tuple(X.shape)} does not match output sizes {s} on axes {axes}")
+        raise ShapeError(
+            f"irfftn: input shape {tuple(X.shape)} does not match output sizes {s} on axes {axes}"
+        )
     if resolve_engine(X, engine) == "pyfftw":
         return _PyfftwIrfftn.apply(X, s, axes)
     return torch.fft.irfftn(X, s=s, dim=axes)
@@ -594,8 +624,14 @@ def _trig(x: torch.Tensor, family: str, type: int, axes, norm: str, inverse: boo
     return y
 
 
-def dctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
-         engine: str | None = None) -> torch.Tensor:
+def dctn(
+    x: torch.Tensor,
+    type: int = 2,
+    axes: Sequence[int] | int | None = None,
+    norm: str | None = None,
+    *,
+    engine: str | None = None,
+) -> torch.Tensor:
     """n-dimensional discrete cosine transform, as ``scipy.fft.dctn`` (types 2 and 3).
 
     Args:
@@ -614,8 +650,14 @@ def dctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None
     return _trig(x, "dct", type, axes, norm, False, engine)
 
 
-def idctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
-          engine: str | None = None) -> torch.Tensor:
+def idctn(
+    x: torch.Tensor,
+    type: int = 2,
+    axes: Sequence[int] | int | None = None,
+    norm: str | None = None,
+    *,
+    engine: str | None = None,
+) -> torch.Tensor:
     """Inverse of :func:`dctn` with the same ``type`` and ``norm`` (as ``scipy.fft.idctn``).
 
     Args:
@@ -634,8 +676,14 @@ def idctn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = Non
     return _trig(x, "dct", type, axes, norm, True, engine)
 
 
-def dstn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
-         engine: str | None = None) -> torch.Tensor:
+def dstn(
+    x: torch.Tensor,
+    type: int = 2,
+    axes: Sequence[int] | int | None = None,
+    norm: str | None = None,
+    *,
+    engine: str | None = None,
+) -> torch.Tensor:
     """n-dimensional discrete sine transform, as ``scipy.fft.dstn`` (types 2 and 3).
 
     Args:
@@ -654,8 +702,14 @@ def dstn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None
     return _trig(x, "dst", type, axes, norm, False, engine)
 
 
-def idstn(x: torch.Tensor, type: int = 2, axes: Sequence[int] | int | None = None, norm: str | None = None, *,
-          engine: str | None = None) -> torch.Tensor:
+def idstn(
+    x: torch.Tensor,
+    type: int = 2,
+    axes: Sequence[int] | int | None = None,
+    norm: str | None = None,
+    *,
+    engine: str | None = None,
+) -> torch.Tensor:
     """Inverse of :func:`dstn` with the same ``type`` and ``norm`` (as ``scipy.fft.idstn``).
 
     Args:

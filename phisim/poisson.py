@@ -133,13 +133,17 @@ def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
 
 def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     if not isinstance(rhs, torch.Tensor):
-        raise ParameterError(f"{name} must be a torch.Tensor of shape (B, *resolution), got {type(rhs).__name__}")
+        raise ParameterError(
+            f"{name} must be a torch.Tensor of shape (B, *resolution), got {type(rhs).__name__}"
+        )
     if rhs.dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"{name} must be float32 or float64, got {rhs.dtype}")
     rank = rhs.ndim - 1
     if not 1 <= rank <= 3:
-        raise ShapeError(f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
-                         "add a batch axis with rhs[None] if needed")
+        raise ShapeError(
+            f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
+            "add a batch axis with rhs[None] if needed"
+        )
     return rank
 
 
@@ -152,8 +156,10 @@ def _normalize_values(values, rank: int, kinds: Kinds):
         return tuple((None, None) for _ in range(rank))
     values = tuple(values)
     if len(values) != rank:
-        raise BoundaryError(f"values has {len(values)} entries for {rank} spatial axes; give one "
-                            "(lower, upper) pair per axis (None for zero)")
+        raise BoundaryError(
+            f"values has {len(values)} entries for {rank} spatial axes; give one "
+            "(lower, upper) pair per axis (None for zero)"
+        )
     out = []
     for axis, v in enumerate(values):
         pair = (None, None) if v is None else tuple(v)
@@ -169,14 +175,16 @@ def _normalize_values(values, rank: int, kinds: Kinds):
 # eigenvalues and spectral application
 
 
-def _axis_eigs(n: int, pair: tuple[str, str], dx: float, halved: bool, continuous: bool = False) -> torch.Tensor:
+def _axis_eigs(
+    n: int, pair: tuple[str, str], dx: float, halved: bool, continuous: bool = False
+) -> torch.Tensor:
     k = torch.arange(n, dtype=torch.float64)
     if continuous:  # eigenvalues -(wavenumber)^2 of the continuous Laplacian for the same modes
         if pair[0] == "periodic":
-            lam = -(2 * math.pi * torch.minimum(k, n - k) / (n * dx)) ** 2
+            lam = -((2 * math.pi * torch.minimum(k, n - k) / (n * dx)) ** 2)
             return lam[: n // 2 + 1] if halved else lam
         shift = {("dirichlet", "dirichlet"): 1.0, ("neumann", "neumann"): 0.0}.get(pair, 0.5)
-        return -(math.pi * (k + shift) / (n * dx)) ** 2
+        return -((math.pi * (k + shift) / (n * dx)) ** 2)
     if pair[0] == "periodic":
         lam = -4 * torch.sin(math.pi * k / n) ** 2
         if halved:
@@ -197,8 +205,16 @@ def _layout(kinds: Kinds) -> tuple[list[int], list[int]]:
     return r2r, per
 
 
-def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.dtype = torch.float64,
-                          device=None, halved: bool = True, spectrum: str = "stencil") -> torch.Tensor:
+def laplacian_eigenvalues(
+    resolution: Sequence[int],
+    dx,
+    kinds,
+    *,
+    dtype: torch.dtype = torch.float64,
+    device=None,
+    halved: bool = True,
+    spectrum: str = "stencil",
+) -> torch.Tensor:
     """Eigenvalues of the face-boundary cell-centred Laplacian stencil in the solver's spectral layout.
 
     Args:
@@ -224,7 +240,9 @@ def laplacian_eigenvalues(resolution: Sequence[int], dx, kinds, *, dtype: torch.
     kinds = normalize_kinds(kinds, rank)
     dx = _normalize_dx(dx, rank)
     _check_spectrum(spectrum)
-    return _eigs_cached(resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved, spectrum == "continuous")
+    return _eigs_cached(
+        resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved, spectrum == "continuous"
+    )
 
 
 def _check_spectrum(spectrum: str) -> None:
@@ -249,8 +267,9 @@ def _singular(kinds: Kinds) -> bool:
     return all("dirichlet" not in p for p in kinds)
 
 
-def spectral_apply(x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None,
-                   spectrum: str = "stencil") -> torch.Tensor:
+def spectral_apply(
+    x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None, spectrum: str = "stencil"
+) -> torch.Tensor:
     """Apply a function of the Laplacian, ``φ(∇²_h) x``, exactly by diagonalisation.
 
     Args:
@@ -345,8 +364,10 @@ def boundary_source(like: torch.Tensor, dx, kinds, values) -> torch.Tensor | Non
             try:
                 vt = torch.broadcast_to(vt, slab_shape)
             except RuntimeError as exc:
-                raise ShapeError(f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} has shape "
-                                 f"{tuple(vt.shape)}, not broadcastable to the slab {tuple(slab_shape)}") from exc
+                raise ShapeError(
+                    f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} has shape "
+                    f"{tuple(vt.shape)}, not broadcastable to the slab {tuple(slab_shape)}"
+                ) from exc
             pads = [0, 0] * rank
             n = like.shape[1 + a]
             # F.pad lists the last axis first
@@ -383,7 +404,7 @@ def stencil_laplacian(u: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
 
 
 def _laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:
-    """Stencil with zero boundary values; ``open_faces[a]`` (optional) weights the interior faces of axis a."""
+    """Stencil with zero boundary values; ``open_faces[a]`` (optional) weights interior faces of axis a."""
     out = torch.zeros_like(u)
     for a, (lo, hi) in enumerate(kinds):
         dim = 1 + a
@@ -397,7 +418,7 @@ def _laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.T
         inner = (u.narrow(dim, 1, n - 1) - u.narrow(dim, 0, n - 1)) / dx[a] ** 2  # faces 1..n-1
         if open_faces is not None:
             inner = inner * open_faces[a]
-        # face differences (u_i - u_{i-1}) / dx^2 at faces 0..n; zero-value ghosts: -u (Dirichlet), u (Neumann)
+        # face differences (u_i - u_{i-1}) / dx^2 at faces 0..n; zero-value ghosts -u (Dirichlet), u (Neumann)
         zero = torch.zeros_like(_slab(u, dim, 0))
         lo_flux = 2 * _slab(u, dim, 0) / dx[a] ** 2 if lo == "dirichlet" else zero
         hi_flux = -2 * _slab(u, dim, n - 1) / dx[a] ** 2 if hi == "dirichlet" else zero
@@ -424,11 +445,13 @@ def _remove_mean(f: torch.Tensor, *, incompatible: str, compat_rtol: float | Non
     if bool(bad.any()):
         idx = [int(i) for i in torch.nonzero(bad).flatten()]
         ratio = (mean.flatten().abs() / rms.clamp_min(torch.finfo(f.dtype).tiny)).detach()
-        msg = (f"{what}: the problem is singular (no Dirichlet side: solutions differ by a constant) and the "
-               f"right-hand side including boundary fluxes is incompatible for samples {idx}: its mean is "
-               f"{[f'{float(ratio[i]):.3g}' for i in idx]} x its RMS (tolerance {tol:g}). Its sum must equal the "
-               "net boundary flux / dx. Fix the data, or pass incompatible='project' (remove the mean) or "
-               "'warn'.")
+        msg = (
+            f"{what}: the problem is singular (no Dirichlet side: solutions differ by a constant) and the "
+            f"right-hand side including boundary fluxes is incompatible for samples {idx}: its mean is "
+            f"{[f'{float(ratio[i]):.3g}' for i in idx]} x its RMS (tolerance {tol:g}). Its sum must equal the"
+            " net boundary flux / dx. Fix the data, or pass incompatible='project' (remove the mean) or "
+            "'warn'."
+        )
         if incompatible == "raise":
             raise ParameterError(msg)
         if incompatible == "warn":
@@ -441,9 +464,16 @@ def _check_incompatible(incompatible: str) -> None:
         raise ParameterError(f"incompatible must be 'raise', 'warn' or 'project', got {incompatible!r}")
 
 
-def spectral_poisson_solve(rhs: torch.Tensor, dx=1.0, kinds="dirichlet", values=None, *,
-                           incompatible: str = "raise", compat_rtol: float | None = None,
-                           engine: str | None = None) -> torch.Tensor:
+def spectral_poisson_solve(
+    rhs: torch.Tensor,
+    dx=1.0,
+    kinds="dirichlet",
+    values=None,
+    *,
+    incompatible: str = "raise",
+    compat_rtol: float | None = None,
+    engine: str | None = None,
+) -> torch.Tensor:
     """Solve ``∇²_h u = rhs`` directly on a rectangular grid (FFT / DST / DCT per axis).
 
     Exact up to round-off for the standard second-order stencil with boundary values on the cell face
@@ -544,16 +574,33 @@ def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
     m = torch.as_tensor(mask, device=like.device)
     if m.ndim == like.ndim - 1:
         m = m[None]
-    if m.ndim != like.ndim or tuple(m.shape[1:]) != tuple(like.shape[1:]) or m.shape[0] not in (1, like.shape[0]):
-        raise ShapeError(f"mask must have shape {tuple(like.shape[1:])} or (B, *resolution) matching "
-                         f"{tuple(like.shape)}, got {tuple(m.shape)}")
+    if (
+        m.ndim != like.ndim
+        or tuple(m.shape[1:]) != tuple(like.shape[1:])
+        or m.shape[0] not in (1, like.shape[0])
+    ):
+        raise ShapeError(
+            f"mask must have shape {tuple(like.shape[1:])} or (B, *resolution) matching "
+            f"{tuple(like.shape)}, got {tuple(m.shape)}"
+        )
     return m.to(like.dtype)
 
 
-def masked_poisson_solve(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="neumann", values=None, *,
-                         solve=None, x0: torch.Tensor | None = None, preconditioner: str | None = "spectral",
-                         incompatible: str = "raise", compat_rtol: float | None = None,
-                         return_info: bool = False, engine: str | None = None):
+def masked_poisson_solve(
+    rhs: torch.Tensor,
+    mask: torch.Tensor,
+    dx=1.0,
+    kinds="neumann",
+    values=None,
+    *,
+    solve=None,
+    x0: torch.Tensor | None = None,
+    preconditioner: str | None = "spectral",
+    incompatible: str = "raise",
+    compat_rtol: float | None = None,
+    return_info: bool = False,
+    engine: str | None = None,
+):
     """Solve ``∇²_h u = rhs`` on the fluid cells of a box with obstacles by preconditioned CG.
 
     Obstacle cells (``mask`` False) are excluded; faces between fluid and obstacle cells are
@@ -626,9 +673,11 @@ def masked_poisson_solve(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="n
             rms = ((f**2).sum(dim=dims) / n_fluid).sqrt()
             bad = mean > tol * rms
         if bool(bad.any()):
-            msg = (f"masked_poisson_solve: singular problem (no Dirichlet side) with an incompatible rhs for "
-                   f"samples {[int(i) for i in torch.nonzero(bad).flatten()]} (mean over fluid cells beyond "
-                   f"{tol:g} x RMS). Fix the data or pass incompatible='project'/'warn'.")
+            msg = (
+                f"masked_poisson_solve: singular problem (no Dirichlet side) with an incompatible rhs for "
+                f"samples {[int(i) for i in torch.nonzero(bad).flatten()]} (mean over fluid cells beyond "
+                f"{tol:g} x RMS). Fix the data or pass incompatible='project'/'warn'."
+            )
             if incompatible == "raise":
                 raise ParameterError(msg)
             if incompatible == "warn":
@@ -646,8 +695,15 @@ def masked_poisson_solve(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="n
         z = -_apply_multiplier(r * mm, kinds, inv, engine)  # (-∇²_box)^-1 (constant mode dropped)
         return z * mm + (1 - mm) * r
 
-    out = cg(operator, -f, x0, solve=solve, preconditioner=spectral_pre if preconditioner else None,
-             return_info=return_info, project=project if singular else None)
+    out = cg(
+        operator,
+        -f,
+        x0,
+        solve=solve,
+        preconditioner=spectral_pre if preconditioner else None,
+        return_info=return_info,
+        project=project if singular else None,
+    )
     x, info = out if return_info else (out, None)
     x = x * m
     if singular:  # the gauge: zero mean over fluid cells
@@ -696,8 +752,16 @@ def field_kinds_and_values(boundary) -> tuple[Kinds, tuple]:
     return tuple(kinds), tuple(values)
 
 
-def solve_poisson(rhs, *, mask=None, solve=None, incompatible: str = "raise", compat_rtol: float | None = None,
-                  engine: str | None = None, return_info: bool = False):
+def solve_poisson(
+    rhs,
+    *,
+    mask=None,
+    solve=None,
+    incompatible: str = "raise",
+    compat_rtol: float | None = None,
+    engine: str | None = None,
+    return_info: bool = False,
+):
     """Solve ``∇² u = rhs`` for a scalar :class:`phisim.field.CenteredGrid`, boundary from the field.
 
     The solution takes the grid and boundary of ``rhs``: its boundary conditions (values on the cell
@@ -723,20 +787,35 @@ def solve_poisson(rhs, *, mask=None, solve=None, incompatible: str = "raise", co
     from .field import CenteredGrid
 
     if not isinstance(rhs, CenteredGrid):
-        raise ParameterError(f"solve_poisson expects a CenteredGrid, got {type(rhs).__name__}; "
-                             "use spectral_poisson_solve for tensors")
+        raise ParameterError(
+            f"solve_poisson expects a CenteredGrid, got {type(rhs).__name__}; "
+            "use spectral_poisson_solve for tensors"
+        )
     if rhs.values.ndim != rhs.grid.rank + 1:
-        raise ShapeError("solve_poisson needs a scalar field (B, *resolution); solve vector components separately")
+        raise ShapeError(
+            "solve_poisson needs a scalar field (B, *resolution); solve vector components separately"
+        )
     kinds, values = field_kinds_and_values(rhs.boundary)
     dx = rhs.grid.dx
     if mask is None:
-        u = spectral_poisson_solve(rhs.values, dx, kinds, values, incompatible=incompatible,
-                                   compat_rtol=compat_rtol, engine=engine)
+        u = spectral_poisson_solve(
+            rhs.values, dx, kinds, values, incompatible=incompatible, compat_rtol=compat_rtol, engine=engine
+        )
         return rhs.with_values(u)
     if isinstance(mask, CenteredGrid):
         mask = mask.values
-    out = masked_poisson_solve(rhs.values, mask, dx, kinds, values, solve=solve, incompatible=incompatible,
-                               compat_rtol=compat_rtol, return_info=return_info, engine=engine)
+    out = masked_poisson_solve(
+        rhs.values,
+        mask,
+        dx,
+        kinds,
+        values,
+        solve=solve,
+        incompatible=incompatible,
+        compat_rtol=compat_rtol,
+        return_info=return_info,
+        engine=engine,
+    )
     if return_info:
         return rhs.with_values(out[0]), out[1]
     return rhs.with_values(out)

@@ -35,7 +35,9 @@ def _mode(n, kind, k):
     return np.cos(np.pi * k * i / n), -4 * np.sin(np.pi * k / (2 * n)) ** 2
 
 
-@pytest.mark.parametrize("kinds", [("periodic", "dirichlet"), ("neumann", "neumann"), ("dirichlet", "periodic")])
+@pytest.mark.parametrize(
+    "kinds", [("periodic", "dirichlet"), ("neumann", "neumann"), ("dirichlet", "periodic")]
+)
 def test_spectral_decays_each_mode_exactly(kinds):
     n = (16, 12)
     dx = (0.5, 0.8)
@@ -88,8 +90,26 @@ def test_first_order_convergence_to_spectral(method):
     exact = diffuse_values(u0, T, viscosity=nu, kinds=kinds, values=values)
     limit = explicit_stability_limit((1.0, 1.0), nu)
     steps = [math.ceil(T / limit) * s for s in (2, 4, 8, 16)]
-    errs = [float((diffuse_values(u0, T, viscosity=nu, kinds=kinds, values=values, method=method, substeps=s,
-                                  solve=Solve(rtol=1e-13)) - exact).abs().max()) for s in steps]
+    errs = [
+        float(
+            (
+                diffuse_values(
+                    u0,
+                    T,
+                    viscosity=nu,
+                    kinds=kinds,
+                    values=values,
+                    method=method,
+                    substeps=s,
+                    solve=Solve(rtol=1e-13),
+                )
+                - exact
+            )
+            .abs()
+            .max()
+        )
+        for s in steps
+    ]
     order = -np.polyfit(np.log(steps), np.log(errs), 1)[0]
     assert abs(order - 1) < 0.1, (order, errs)
 
@@ -102,8 +122,14 @@ def test_explicit_stability_check_and_bad_parameters():
     with pytest.raises(ParameterError, match="substeps >= 3"):
         diffuse_values(u, 2.5 * limit, viscosity=1.0, method="explicit")
     diffuse_values(u, 2.5 * limit, viscosity=1.0, method="explicit", substeps=3)
-    for bad in (dict(dt=-1.0), dict(dt=float("nan")), dict(viscosity=-0.1), dict(viscosity=float("inf")),
-                dict(method="crank"), dict(substeps=0)):
+    for bad in (
+        dict(dt=-1.0),
+        dict(dt=float("nan")),
+        dict(viscosity=-0.1),
+        dict(viscosity=float("inf")),
+        dict(method="crank"),
+        dict(substeps=0),
+    ):
         kw = dict(dt=0.1, viscosity=1.0) | bad
         with pytest.raises(ParameterError):
             diffuse_values(u, kw.pop("dt"), **kw)
@@ -116,8 +142,12 @@ def test_explicit_stability_check_and_bad_parameters():
 def test_spectral_diffusion_gradcheck():
     u = torch.rand(2, 6, 5, dtype=torch.float64, requires_grad=True)
     nu = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
-    f = lambda u, nu: diffuse_values(u, 0.5, viscosity=nu, kinds=("neumann", "dirichlet"),  # noqa: E731
-                                     values=((None, None), (1.0, 0.0)))
+
+    def f(u, nu):
+        return diffuse_values(
+            u, 0.5, viscosity=nu, kinds=("neumann", "dirichlet"), values=((None, None), (1.0, 0.0))
+        )
+
     assert torch.autograd.gradcheck(f, (u, nu))
     assert torch.autograd.gradcheck(lambda u: fourier_heat(u, 0.05), (u,))
 
@@ -132,7 +162,9 @@ def test_fourier_heat_matches_e4_formula_and_numpy():
     assert heat_decay_factors((64, 64), 8.0) is heat_decay_factors((64, 64), 8.0)  # cached
     assert fourier_k2((64, 64)).shape == (64, 33)
     for engine in fft.available_engines():
-        np.testing.assert_allclose(fourier_heat(torch.from_numpy(x), 8.0, engine=engine).numpy(), ref, atol=1e-13)
+        np.testing.assert_allclose(
+            fourier_heat(torch.from_numpy(x), 8.0, engine=engine).numpy(), ref, atol=1e-13
+        )
 
 
 def test_field_diffuse_scalar_and_vector():
@@ -141,8 +173,14 @@ def test_field_diffuse_scalar_and_vector():
     grid = Grid((16, 12), bounds=[(0, 2), (0, 1.5)])
     f = CenteredGrid(torch.rand(2, 16, 12, dtype=torch.float64), grid, [Dirichlet(1.0), "periodic"])
     g = diffuse(f, 0.01, viscosity=0.1)
-    ref = diffuse_values(f.values, 0.01, viscosity=0.1, dx=grid.dx, kinds=("dirichlet", "periodic"),
-                         values=((1.0, 1.0), (None, None)))
+    ref = diffuse_values(
+        f.values,
+        0.01,
+        viscosity=0.1,
+        dx=grid.dx,
+        kinds=("dirichlet", "periodic"),
+        values=((1.0, 1.0), (None, None)),
+    )
     torch.testing.assert_close(g.values, ref)
     assert g.boundary == f.boundary
     lid = Boundary.create({"x": "wall", "y": ("wall", NoSlipWall(velocity=(1.0, 0.0)))}, 2)

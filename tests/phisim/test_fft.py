@@ -18,13 +18,20 @@ def _fast_planning():
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-@pytest.mark.parametrize("shape,axes", [((7,), None), ((8,), None), ((3, 5, 6), (1, 2)), ((2, 3, 4, 5), (1, 2, 3))])
+@pytest.mark.parametrize(
+    "shape,axes", [((7,), None), ((8,), None), ((3, 5, 6), (1, 2)), ((2, 3, 4, 5), (1, 2, 3))]
+)
 @pytest.mark.parametrize("norm", ["backward", "ortho", "forward"])
 def test_dct_dst_match_scipy(engine, shape, axes, norm):
     rng = np.random.default_rng(0)
     x = rng.standard_normal(shape)
     t = torch.from_numpy(x)
-    for ours, ref in ((fft.dctn, sfft.dctn), (fft.idctn, sfft.idctn), (fft.dstn, sfft.dstn), (fft.idstn, sfft.idstn)):
+    for ours, ref in (
+        (fft.dctn, sfft.dctn),
+        (fft.idctn, sfft.idctn),
+        (fft.dstn, sfft.dstn),
+        (fft.idstn, sfft.idstn),
+    ):
         for typ in (2, 3):
             got = ours(t, typ, axes, norm, engine=engine).numpy()
             want = ref(x, type=typ, axes=axes, norm=norm)
@@ -104,7 +111,12 @@ def test_engine_selection_and_errors():
 def test_cuda_dct_dst_match_scipy():
     x = np.random.default_rng(3).standard_normal((2, 9, 8))
     t = torch.from_numpy(x).cuda()
-    for ours, ref in ((fft.dctn, sfft.dctn), (fft.dstn, sfft.dstn), (fft.idctn, sfft.idctn), (fft.idstn, sfft.idstn)):
+    for ours, ref in (
+        (fft.dctn, sfft.dctn),
+        (fft.dstn, sfft.dstn),
+        (fft.idctn, sfft.idctn),
+        (fft.idstn, sfft.idstn),
+    ):
         got = ours(t, 2, (1, 2), "ortho").cpu().numpy()
         np.testing.assert_allclose(got, ref(x, 2, axes=(1, 2), norm="ortho"), atol=1e-12)
     tt = t.clone().requires_grad_()

@@ -93,7 +93,9 @@ def test_direct_solver_matches_spsolve(engine, res, kinds, values):
         assert err < 1e-10, err
 
 
-@pytest.mark.parametrize("res,kinds", [((16,), ((P, P),)), ((9, 8), ((N, N), (N, N))), ((6, 5, 4), ((P, P), (N, N), (P, P)))])
+@pytest.mark.parametrize(
+    "res,kinds", [((16,), ((P, P),)), ((9, 8), ((N, N), (N, N))), ((6, 5, 4), ((P, P), (N, N), (P, P)))]
+)
 def test_singular_cases_zero_mean_solution_matches_spsolve(res, kinds):
     rng = np.random.default_rng(5)
     dx = tuple(0.5 + rng.random() for _ in res)
@@ -166,8 +168,9 @@ def test_tensor_boundary_values_and_gradcheck():
     assert r.abs().max() < 1e-11
     assert torch.autograd.gradcheck(solve, (f, v))
     fp = torch.randn(1, 6, 8, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda f: spectral_poisson_solve(f, 1.0, ("neumann", "periodic"),
-                                                                     incompatible="project"), (fp,))
+    assert torch.autograd.gradcheck(
+        lambda f: spectral_poisson_solve(f, 1.0, ("neumann", "periodic"), incompatible="project"), (fp,)
+    )
 
 
 @pytest.mark.skipif("pyfftw" not in ENGINES, reason="pyfftw not installed")
@@ -181,9 +184,9 @@ def test_torch_engine_equals_pyfftw_engine():
 
 def _obstacle_mask(n):
     mask = torch.ones(n, n, dtype=torch.bool)
-    mask[int(0.25 * n):int(0.4 * n), int(0.3 * n):int(0.45 * n)] = False
-    mask[int(0.6 * n):int(0.75 * n), int(0.15 * n):int(0.28 * n)] = False
-    mask[int(0.45 * n):int(0.55 * n), int(0.7 * n):int(0.92 * n)] = False
+    mask[int(0.25 * n) : int(0.4 * n), int(0.3 * n) : int(0.45 * n)] = False
+    mask[int(0.6 * n) : int(0.75 * n), int(0.15 * n) : int(0.28 * n)] = False
+    mask[int(0.45 * n) : int(0.55 * n), int(0.7 * n) : int(0.92 * n)] = False
     return mask
 
 
@@ -250,8 +253,9 @@ def test_spectral_preconditioner_cuts_iterations_fivefold_128():
     f = f - f.sum(dim=(1, 2), keepdim=True) / mask.sum() * mask
     settings = Solve(rtol=1e-6)
     _, pre = masked_poisson_solve(f, mask, 1.0, "neumann", solve=settings, return_info=True)
-    _, plain = masked_poisson_solve(f, mask, 1.0, "neumann", solve=settings, preconditioner=None,
-                                    return_info=True)
+    _, plain = masked_poisson_solve(
+        f, mask, 1.0, "neumann", solve=settings, preconditioner=None, return_info=True
+    )
     assert pre.all_converged and plain.all_converged
     assert (pre.iterations * 5 <= plain.iterations).all(), (pre.iterations, plain.iterations)
 
@@ -261,7 +265,8 @@ def test_masked_gradient_flows_to_rhs():
     mask = _obstacle_mask(n)
     f = torch.randn(1, n, n, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(
-        lambda f: masked_poisson_solve(f, mask, 1.0, "dirichlet", solve=Solve(rtol=1e-12)), (f,))
+        lambda f: masked_poisson_solve(f, mask, 1.0, "dirichlet", solve=Solve(rtol=1e-12)), (f,)
+    )
 
 
 def test_field_wrapper_uses_field_boundary():
@@ -278,6 +283,11 @@ def test_field_wrapper_uses_field_boundary():
     from phisim import pad
 
     p = pad(u.values, boundary, grid.dx)
-    lap = sum((p.narrow(1 + a, 2, s[a]) - 2 * p.narrow(1 + a, 1, s[a]) + p.narrow(1 + a, 0, s[a])).narrow(
-        2 - a, 1, s[1 - a]) / grid.dx[a] ** 2 for a, s in [(0, (12, 10)), (1, (12, 10))])
+    lap = sum(
+        (p.narrow(1 + a, 2, s[a]) - 2 * p.narrow(1 + a, 1, s[a]) + p.narrow(1 + a, 0, s[a])).narrow(
+            2 - a, 1, s[1 - a]
+        )
+        / grid.dx[a] ** 2
+        for a, s in [(0, (12, 10)), (1, (12, 10))]
+    )
     assert (lap - f.values).abs().max() < 1e-10
