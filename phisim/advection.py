@@ -74,12 +74,6 @@ def _base_index(shape: tuple[int, ...], axis: int, dtype: torch.dtype, device: t
     return torch.arange(shape[axis], dtype=dtype, device=device).reshape(view)
 
 
-@functools.lru_cache(maxsize=128)
-def _zeros_like_axis(shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """A zero coordinate column used to lift 1-D sampling onto ``grid_sample``'s 2-D kernel."""
-    return torch.zeros((1, 1, *shape), dtype=dtype, device=device)
-
-
 class _Location:
     """Sample points of one array (cell centres, or the faces of one MAC component) and how to pad it.
 
@@ -134,7 +128,7 @@ class _Location:
         """Interpolate the padded array ``(B, C, *padded_shape)`` at unpadded indices; returns ``(B, C, *shape)``."""
         cols = [index[a] * self.scale[a] + self.offset[a] for a in range(len(index))]
         if len(cols) == 1:  # 1-D: a 2-D kernel on a single row
-            zero = _zeros_like_axis(self.shape, cols[0].dtype, cols[0].device).expand_as(cols[0])
+            zero = torch.zeros_like(cols[0])
             grid = torch.stack([cols[0], zero], dim=-1).unsqueeze(1)
             out = F.grid_sample(padded.unsqueeze(2), grid, mode="bilinear", padding_mode="border",
                                 align_corners=True)
