@@ -144,10 +144,10 @@ def poisson_direct(size: str, dtype: str, repeats: int, device: str) -> dict:
 # ---- heat ---------------------------------------------------------------------------------------
 
 def heat_spectral(size: str, dtype: str, repeats: int, device: str) -> dict:
-    """Exact spectral diffusion step on a periodic grid (``diffusion.spectral``)."""
-    fn = _need("diffusion", "diffuse_spectral")
+    """Exact periodic heat step ``diffusion.fourier_heat`` (PhiFlow's ``diffuse.fourier`` convention)."""
+    fn = _need("diffusion", "fourier_heat")
     res, nb = inputs.parse_size(size)
-    u = _centered(inputs.periodic_scalar_field(res, nb, dtype=dtype), "periodic", dtype, device)
+    u = _tensor(inputs.periodic_scalar_field(res, nb, dtype=dtype), dtype, device)
     h = inputs.HEAT
     return time_fn(lambda: fn(u, h["dt"], viscosity=h["viscosity"]), repeats=_reps(size, repeats), warmup=2,
                    device=device, min_total_s=0.5)
@@ -155,37 +155,52 @@ def heat_spectral(size: str, dtype: str, repeats: int, device: str) -> dict:
 
 # ---- fluid --------------------------------------------------------------------------------------
 
-def _smoke_setup(size: str, dtype: str, device: str):
-    step_fn = _need("fluid", "smoke_step")
+def _smoke_setup(size: str, dtype: str, device: str, method: str):
+    """Inputs and a step function mirroring the PhiFlow side's step (see inputs.SMOKE)."""
+    maccormack, semi_lagrangian = _need("advection", "maccormack", "semi_lagrangian")
+    buoyancy, make_incompressible = _need("fluid", "buoyancy", "make_incompressible")
+    from phisim.linalg import Solve
+
     res, nb = inputs.parse_size(size)
     init = inputs.smoke_initial(res, nb, dtype=dtype)
     smoke = _centered(init["smoke"], "neumann", dtype, device)
     inflow = _centered(init["inflow"], "neumann", dtype, device)
     v = _staggered(init["velocity"], res, "wall", dtype, device)
     s = inputs.SMOKE
-    return step_fn, smoke, inflow, v, s
-
-
-def smoke_step(size: str, dtype: str, repeats: int, device: str) -> dict:
-    """One smoke step (MacCormack smoke, semi-Lagrangian velocity, buoyancy, closed-box projection)."""
-    step_fn, smoke, inflow, v, s = _smoke_setup(size, dtype, device)
+    dt = s["dt"]
+    solve = Solve(rtol=s["rtol"], atol=s["atol"], max_iter=s["max_iter"])
 
     def step(state):
-        return step_fn(state, s["dt"], inflow=inflow, buoyancy=s["buoyancy"], rtol=s["rtol"], atol=s["atol"])
+        marker, vel, p = state
+        marker = maccormack(marker, vel, dt) + inflow * dt
+        vel = semi_lagrangian(vel, vel, dt)
+        vel = buoyancy(vel, marker, dt, strength=s["buoyancy"])
+        vel, p = make_incompressible(vel, solve=solve, pressure_guess=p, method=method)
+        return marker, vel, p
 
-    timing, _ = time_steps(step, (smoke, v, None), repeats=repeats, warmup=2, device=device)
+    return step, smoke, v
+
+
+def smoke_step(size: str, dtype: str, repeats: int, device: str, method: str = "auto") -> dict:
+    """One smoke step (MacCormack smoke, semi-Lagrangian velocity, buoyancy, closed-box projection).
+
+    ``method='auto'`` is phisim's default projection (direct spectral solve in an obstacle-free box);
+    ``'cg'`` uses masked CG (spectral preconditioner) with the PhiFlow side's tolerances and warm start.
+    """
+    step, smoke, v = _smoke_setup(size, dtype, device, method)
+    timing, _ = time_steps(step, (smoke, v, None), repeats=_reps(size, max(repeats, 5)), warmup=2, device=device)
     return timing
 
 
 def smoke_backward8(size: str, dtype: str, repeats: int, device: str) -> dict:
-    """Forward and backward through 8 smoke steps; gradient of sum(smoke^2) w.r.t. the initial velocity."""
-    step_fn, smoke, inflow, v, s = _smoke_setup(size, dtype, device)
+    """Forward and backward through 8 smoke steps; gradient of sum(smoke^2)/2 w.r.t. the initial velocity."""
+    step, smoke, v = _smoke_setup(size, dtype, device, "auto")
 
     def once():
         vv = v.with_values([c.detach().requires_grad_(True) for c in v.values])
         state = (smoke, vv, None)
         for _ in range(8):
-            state = step_fn(state, s["dt"], inflow=inflow, buoyancy=s["buoyancy"], rtol=s["rtol"], atol=s["atol"])
+            state = step(state)
         loss = 0.5 * (state[0].values ** 2).sum()
         return torch.autograd.grad(loss, vv.values)
 
@@ -202,6 +217,7 @@ CASES: dict[str, Callable[..., dict]] = {
     "poisson_direct": poisson_direct,
     "heat_fourier": heat_spectral,
     "smoke_step": smoke_step,
+    "smoke_step_cg": lambda *a: smoke_step(*a, method="cg"),
     "smoke_backward8": smoke_backward8,
 }
 

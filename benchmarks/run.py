@@ -55,6 +55,8 @@ PAIRS = {
     "fluid": [
         ("smoke_step", "smoke_step", peer_phiflow.CASES["smoke_step"][0], ["float32"]),
         ("smoke_step", "smoke_step_jit", peer_phiflow.CASES["smoke_step_jit"][0], ["float32"]),
+        ("smoke_step_cg", "smoke_step", peer_phiflow.CASES["smoke_step"][0], ["float32"]),
+        ("smoke_step_cg", "smoke_step_jit", peer_phiflow.CASES["smoke_step_jit"][0], ["float32"]),
         ("smoke_backward8", "smoke_backward8", peer_phiflow.CASES["smoke_backward8"][0], ["float32"]),
     ],
     "fft": [],
