@@ -29,6 +29,7 @@ from .errors import (
 from .fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
 from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
 from .grid import Grid
+from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
 
 __all__ = [
@@ -43,4 +44,18 @@ __all__ = [
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
     "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
+    "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
+    "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
 ]
+
+
+_PLOT_NAMES = ("plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure")
+
+
+def __getattr__(name):
+    """Import the plotting functions (and matplotlib) only when first used."""
+    if name in _PLOT_NAMES:
+        from . import plot
+
+        return getattr(plot, name)
+    raise AttributeError(f"module 'phisim' has no attribute {name!r}")
