@@ -32,3 +32,11 @@ __all__ += [  # operators, local solvers, physical-gradient layer, networks
     "UNet", "MLP", "count_parameters",
 ]
 __all__ += ["HIG", "GaussNewton", "HIGStepInfo", "JacobianMemoryError", "hig_update", "per_sample_jacobian"]
+
+from .problems import PROBLEMS, Batch, HeatProblem, Method, PoissonProblem, Problem, SineProblem, get_problem  # noqa: E402
+from .train import TrainResult, batch_generator, make_optimizer, train  # noqa: E402
+
+__all__ += [  # problems and the training loop
+    "Method", "Batch", "Problem", "SineProblem", "PoissonProblem", "HeatProblem", "PROBLEMS", "get_problem",
+    "train", "TrainResult", "batch_generator", "make_optimizer",
+]

@@ -1,0 +1,137 @@
+"""Command-line entry point ``phisim``: train and compare methods on the reference problems, inspect files.
+
+Examples::
+
+    phisim list
+    phisim train poisson pg --iterations 200 --batch-size 16 --resolution 32 32 --out out/poisson.h5
+    phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
+    phisim info out/poisson.h5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from phisim.errors import PhisimError
+
+__all__ = ["main", "build_parser", "describe_file"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``phisim`` command."""
+    p = argparse.ArgumentParser(prog="phisim", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    sub.add_parser("list", help="list problems and their methods")
+
+    def common(sp):
+        sp.add_argument("problem", help="problem name (see `phisim list`)")
+        sp.add_argument("--iterations", type=int, default=100)
+        sp.add_argument("--batch-size", type=int, default=None)
+        sp.add_argument("--resolution", type=int, nargs="+", default=None, help="grid size (Poisson/heat)")
+        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument("--device", default="cpu")
+        sp.add_argument("--out", type=Path, default=None, help="HDF5 file for the curves")
+        sp.add_argument("--checkpoint-every", type=int, default=0)
+        sp.add_argument("--resume", action="store_true")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    t = sub.add_parser("train", help="train one method")
+    common(t)
+    t.add_argument("method")
+    c = sub.add_parser("compare", help="train several methods on the same data stream")
+    common(c)
+    c.add_argument("methods", nargs="+")
+    c.add_argument("--plot", type=Path, default=None, help="PNG of the learning curves")
+    i = sub.add_parser("info", help="summarise an HDF5 file written by phisim")
+    i.add_argument("path", type=Path)
+    return p
+
+
+def describe_file(path: Path) -> str:
+    """A short text summary of an HDF5 file: root attributes, datasets with shapes, training curves.
+
+    Raises:
+        FileFormatError: If the file cannot be read as HDF5.
+    """
+    import h5py
+    import numpy as np
+
+    from phisim.errors import FileFormatError
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise FileFormatError(f"{path}: not a readable HDF5 file ({exc})") from exc
+    lines = [f"{path}"]
+    with f:
+        for k, v in f.attrs.items():
+            lines.append(f"  @{k} = {v!r}"[:160])
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                extra = ""
+                if name.startswith("training/") and obj.ndim == 1 and obj.shape[0] and obj.dtype.kind == "f":
+                    last = obj[-min(10, obj.shape[0]):]
+                    extra = f"  last10 mean={np.nanmean(last):.4g}"
+                lines.append(f"  /{name} {obj.shape} {obj.dtype}{extra}")
+
+        f.visititems(visit)
+    return "\n".join(lines)
+
+
+def _problem(args):
+    from .problems import get_problem
+
+    settings = {}
+    if args.resolution is not None:
+        settings["resolution"] = tuple(args.resolution)
+    return get_problem(args.problem, **settings)
+
+
+def _train(args, problem, method):
+    from .train import train
+
+    r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
+              device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
+              progress=not args.quiet)
+    print(json.dumps({"problem": problem.name, "method": method, "iterations": r.iterations,
+                      "final_loss": r.final("loss"), "final_metric": r.final("metric"),
+                      "seconds": round(r.seconds, 3)}))
+    return r
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``phisim`` command; returns the exit status (2 for user errors, with a one-line message)."""
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "list":
+            from .problems import PROBLEMS
+
+            for name, cls in PROBLEMS.items():
+                print(f"{name}: {', '.join(cls().methods)}")
+            return 0
+        if args.command == "info":
+            print(describe_file(args.path))
+            return 0
+        problem = _problem(args)
+        if args.command == "train":
+            _train(args, problem, args.method)
+            return 0
+        results = {m: _train(args, problem, m) for m in args.methods}
+        if args.plot is not None:
+            from phisim.plot import plot_curves, save_figure
+
+            fig = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
+                              logy=True, title=f"{problem.name}: metric", ylabel="metric")
+            save_figure(fig, args.plot)
+        return 0
+    except PhisimError as exc:
+        print(f"phisim: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,339 @@
+"""The reference experiments as problems: data on the fly, physics pair, network, loss, metric, methods.
+
+A :class:`Problem` bundles what :func:`inverse.train.train` needs; a :class:`Method` names an update rule
+(through the physics with Adam/SGD, physical gradients with a local inverse, supervised, HIG). The
+settings follow ``EXPERIMENTS.md`` (E2 sine, E3 Poisson, E4 heat); sizes can be reduced for tests.
+
+Conventions of the reference figures: the y-space loss ``l2`` is ``½ Σ`` over a sample's cells (a sum, not
+a mean); Poisson and heat backpropagate the batch **sum**, sine and fluid the batch **mean**; the metric
+"x MAE" is ``Σ_cells |x − x*|`` per sample, averaged over the batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from phisim.errors import ParameterError
+
+from .local_solvers import InverseGradientSolver, LBFGSBSolver, LocalSolver, NewtonSolver
+from .nets import MLP, UNet
+from .operators import PhysicsOperator, Sine
+from .physgrad import QuadraticLoss
+
+__all__ = ["Method", "Batch", "Problem", "SineProblem", "PoissonProblem", "HeatProblem", "PROBLEMS", "get_problem"]
+
+
+@dataclass(frozen=True)
+class Method:
+    """A training method.
+
+    Attributes:
+        name: Name used in logs and on the command line.
+        kind: ``'physics'`` (backpropagate the y-space loss through the physics), ``'physgrad'`` (proxy
+            loss with a local inverse), ``'supervised'`` (regress labels), ``'hig'`` (half-inverse
+            gradients / Gauss-Newton).
+        optimizer: ``'adam'``, ``'sgd'``, ``'hig'`` or ``'gauss_newton'``.
+        lr: Learning rate.
+        momentum: SGD momentum.
+        eta: y-space step of the physical gradient.
+        local_solver: Generic local inverse replacing the operator's own (None: the operator's).
+        grad_clip: Clamp the per-sample gradient w.r.t. the network output ``x`` (for physical gradients:
+            the update ``x̃ − x``) to ``[-c, c]`` before it reaches the network (E2).
+        rcond: HIG truncation.
+    """
+
+    name: str
+    kind: str
+    optimizer: str = "adam"
+    lr: float = 1e-3
+    momentum: float = 0.0
+    eta: float = 1.0
+    local_solver: LocalSolver | None = None
+    grad_clip: float | None = None
+    rcond: float = 1e-5
+
+
+@dataclass
+class Batch:
+    """One batch of inverse problems.
+
+    Attributes:
+        inputs: Network input ``(B, ...)``.
+        y_target: Targets ``y*`` ``(B, *y_shape)``.
+        x_true: Ground truth ``x*`` (``None`` when unknown).
+        operator: The physics pair for this batch (may hold per-sample parameters).
+        labels: Supervised labels (``None`` when the problem has none).
+        physics_args: Extra per-sample tensors for HIG's physics function.
+    """
+
+    inputs: torch.Tensor
+    y_target: torch.Tensor
+    x_true: torch.Tensor | None
+    operator: PhysicsOperator
+    labels: torch.Tensor | None = None
+    physics_args: tuple = ()
+
+
+@dataclass
+class Problem:
+    """Base class of the experiments; subclasses implement :meth:`sample`, :meth:`make_network`, :meth:`predict`.
+
+    Attributes:
+        name: Registered name.
+        batch_size: Default batch size.
+        reduction: ``'sum'`` or ``'mean'`` over the batch for the backpropagated objective.
+        dtype: Network dtype.
+        methods: The problem's methods by name.
+        newton_loss: The y-space quadratic loss whose Newton step drives physical gradients.
+    """
+
+    name: str = "problem"
+    batch_size: int = 1
+    reduction: str = "sum"
+    dtype: torch.dtype = torch.float32
+    methods: dict[str, Method] = field(default_factory=dict)
+    newton_loss: QuadraticLoss = field(default_factory=QuadraticLoss)
+
+    def method(self, name: str) -> Method:
+        """The method called ``name``.
+
+        Raises:
+            ParameterError: For an unknown method, listing the known ones.
+        """
+        if name not in self.methods:
+            raise ParameterError(f"problem {self.name!r} has no method {name!r}; choose from {sorted(self.methods)}")
+        return self.methods[name]
+
+    def make_network(self) -> nn.Module:
+        """A freshly initialised network (seed torch before calling for reproducibility)."""
+        raise NotImplementedError
+
+    def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
+        """Draw a batch of problems from ``generator``."""
+        raise NotImplementedError
+
+    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
+        """The physical state ``x`` the network predicts for ``batch``."""
+        raise NotImplementedError
+
+    def loss(self, y: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        """Per-sample y-space loss ``½ Σ_cells (y − y*)²``, shape ``(B,)``."""
+        return 0.5 * ((y - y_target) ** 2).reshape(y.shape[0], -1).sum(dim=1)
+
+    def metric(self, x: torch.Tensor, batch: Batch) -> torch.Tensor:
+        """Per-sample x MAE ``Σ_cells |x − x*|``, shape ``(B,)``."""
+        return (x - batch.x_true.to(x.dtype)).abs().reshape(x.shape[0], -1).sum(dim=1)
+
+    hig_physics: Callable | None = None
+
+
+# ---- E2 -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SineProblem(Problem):
+    """E2: find ``x`` with ``sin(a/x) = −1`` for ``a ∈ [0.1, 10.1)``; network ``a -> x`` (MLP, 461 parameters).
+
+    The physics loss is the height above the minimum, ``h = sin(a/x) + 1`` per sample (also the metric);
+    physical gradients take the Newton step of ``½(y − y*)²`` with ``y* = −1``. Supervised labels are the
+    solutions closest to the fixed guess ``x0 = 1``. Gradients w.r.t. ``x`` are clipped to ``[−1, 1]``
+    where the paper does (Adam through the physics, Newton, inverse gradient).
+    """
+
+    name: str = "sine"
+    batch_size: int = 1000
+    reduction: str = "mean"
+    a_range: tuple[float, float] = (0.1, 10.1)
+
+    def __post_init__(self):
+        lr = 0.002
+        self.methods = {
+            "supervised": Method("supervised", "supervised", lr=lr),
+            "adam": Method("adam", "physics", lr=lr, grad_clip=1.0),
+            "pg_newton": Method("pg_newton", "physgrad", lr=lr, grad_clip=1.0,
+                                local_solver=NewtonSolver(saddle_free=True)),
+            "pg_inverse_gradient": Method("pg_inverse_gradient", "physgrad", lr=lr, grad_clip=1.0,
+                                          local_solver=InverseGradientSolver()),
+            "pg_analytic": Method("pg_analytic", "physgrad", lr=lr),
+            "hig": Method("hig", "hig", optimizer="hig", lr=lr, rcond=1e-5),
+        }
+        self.hig_physics = lambda out, a: torch.sin(a / out)
+
+    def make_network(self) -> nn.Module:
+        """MLP 1 → 10 → 20 → 10 → 1 with ReLU (461 parameters)."""
+        return MLP([1, 10, 20, 10, 1])
+
+    def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
+        """Uniform ``a``; ``y* = −1``; labels from the closest solution to ``x0 = 1``."""
+        lo, hi = self.a_range
+        a = lo + (hi - lo) * torch.rand(batch_size, 1, generator=generator, dtype=torch.float64)
+        a = a.to(device=device, dtype=self.dtype)
+        op = Sine(a[:, 0])
+        y_target = -torch.ones_like(a)
+        labels = op.local_inverse(y_target, torch.ones_like(a))
+        return Batch(a, y_target, None, op, labels=labels, physics_args=(a,))
+
+    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
+        """``x = net(a)``, shape ``(B, 1)``."""
+        return model(batch.inputs)
+
+    def loss(self, y: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+        """Height above the minimum ``y − y* = sin(a/x) + 1`` per sample."""
+        return (y - y_target).reshape(y.shape[0], -1).sum(dim=1)
+
+    def metric(self, x: torch.Tensor, batch: Batch) -> torch.Tensor:
+        """``sin(a/x) + 1`` per sample."""
+        return self.loss(batch.operator(x), batch.y_target)
+
+
+# ---- E3 -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PoissonProblem(Problem):
+    """E3: recover the source ``x`` of Poisson's equation from ``y = ∇⁻² x`` (zero Dirichlet, dx = 1).
+
+    Data: ``x*`` spectral noise (E3 recipe, unit std per sample), ``y* = P(x*)``. Network: U-net 4 levels,
+    16 filters (37,697 parameters), input ``y*``, output ``x``. Methods: Adam through the CG solve
+    (``adam``), SGD with momentum (``sgd``), Adam + physical gradients with the analytic Laplacian
+    (``pg``) or L-BFGS-B (``pg_lbfgsb``).
+    """
+
+    name: str = "poisson"
+    batch_size: int = 128
+    reduction: str = "sum"
+    resolution: tuple[int, int] = (64, 64)
+    rtol: float = 1e-5
+    sgd_lr: float = 1e-9
+
+    def __post_init__(self):
+        self.methods = {
+            "adam": Method("adam", "physics", lr=1e-3),
+            "sgd": Method("sgd", "physics", optimizer="sgd", lr=self.sgd_lr, momentum=0.9),
+            "pg": Method("pg", "physgrad", lr=1e-3),
+            "pg_lbfgsb": Method("pg_lbfgsb", "physgrad", lr=1e-3, local_solver=LBFGSBSolver(max_iter=10)),
+        }
+        self._operator = None
+
+    @property
+    def grid(self):
+        """The problem's grid (dx = 1)."""
+        from phisim.grid import Grid
+
+        return Grid(self.resolution)
+
+    def operator(self) -> PhysicsOperator:
+        """The Poisson forward / analytic-Laplacian inverse pair."""
+        if self._operator is None:
+            from .operators import PoissonOperator
+
+            self._operator = PoissonOperator(self.grid, rtol=self.rtol)
+        return self._operator
+
+    def make_network(self) -> nn.Module:
+        """U-net, 4 levels, 16 filters, circular padding (37,697 parameters)."""
+        return UNet(1, 1, levels=4, filters=16, padding_mode="circular")
+
+    def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
+        """``x*`` spectral noise, ``y* = P(x*)`` (solved exactly by the direct solver)."""
+        from phisim.noise import poisson_noise
+
+        x = poisson_noise(self.grid, batch_size, generator=generator).values.to(device=device, dtype=self.dtype)
+        op = self.operator()
+        with torch.no_grad():
+            y = op.forward(x)
+        return Batch(y.unsqueeze(1), y, x, op)
+
+    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
+        """``x = net(y*)``, shape ``(B, *resolution)``."""
+        return model(batch.inputs)[:, 0]
+
+
+# ---- E4 -------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class HeatProblem(Problem):
+    """E4: recover the initial temperature ``x`` from ``y = exp(tν∇²) x`` (periodic 64², tν = 8, float64).
+
+    Data: 4–10 soft-edged hot rectangles, ``y* = P(x*)``. The network's prediction gets the target's mean
+    (diffusion keeps the mean). Methods: Adam through the physics (``adam``), SGD, Adam + physical
+    gradients with the Wiener/Bayes-damped spectral inverse (``pg``) or L-BFGS-B with 32 iterations
+    (``pg_lbfgsb``).
+    """
+
+    name: str = "heat"
+    batch_size: int = 128
+    reduction: str = "sum"
+    resolution: tuple[int, int] = (64, 64)
+    t_nu: float = 8.0
+    sgd_lr: float = 1e-3
+
+    def __post_init__(self):
+        self.methods = {
+            "adam": Method("adam", "physics", lr=1e-3),
+            "sgd": Method("sgd", "physics", optimizer="sgd", lr=self.sgd_lr, momentum=0.9),
+            "pg": Method("pg", "physgrad", lr=1e-3),
+            "pg_lbfgsb": Method("pg_lbfgsb", "physgrad", lr=1e-3, local_solver=LBFGSBSolver(max_iter=32)),
+        }
+        self._operator = None
+
+    @property
+    def grid(self):
+        """The problem's grid (dx = 1, periodic)."""
+        from phisim.grid import Grid
+
+        return Grid(self.resolution)
+
+    def operator(self) -> PhysicsOperator:
+        """The heat forward / damped spectral inverse pair (float64)."""
+        if self._operator is None:
+            from .operators import HeatOperator
+
+            self._operator = HeatOperator(self.resolution, t_nu=self.t_nu)
+        return self._operator
+
+    def make_network(self) -> nn.Module:
+        """U-net, 4 levels, 16 filters, circular padding (37,697 parameters)."""
+        return UNet(1, 1, levels=4, filters=16, padding_mode="circular")
+
+    def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
+        """``x*`` hot rectangles, ``y* = P(x*)`` in float64."""
+        from phisim.noise import hot_rectangles
+
+        x = hot_rectangles(self.grid, batch_size, generator=generator).values.to(device=device, dtype=torch.float64)
+        op = self.operator()
+        with torch.no_grad():
+            y = op.forward(x)
+        return Batch(y.unsqueeze(1).to(self.dtype), y, x, op)
+
+    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
+        """``x = net(y*)`` in float64 with the mean of ``y*`` imposed."""
+        x = model(batch.inputs)[:, 0].to(torch.float64)
+        return x - x.mean(dim=(1, 2), keepdim=True) + batch.y_target.mean(dim=(1, 2), keepdim=True)
+
+
+PROBLEMS: dict[str, Callable[..., Problem]] = {
+    "sine": SineProblem,
+    "poisson": PoissonProblem,
+    "heat": HeatProblem,
+}
+
+
+def get_problem(name: str, **settings) -> Problem:
+    """Instantiate a registered problem, e.g. ``get_problem('poisson', resolution=(32, 32), batch_size=8)``.
+
+    Raises:
+        ParameterError: For an unknown name or setting.
+    """
+    if name not in PROBLEMS:
+        raise ParameterError(f"unknown problem {name!r}; choose from {sorted(PROBLEMS)}")
+    try:
+        return PROBLEMS[name](**settings)
+    except TypeError as exc:
+        raise ParameterError(f"bad settings for problem {name!r}: {exc}") from exc
+

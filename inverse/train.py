@@ -1,0 +1,287 @@
+"""One training loop for every method: through the physics (Adam/SGD), physical gradients, supervised, HIG.
+
+Every method sees the same data stream: batch ``i`` of a run with seed ``s`` is drawn from a generator
+seeded with ``(s, i)``, so curves of different methods compare sample by sample, and a resumed run
+continues the exact stream. The network initialisation is seeded with ``s`` too.
+
+Per iteration the loop logs the y-space loss (mean per-sample loss), the problem's metric (mean over the
+batch), the training objective actually backpropagated, and the wall time, into
+``/training/<method>/...`` of an HDF5 file (:class:`phisim.io.TrainingLog`, flushed every record).
+Checkpoints (model, optimizer, iteration) are written atomically every ``checkpoint_every`` iterations;
+a killed run loses at most that interval and ``resume=True`` continues it, truncating the log to the
+checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from torch import nn
+
+from phisim.errors import FileFormatError, NonFiniteError, ParameterError
+from phisim.io import TrainingLog
+
+from .hig import HIG, GaussNewton
+from .local_solvers import LocalSolver, SolverOperator
+from .physgrad import physical_update
+from .problems import Batch, Method, Problem, get_problem
+
+__all__ = ["TrainResult", "train", "batch_generator", "make_optimizer"]
+
+
+@dataclass
+class TrainResult:
+    """Curves and the trained model of one run.
+
+    Attributes:
+        method: The method's name.
+        model: The trained network.
+        curves: ``{'iteration', 'loss', 'metric', 'objective', 'time'}`` as numpy arrays (this session's
+            iterations plus, when resumed, the earlier ones read back from the log).
+        iterations: Iterations completed in total.
+        seconds: Wall time of this session's training.
+    """
+
+    method: str
+    model: nn.Module
+    curves: dict[str, np.ndarray] = field(default_factory=dict)
+    iterations: int = 0
+    seconds: float = 0.0
+
+    def final(self, name: str = "metric", window: int = 10) -> float:
+        """Mean of the last ``window`` entries of a curve (NaNs ignored)."""
+        v = self.curves[name][-window:]
+        return float(np.nanmean(v))
+
+
+def batch_generator(seed: int, iteration: int, device=None) -> torch.Generator:
+    """The generator of batch ``iteration`` of a run with ``seed`` (same stream for every method)."""
+    g = torch.Generator(device="cpu")
+    g.manual_seed((int(seed) * 1_000_003 + int(iteration)) % (2**63 - 1))
+    return g
+
+
+def make_optimizer(method: Method, model: nn.Module, problem: Problem) -> torch.optim.Optimizer:
+    """The torch optimizer of a method (Adam, SGD with momentum, HIG or Gauss-Newton)."""
+    if method.kind == "hig":
+        cls = GaussNewton if method.optimizer == "gauss_newton" else HIG
+        kwargs = dict(lr=method.lr, rcond=method.rcond, reduction=problem.reduction)
+        if cls is HIG:
+            kwargs["exponent"] = 0.5
+        return cls(model, physics=problem.hig_physics, **kwargs)
+    if method.optimizer == "adam":
+        return torch.optim.Adam(model.parameters(), lr=method.lr)
+    if method.optimizer == "sgd":
+        return torch.optim.SGD(model.parameters(), lr=method.lr, momentum=method.momentum)
+    raise ParameterError(f"unknown optimizer {method.optimizer!r} (adam, sgd, hig, gauss_newton)")
+
+
+def _reduce(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
+    return per_sample.sum() if reduction == "sum" else per_sample.mean()
+
+
+def _operator(method: Method, batch: Batch):
+    solver: LocalSolver | None = method.local_solver
+    return batch.operator if solver is None else SolverOperator(batch.operator, solver)
+
+
+def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch) -> tuple[float, float, float]:
+    """One update. Returns (mean y-space loss, mean metric, objective value)."""
+    if method.kind == "hig":
+        info = opt.step(batch.inputs, batch.y_target, loss_fn=problem.loss, physics_args=batch.physics_args)
+        with torch.no_grad():
+            x = problem.predict(model, batch)
+            y = batch.operator(x)
+            loss = problem.loss(y, batch.y_target).mean()
+            metric = problem.metric(x, batch).mean()
+        return float(loss), float(metric), float(info.loss)
+    opt.zero_grad(set_to_none=True)
+    x = problem.predict(model, batch)
+    clip = method.grad_clip
+    if clip is not None and method.kind != "physgrad":
+        scale = x.shape[0] if problem.reduction == "mean" else 1
+        x.register_hook(lambda g: (g * scale).clamp(-clip, clip) / scale)
+    if method.kind == "physics":
+        y = batch.operator(x)
+        per_sample = problem.loss(y, batch.y_target)
+        objective = _reduce(per_sample, problem.reduction)
+        loss_value = per_sample.detach().mean()
+    elif method.kind == "physgrad":
+        x_tilde, y = physical_update(x, batch.y_target, _operator(method, batch), eta=method.eta,
+                                     loss=problem.newton_loss)
+        if clip is not None:
+            x_tilde = x.detach() + (x_tilde - x.detach()).clamp(-clip, clip)
+        per = 0.5 * ((x - x_tilde) ** 2).reshape(x.shape[0], -1).sum(dim=1)
+        objective = _reduce(per, problem.reduction)
+        with torch.no_grad():
+            loss_value = problem.loss(y, batch.y_target).mean()
+    elif method.kind == "supervised":
+        if batch.labels is None:
+            raise ParameterError(f"problem {problem.name} provides no labels for supervised training")
+        per = 0.5 * ((x - batch.labels) ** 2).reshape(x.shape[0], -1).sum(dim=1)
+        objective = _reduce(per, problem.reduction)
+        with torch.no_grad():
+            loss_value = problem.loss(batch.operator(x.detach()), batch.y_target).mean()
+    else:
+        raise ParameterError(f"unknown method kind {method.kind!r}")
+    if not torch.isfinite(objective):
+        raise NonFiniteError(f"{method.name}: the training objective became {float(objective)}; lower the learning rate")
+    objective.backward()
+    opt.step()
+    with torch.no_grad():
+        metric = problem.metric(x.detach(), batch).mean()
+    return float(loss_value), float(metric), float(objective.detach())
+
+
+def _save_checkpoint(path: Path, state: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+
+
+def _truncate_log(h5path: Path, method: str, n: int) -> None:
+    with h5py.File(h5path, "a") as f:
+        grp = f.get(f"training/{method}")
+        if grp is None:
+            return
+        for ds in grp.values():
+            if isinstance(ds, h5py.Dataset) and ds.shape[0] > n:
+                ds.resize((n,))
+
+
+def _read_log(h5path: Path, method: str) -> dict[str, np.ndarray]:
+    with h5py.File(h5path, "r") as f:
+        grp = f[f"training/{method}"]
+        return {k: np.asarray(v) for k, v in grp.items() if isinstance(v, h5py.Dataset)}
+
+
+def train(
+    problem: Problem | str,
+    method: Method | str,
+    *,
+    iterations: int,
+    batch_size: int | None = None,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    out: str | os.PathLike | None = None,
+    checkpoint_every: int = 0,
+    resume: bool = False,
+    progress: bool = False,
+    callback: Callable[[int, dict], None] | None = None,
+) -> TrainResult:
+    """Train the problem's network with one method.
+
+    Args:
+        problem: A :class:`~inverse.problems.Problem` or its registered name (``'sine'``, ``'poisson'``...).
+        method: A :class:`~inverse.problems.Method` or the name of one of the problem's methods.
+        iterations: Total iterations (a resumed run continues up to this number).
+        batch_size: Samples per batch (default: the problem's).
+        seed: Seeds the network initialisation and the data stream.
+        device: Torch device.
+        out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints).
+        checkpoint_every: Iterations between checkpoints (0: none).
+        resume: Continue from the checkpoint next to ``out`` when there is one.
+        progress: Show a tqdm progress bar.
+        callback: Called as ``callback(iteration, record)`` after every iteration.
+
+    Returns:
+        The :class:`TrainResult`.
+
+    Raises:
+        ParameterError: Bad iteration counts, unknown method, ``resume`` without ``out``.
+        FileFormatError: A checkpoint that cannot be read or belongs to another run.
+        NonFiniteError: The objective diverged.
+    """
+    if isinstance(problem, str):
+        problem = get_problem(problem)
+    if isinstance(method, str):
+        method = problem.method(method)
+    if not isinstance(iterations, int) or iterations < 0:
+        raise ParameterError(f"iterations must be an int >= 0, got {iterations!r}")
+    if checkpoint_every < 0:
+        raise ParameterError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
+    if (resume or checkpoint_every) and out is None:
+        raise ParameterError("checkpoints and resume need an output file (out=...)")
+    batch_size = problem.batch_size if batch_size is None else int(batch_size)
+    if batch_size < 1:
+        raise ParameterError(f"batch_size must be >= 1, got {batch_size}")
+    device = torch.device(device)
+
+    torch.manual_seed(seed)
+    model = problem.make_network().to(device=device, dtype=problem.dtype)
+    opt = make_optimizer(method, model, problem)
+    start = 0
+    out_path = Path(out) if out is not None else None
+    ckpt_path = out_path.with_name(f"{out_path.name}.{method.name}.ckpt") if out_path is not None else None
+    if resume and ckpt_path is not None and ckpt_path.exists():
+        try:
+            state = torch.load(ckpt_path, map_location=device, weights_only=False)
+        except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is a file-format problem
+            raise FileFormatError(f"cannot read checkpoint {ckpt_path}: {exc}") from exc
+        if state.get("problem") != problem.name or state.get("method") != method.name or state.get("seed") != seed:
+            raise FileFormatError(
+                f"checkpoint {ckpt_path} belongs to problem={state.get('problem')} method={state.get('method')} "
+                f"seed={state.get('seed')}, not {problem.name}/{method.name}/seed {seed}"
+            )
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["iteration"])
+        _truncate_log(out_path, method.name, start)
+    elif out_path is not None and out_path.exists():
+        _truncate_log(out_path, method.name, 0)  # a fresh run replaces an old curve of the same method
+
+    log = None
+    if out_path is not None:
+        log = TrainingLog(out_path, method.name, attrs={
+            "problem": problem.name, "kind": method.kind, "optimizer": method.optimizer, "lr": method.lr,
+            "eta": method.eta, "batch_size": batch_size, "seed": seed,
+            "local_solver": type(method.local_solver).__name__ if method.local_solver is not None else "analytic",
+        })
+    curves: dict[str, list] = {k: [] for k in ("iteration", "loss", "metric", "objective", "time")}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=iterations, initial=start, desc=f"{problem.name}/{method.name}")
+    t0 = time.perf_counter()
+    model.train()
+    try:
+        for it in range(start, iterations):
+            batch = problem.sample(batch_size, batch_generator(seed, it), device=device)
+            loss, metric, objective = _step(problem, method, model, opt, batch)
+            record = {"loss": loss, "metric": metric, "objective": objective, "time": time.perf_counter() - t0}
+            for k, v in record.items():
+                curves[k].append(v)
+            curves["iteration"].append(it)
+            if log is not None:
+                log.append(it, **record)
+            if callback is not None:
+                callback(it, record)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}")
+            if checkpoint_every and (it + 1) % checkpoint_every == 0:
+                _save_checkpoint(ckpt_path, {"iteration": it + 1, "model": model.state_dict(),
+                                             "optimizer": opt.state_dict(), "problem": problem.name,
+                                             "method": method.name, "seed": seed})
+    finally:
+        if bar is not None:
+            bar.close()
+        if log is not None:
+            log.close()
+    seconds = time.perf_counter() - t0
+    if out_path is not None:
+        arrays = _read_log(out_path, method.name)
+    else:
+        arrays = {k: np.asarray(v, dtype=np.int64 if k == "iteration" else np.float64) for k, v in curves.items()}
+    if not math.isfinite(seconds):
+        seconds = float("nan")
+    return TrainResult(method.name, model, arrays, iterations, seconds)
