@@ -136,7 +136,8 @@ def _np_dtype(dtype) -> np.dtype:
     if dtype is None:
         return np.dtype(np.float32)
     if isinstance(dtype, torch.dtype):
-        dtype = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}.get(dtype, dtype)
+        torch_to_np = {torch.float32: np.float32, torch.float64: np.float64, torch.float16: np.float16}
+        dtype = torch_to_np.get(dtype, dtype)
     try:
         dt = np.dtype(dtype)
     except TypeError as exc:
@@ -370,7 +371,8 @@ class SimulationWriter:
         t = dims.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
         _set_varying(t, sample=False, time=True)
         for a in range(d):
-            c = dims.create_dataset(AXIS_NAMES[a], data=g.center_coords(a, torch.float64).numpy().astype(self.dtype))
+            centres = g.center_coords(a, torch.float64).numpy().astype(self.dtype)
+            c = dims.create_dataset(AXIS_NAMES[a], data=centres)
             _set_varying(c, sample=False, time=False)
 
         bcs = f.create_group("boundary_conditions")
@@ -418,7 +420,9 @@ class SimulationWriter:
         ex.create_dataset("config", data=config_json, dtype=h5py.string_dtype())
 
     def _create(self, group, name: str, frame_shape: tuple[int, ...]):
-        kw = {"compression": _COMPRESSION, "compression_opts": self._level, "shuffle": True} if self._level else {}
+        kw = {}
+        if self._level:
+            kw = {"compression": _COMPRESSION, "compression_opts": self._level, "shuffle": True}
         ds = group.create_dataset(
             name,
             shape=(self.batch_size, 0, *frame_shape),
@@ -465,7 +469,9 @@ class SimulationWriter:
                 raise ShapeError(f"field {name!r} is declared 'scalar' but got a vector field")
             arr = _as_numpy(value.values if isinstance(value, CenteredGrid) else value, name)
             if arr.shape != (B, *g.resolution):
-                raise ShapeError(f"scalar field {name!r} must have shape {(B, *g.resolution)}, got {arr.shape}")
+                raise ShapeError(
+                    f"scalar field {name!r} must have shape {(B, *g.resolution)}, got {arr.shape}"
+                )
             return arr, None
         stag = None
         if isinstance(value, StaggeredGrid):
@@ -490,12 +496,16 @@ class SimulationWriter:
                         f"staggered field {name!r} component {i} must have shape {(B, *g.face_shape(i))}, "
                         f"got {s.shape}"
                     )
-            centred = StaggeredGrid(tuple(torch.as_tensor(s) for s in stag), g, self.boundary).at_centers().values
+            faces = StaggeredGrid(tuple(torch.as_tensor(s) for s in stag), g, self.boundary)
+            centred = faces.at_centers().values
         else:
             centred = value.values if isinstance(value, CenteredGrid) else value
         arr = _as_numpy(centred, name)
         if arr.shape != (B, d, *g.resolution):
-            raise ShapeError(f"vector field {name!r} must have shape {(B, d, *g.resolution)}, got {arr.shape}")
+            raise ShapeError(
+                f"vector field {name!r} must have shape {(B, d, *g.resolution)} (channel second), "
+                f"got {arr.shape}"
+            )
         return np.moveaxis(arr, 1, -1), stag
 
     def append(self, time: float, **fields) -> None:
@@ -515,7 +525,8 @@ class SimulationWriter:
         unknown = [n for n in fields if n not in self.kinds]
         if missing or unknown:
             raise ParameterError(
-                f"append needs exactly the declared fields {list(self.kinds)}; missing {missing}, unknown {unknown}"
+                f"append needs exactly the declared fields {list(self.kinds)}; "
+                f"missing {missing}, unknown {unknown}"
             )
         try:
             t = float(time)
@@ -645,7 +656,8 @@ def _need(group, key: str, path: Path, kind=None):
     except (KeyError, OSError, RuntimeError, ValueError) as exc:
         where = f"{group.name.rstrip('/')}/{key}"
         raise FileFormatError(
-            f"{path}: missing or unreadable {where} ({exc}); not a Well/phisim simulation file or a damaged one"
+            f"{path}: missing or unreadable {where} ({exc}); "
+            "not a Well/phisim simulation file, or a damaged one"
         ) from exc
     if kind is not None and not isinstance(obj, kind):
         raise FileFormatError(f"{path}: {obj.name} should be a {kind.__name__}")
@@ -739,7 +751,9 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
             bounds = json.loads(_attr_str(extras.attrs["bounds"]))
             grid = Grid(tuple(len(c) for c in coords), [tuple(b) for b in bounds])
             sides = json.loads(_attr_str(extras.attrs["boundary"]))
-            boundary = Boundary(tuple((_condition_from_json(lo), _condition_from_json(hi)) for lo, hi in sides))
+            boundary = Boundary(
+                tuple((_condition_from_json(lo), _condition_from_json(hi)) for lo, hi in sides)
+            )
             kinds = dict(json.loads(_attr_str(extras.attrs.get("field_kinds", "{}"))))
             if "config" in extras:
                 config = json.loads(_attr_str(extras["config"][()]))
@@ -789,7 +803,8 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
     if as_torch:
         fields = {n: torch.as_tensor(v, device=device) for n, v in fields.items()}
         staggered = {n: tuple(torch.as_tensor(c, device=device) for c in v) for n, v in staggered.items()}
-    return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters, config,
+    return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters,
+                          config,
                           training)
 
 
@@ -864,11 +879,14 @@ class TrainingLog:
             self.group = root.require_group("training").require_group(method)
         except (TypeError, ValueError) as exc:
             self.close()
-            raise FileFormatError(f"{root.file.filename}: /training/{method} exists and is not a group") from exc
+            raise FileFormatError(
+                f"{root.file.filename}: /training/{method} exists and is not a group"
+            ) from exc
         for k, v in (attrs or {}).items():
             self.group.attrs[k] = v if isinstance(v, (int, float, str, bool, np.generic)) else _to_json(v, k)
         if "iteration" not in self.group:
-            self.group.create_dataset("iteration", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+            self.group.create_dataset("iteration", shape=(0,), maxshape=(None,), dtype=np.int64,
+                                      chunks=(1024,))
         self._n = int(self.group["iteration"].shape[0])
         for name, ds in self.group.items():
             if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 or ds.shape[0] != self._n:
@@ -902,7 +920,9 @@ class TrainingLog:
                 raise ParameterError(f"invalid curve name {name!r}")
             if isinstance(v, torch.Tensor):
                 if v.numel() != 1:
-                    raise ParameterError(f"curve {name!r}: expected one number, got a tensor of shape {tuple(v.shape)}")
+                    raise ParameterError(
+                        f"curve {name!r}: expected one number, got a tensor of shape {tuple(v.shape)}"
+                    )
                 v = v.item()
             try:
                 nums[name] = float(v)
@@ -911,7 +931,8 @@ class TrainingLog:
         n = self._n
         for name in nums:
             if name not in self.group:
-                ds = self.group.create_dataset(name, shape=(n,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+                ds = self.group.create_dataset(name, shape=(n,), maxshape=(None,), dtype=np.float64,
+                                               chunks=(1024,))
                 if n:
                     ds[:] = np.nan
         for name, ds in self.group.items():

@@ -27,7 +27,10 @@ from .errors import ParameterError, ShapeError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import Grid
 
-__all__ = ["new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure", "ffmpeg_available"]
+__all__ = [
+    "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
+    "ffmpeg_available",
+]
 
 PathLike = str | os.PathLike
 
@@ -291,7 +294,9 @@ def plot_curves(
             raise ParameterError(f"curve {name!r} must be an (iterations, values) pair")
         it, val = (_np(p).astype(np.float64) for p in pair)
         if it.ndim != 1 or val.ndim != 1 or len(it) != len(val):
-            raise ShapeError(f"curve {name!r}: iterations {it.shape} and values {val.shape} must be 1-D, same length")
+            raise ShapeError(
+                f"curve {name!r}: iterations {it.shape} and values {val.shape} must be 1-D, same length"
+            )
         keep = np.isfinite(val) & np.isfinite(it)
         if logy:
             keep &= val > 0
@@ -325,7 +330,9 @@ def save_figure(fig: Figure, path: PathLike, *, dpi: int | None = None) -> Path:
         ParameterError: If ``fig`` is not a figure or the suffix is not a format matplotlib writes.
     """
     if not isinstance(fig, Figure):
-        raise ParameterError(f"save_figure needs a matplotlib Figure, got {type(fig).__name__} (use ax.figure)")
+        raise ParameterError(
+            f"save_figure needs a matplotlib Figure, got {type(fig).__name__} (use ax.figure)"
+        )
     p = Path(path)
     fmt = p.suffix.lstrip(".").lower()
     supported = fig.canvas.get_supported_filetypes() if fig.canvas is not None else {}

@@ -94,7 +94,8 @@ def test_well_layout_attributes(tmp_path):
             assert not dims[ax].attrs["sample_varying"] and not dims[ax].attrs["time_varying"]
         bcs = f["boundary_conditions"]
         assert sorted(bcs) == ["x_periodic", "y_open", "y_wall"]
-        expect = {"x_periodic": ("PERIODIC", "x", [0, 5]), "y_wall": ("WALL", "y", [0]), "y_open": ("OPEN", "y", [3])}
+        expect = {"x_periodic": ("PERIODIC", "x", [0, 5]), "y_wall": ("WALL", "y", [0]),
+                  "y_open": ("OPEN", "y", [3])}
         for key, (bc_type, axis, true_idx) in expect.items():
             grp = bcs[key]
             assert grp.attrs["bc_type"] == bc_type
@@ -138,7 +139,8 @@ def test_well_loader_reads_our_file(tmp_path):
     g, _, written = _write_demo(folder / "demo.hdf5", frames=4)
     ds = WellDataset(path=str(folder), n_steps_input=2, n_steps_output=1, use_normalization=False)
     assert ds.metadata.spatial_resolution == (6, 4)
-    assert ds.metadata.field_names[0] == ["rho"] and ds.metadata.field_names[1] == ["u_x", "u_y", "v_x", "v_y"]
+    assert ds.metadata.field_names[0] == ["rho"]
+    assert ds.metadata.field_names[1] == ["u_x", "u_y", "v_x", "v_y"]
     assert sorted(ds.metadata.constant_scalar_names) == ["steps", "viscosity"]
     assert len(ds) == 2 * 2  # 2 trajectories x 2 windows of 3 frames out of 4
     s = ds[3]  # trajectory 1, window starting at frame 1
@@ -223,9 +225,11 @@ def test_append_errors(tmp_path):
             w.append(1.0, rho=torch.zeros(2, 6, 4), u=StaggeredGrid.zeros(g, "periodic", 2))
     assert read_simulation(tmp_path / "a.h5").n_frames == 1
     with pytest.raises(ParameterError):
-        SimulationWriter(tmp_path / "b.h5", g, "periodic", dataset_name="e", batch_size=1, fields={"a": "tensor"})
+        SimulationWriter(tmp_path / "b.h5", g, "periodic", dataset_name="e", batch_size=1,
+                         fields={"a": "tensor"})
     with pytest.raises(ParameterError):
-        SimulationWriter(tmp_path / "b.h5", g, "periodic", dataset_name="e", batch_size=0, fields={"a": "scalar"})
+        SimulationWriter(tmp_path / "b.h5", g, "periodic", dataset_name="e", batch_size=0,
+                         fields={"a": "scalar"})
     with pytest.raises(ParameterError, match="config"):
         SimulationWriter(tmp_path / "b.h5", g, "periodic", dataset_name="e", batch_size=1,
                          fields={"a": "scalar"}, config={"f": object()})
@@ -233,8 +237,10 @@ def test_append_errors(tmp_path):
 
 def test_staggered_from_component_tuples(tmp_path):
     g = Grid((3, 2, 2))
-    comps = tuple(torch.arange(np.prod((1, *g.face_shape(i))), dtype=torch.float64).reshape(1, *g.face_shape(i))
-                  for i in range(3))
+    comps = tuple(
+        torch.arange(np.prod(g.face_shape(i)), dtype=torch.float64).reshape(1, *g.face_shape(i))
+        for i in range(3)
+    )
     with SimulationWriter(tmp_path / "s.h5", g, "wall", dataset_name="s", batch_size=1,
                           fields={"v": "staggered"}, dtype=torch.float64) as w:
         w.append(0.0, v=comps)

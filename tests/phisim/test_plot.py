@@ -1,4 +1,4 @@
-"""Tests of phisim.plot: files are written, images are oriented with x to the right and y up, bad input fails."""
+"""Tests of phisim.plot: files are written, images show x to the right and y up, bad input fails."""
 
 from __future__ import annotations
 
@@ -44,7 +44,8 @@ def test_plot_field_orientation_in_png(tmp_path):
     """A field large at high x is bright on the right of the picture; one large at high y is bright on top."""
     g = Grid((32, 16), bounds=[(0.0, 2.0), (0.0, 1.0)])
     for axis in (0, 1):
-        f = CenteredGrid.from_function(lambda p, a=axis: (p[..., a] > [1.0, 0.5][a]).to(p.dtype), g, "periodic")
+        half = [1.0, 0.5][axis]
+        f = CenteredGrid.from_function(lambda p, a=axis, h=half: (p[..., a] > h).to(p.dtype), g, "periodic")
         fig, ax = new_figure((4, 2))
         plot_field(f, ax, cmap="gray", colorbar=False)
         ax.set_axis_off()
@@ -98,7 +99,10 @@ def test_plot_field_bad_input():
 
 def test_plot_vector_field_quiver_and_streamlines(tmp_path):
     g = Grid((16, 12), bounds=[(0, 1), (0, 1)])
-    vel = StaggeredGrid.from_function(lambda p: torch.stack([-p[..., 1] + 0.5, p[..., 0] - 0.5], -1), g, "wall")
+    def vortex(p):
+        return torch.stack([-p[..., 1] + 0.5, p[..., 0] - 0.5], -1)
+
+    vel = StaggeredGrid.from_function(vortex, g, "wall")
     ax = plot_vector_field(vel, title="vortex", stride=2)
     q = [c for c in ax.collections if c.__class__.__name__ == "Quiver"][0]
     assert q.N == 8 * 6
@@ -146,7 +150,8 @@ def test_save_figure_errors(tmp_path):
 
 def test_animate_gif(tmp_path):
     g = Grid((12, 8))
-    frames = [CenteredGrid.from_function(lambda p, k=k: torch.sin(p[..., 0] + k), g, "periodic") for k in range(4)]
+    frames = [CenteredGrid.from_function(lambda p, k=k: torch.sin(p[..., 0] + k), g, "periodic")
+              for k in range(4)]
     path = animate(frames, tmp_path / "anim.gif", fps=5, title="t={t}")
     with Image.open(path) as im:
         assert im.format == "GIF" and im.n_frames == 4
