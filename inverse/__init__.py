@@ -12,7 +12,7 @@ from .local_solvers import (
     batch_jacobian,
 )
 from .nets import MLP, UNet, count_parameters
-from .operators import PhysicsOperator, ScaleToy, Sine, SquareToy
+from .operators import Heat, PhysicsOperator, Poisson, ScaleToy, Sine, SquareToy
 from .physgrad import (
     FourierTransform,
     PhysicalGradient,
@@ -24,7 +24,7 @@ from .physgrad import (
 
 __all__: list[str] = []
 __all__ += [  # operators, local solvers, physical-gradient layer, networks
-    "PhysicsOperator", "ScaleToy", "SquareToy", "Sine",
+    "PhysicsOperator", "ScaleToy", "SquareToy", "Sine", "Poisson", "Heat",
     "LocalSolver", "GradientStepSolver", "NewtonSolver", "InverseGradientSolver", "LBFGSBSolver",
     "SolverOperator", "batch_jacobian", "batch_hessian",
     "QuadraticLoss", "FourierTransform", "physical_update", "physical_gradient_loss", "PhysicalGradient",

@@ -11,7 +11,8 @@ Every sample is an independent problem: sample ``i`` of ``P(x)`` depends on samp
 Device and dtype follow the input; float64 works everywhere.
 
 This module holds the base class and the analytic pairs of the reference experiments E1 (the two
-optimizer toys) and E2 (``sin(a/x)``). Generic local inverses for any differentiable forward live in
+optimizer toys), E2 (``sin(a/x)``), E3 (Poisson: CG forward, Laplacian inverse) and E4 (heat: spectral
+forward, Wiener/Bayes-damped spectral inverse). Generic local inverses for any differentiable forward live in
 :mod:`inverse.local_solvers`.
 """
 
@@ -22,13 +23,18 @@ from collections.abc import Sequence
 
 import torch
 
+from phisim.diffusion import fourier_heat, fourier_k2
 from phisim.errors import NonFiniteError, ParameterError, ShapeError
+from phisim.linalg import Solve, cg, remove_mean
+from phisim.poisson import normalize_kinds, spectral_poisson_solve, stencil_laplacian
 
 __all__ = [
     "PhysicsOperator",
     "ScaleToy",
     "SquareToy",
     "Sine",
+    "Poisson",
+    "Heat",
     "check_finite",
 ]
 
@@ -353,3 +359,173 @@ class Sine(PhysicsOperator):
         dist = torch.where(valid, (x_cand - x0s.unsqueeze(0)).abs(), torch.full_like(u, math.inf))
         best = dist.argmin(dim=0, keepdim=True)
         return torch.gather(x_cand, 0, best).squeeze(0)
+
+
+# --------------------------------------------------------------------------------------------------
+# E3: Poisson
+# --------------------------------------------------------------------------------------------------
+
+
+class Poisson(PhysicsOperator):
+    """E3 pair: forward ``y = ∇⁻²x`` by conjugate gradients, local inverse the 5-point Laplacian ``x = ∇²y``.
+
+    The forward solves ``∇²_h y = x`` with :func:`phisim.linalg.cg` on the SPD system ``−∇²_h y = −x``
+    (start ``y = 0``; tolerance from ``solve``, E3 uses ``rtol = 1e-5``); its gradient is the implicit
+    adjoint solve of :func:`~phisim.linalg.cg` (no backpropagation through the iterations). ``∇²_h`` is
+    :func:`phisim.poisson.stencil_laplacian`: the second-order cell-centred stencil with boundary values
+    on the cell faces (phisim's convention; the reference code puts the zero Dirichlet value in the ghost
+    cell instead). The local inverse is the exact inverse of the discrete forward (``∇²_h``), independent
+    of ``x0``; it recovers ``x`` from ``P(x)`` to the CG tolerance.
+
+    For boundaries without a Dirichlet side (periodic / Neumann everywhere) the operator is singular: the
+    forward projects out the mean (zero-mean ``x`` required for an exact solve, the returned ``y`` has
+    zero mean) and the inverse returns a zero-mean ``x``.
+
+    Args:
+        dx: Cell spacing (float or one per axis; E3: 1).
+        kinds: Boundary kinds per axis (see :func:`phisim.poisson.normalize_kinds`); E3: ``"dirichlet"``
+            (zero values).
+        solve: CG settings (default ``Solve(rtol=1e-5)`` as in E3).
+        preconditioner: ``None`` (plain CG, as the reference) or ``"spectral"`` (the exact fast solver as
+            preconditioner: converges in one iteration).
+
+    Raises:
+        ParameterError: Unknown preconditioner or a non-Solve ``solve``.
+        BoundaryError: Invalid ``kinds`` (on first use).
+    """
+
+    def __init__(
+        self, dx=1.0, kinds="dirichlet", solve: Solve | None = None, preconditioner: str | None = None
+    ):
+        if preconditioner not in (None, "spectral"):
+            raise ParameterError(f"preconditioner must be None or 'spectral', got {preconditioner!r}")
+        solve = Solve(rtol=1e-5) if solve is None else solve
+        if not isinstance(solve, Solve):
+            raise ParameterError(f"solve must be a phisim.linalg.Solve, got {type(solve).__name__}")
+        self.dx = dx
+        self.kinds = kinds
+        self.solve = solve
+        self.preconditioner = preconditioner
+
+    def _singular(self, rank: int) -> bool:
+        return all("dirichlet" not in pair for pair in normalize_kinds(self.kinds, rank))
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim < 2 or x.ndim > 4:
+            raise ShapeError(f"Poisson expects (B, *resolution) with 1-3 spatial axes, got {tuple(x.shape)}")
+        singular = self._singular(x.ndim - 1)
+
+        def neg_laplace(u: torch.Tensor) -> torch.Tensor:
+            return -stencil_laplacian(u, self.dx, self.kinds)
+
+        pre = None
+        if self.preconditioner == "spectral":
+            def pre(r: torch.Tensor) -> torch.Tensor:
+                return -spectral_poisson_solve(r, self.dx, self.kinds, incompatible="project")
+
+        return cg(neg_laplace, -x, solve=self.solve, preconditioner=pre,
+                  project=remove_mean if singular else None)
+
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
+        x = stencil_laplacian(y_target, self.dx, self.kinds)
+        return remove_mean(x) if self._singular(x.ndim - 1) else x
+
+
+# --------------------------------------------------------------------------------------------------
+# E4: heat
+# --------------------------------------------------------------------------------------------------
+
+
+class Heat(PhysicsOperator):
+    """E4 pair: exact periodic diffusion ``ŷ(k) = x̂(k)·exp(−4π²|k|²·νt)`` and its Bayes-damped inverse.
+
+    Forward: :func:`phisim.diffusion.fourier_heat` (numpy's ``fftfreq`` wavenumbers in cycles per cell,
+    dx = 1, periodic; E4: 64×64, ``νt = 8``, float64).
+
+    Local inverse (paper appendix B.3, as written in EXPERIMENTS.md E4), per sample: residual
+    ``r = y* − P(x0)``, ``A = FFT(r)`` (unnormalised, numpy's convention), ``ℓ(k) = 4π²|k|²·νt``;
+    noise scale ``σ_n = noise_scale·‖r‖₂``, signal scale ``σ_s(k) = signal_scale·exp(−ℓ(k))``;
+    ``p_s = ½ exp(−½(|A|/σ_s)²)``, ``p_n = ½ exp(−½(|A|/σ_n)²)``, ``P = p_s/(p_s + p_n)`` (0/0 → 0);
+    action ``a = 2(P − ½)`` where ``P ≤ ½`` or ``P ≥ threshold``, else 0;
+    ``x = x0 + Re IFFT(A·exp(a·ℓ))``. ``a = 1`` inverts the mode fully (a mode that is clearly signal),
+    ``a = 0`` leaves it, ``a < 0`` diffuses it further (a mode dominated by noise). The amplification
+    ``exp(a·ℓ)`` only reaches ``exp(ℓ)`` where ``|A| ≲ σ_s(k)``, so the result stays bounded
+    (``≲ signal_scale`` per mode) whatever the noise in ``y*``.
+
+    Args:
+        nu_t: ``ν·t`` (E4: 8).
+        noise_scale: Relative noise level of the residual (E4: 1e-6).
+        signal_scale: Prior amplitude of the signal's Fourier coefficients (E4: 64).
+        threshold: ``P`` above which a mode is (partly) inverted (E4: 0.68).
+        noise_floor: Optional lower bound of ``σ_n`` relative to ``‖y*‖₂`` (not part of E4; default 0).
+            ``σ_n`` is proportional to the residual, so once the residual is at round-off level, iterating
+            the inverse treats round-off as signal and amplifies it (bounded by the prior, about
+            ``signal_scale`` per Fourier coefficient). A floor such as ``1e-6`` (the noise of ``y*``)
+            avoids that when the inverse is iterated to convergence on one problem.
+
+    Raises:
+        ParameterError: Non-finite or non-positive settings, ``threshold`` outside ``[0.5, 1]``.
+    """
+
+    def __init__(self, nu_t: float = 8.0, noise_scale: float = 1e-6, signal_scale: float = 64.0,
+                 threshold: float = 0.68, noise_floor: float = 0.0):
+        for name, v in (("nu_t", nu_t), ("noise_scale", noise_scale), ("signal_scale", signal_scale)):
+            if not (math.isfinite(float(v)) and float(v) > 0):
+                raise ParameterError(f"{name} must be a finite positive number, got {v!r}")
+        if not (math.isfinite(float(noise_floor)) and float(noise_floor) >= 0):
+            raise ParameterError(f"noise_floor must be finite and >= 0, got {noise_floor!r}")
+        self.noise_floor = float(noise_floor)
+        if not 0.5 <= float(threshold) <= 1.0:
+            raise ParameterError(f"threshold must lie in [0.5, 1], got {threshold!r}")
+        self.nu_t = float(nu_t)
+        self.noise_scale = float(noise_scale)
+        self.signal_scale = float(signal_scale)
+        self.threshold = float(threshold)
+
+    def _forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim < 2 or x.ndim > 4:
+            raise ShapeError(f"Heat expects (B, *resolution) with 1-3 spatial axes, got {tuple(x.shape)}")
+        return fourier_heat(x, self.nu_t)
+
+    def exponent(self, resolution: Sequence[int], dtype: torch.dtype, device) -> torch.Tensor:
+        """``ℓ(k) = 4π²|k|²·νt`` in the full FFT layout.
+
+        Args:
+            resolution: Cells per axis.
+            dtype: Real dtype.
+            device: Device.
+
+        Returns:
+            Tensor of shape ``resolution``.
+        """
+        return 4 * math.pi**2 * self.nu_t * fourier_k2(resolution, real=False, dtype=dtype, device=device)
+
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
+        if y0 is None:
+            y0 = self._forward(x0)
+        r = y_target - y0
+        axes = tuple(range(1, r.ndim))
+        amp = torch.fft.fftn(r, dim=axes)
+        ell = self.exponent(r.shape[1:], r.dtype, r.device)
+        bshape = (r.shape[0],) + (1,) * (r.ndim - 1)
+        tiny = torch.finfo(r.dtype).tiny
+        norm = torch.linalg.vector_norm(r.reshape(r.shape[0], -1), dim=1).reshape(bshape)
+        sigma_n = self.noise_scale * norm
+        if self.noise_floor > 0:
+            t_norm = torch.linalg.vector_norm(y_target.reshape(r.shape[0], -1), dim=1).reshape(bshape)
+            sigma_n = torch.maximum(sigma_n, self.noise_floor * t_norm)
+        sigma_n = sigma_n.clamp_min(tiny)
+        sigma_s = (self.signal_scale * torch.exp(-ell)).clamp_min(tiny)
+        mag = amp.abs()
+        p_s = 0.5 * torch.exp(-0.5 * (mag / sigma_s) ** 2)
+        p_n = 0.5 * torch.exp(-0.5 * (mag / sigma_n) ** 2)
+        denom = p_s + p_n
+        prob = torch.where(denom > 0, p_s / torch.where(denom > 0, denom, 1.0), torch.zeros_like(denom))
+        act = (prob <= 0.5) | (prob >= self.threshold)
+        action = torch.where(act, 2 * (prob - 0.5), torch.zeros_like(prob))
+        dx = torch.fft.ifftn(amp * torch.exp(action * ell), dim=axes).real
+        return x0 + dx

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from inverse.operators import PhysicsOperator, ScaleToy, Sine, SquareToy
+from inverse.operators import Heat, PhysicsOperator, Poisson, ScaleToy, Sine, SquareToy
 from phisim.errors import NonFiniteError, ParameterError, PhisimError, ShapeError
+from phisim.linalg import Solve
 
 F64 = torch.float64
 
@@ -200,3 +201,132 @@ def test_check_inputs_can_be_disabled():
 def test_base_class_is_abstract():
     with pytest.raises(NotImplementedError):
         PhysicsOperator().forward(torch.zeros(1, 2))
+
+
+# ------------------------------------------------------------------------------------------- E3 Poisson
+
+
+def _smooth_field(b: int, shape: tuple[int, int], seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(b, *shape, dtype=F64, generator=g)
+
+
+def test_poisson_forward_solves_the_stencil_and_inverse_recovers_x():
+    from phisim.poisson import spectral_poisson_solve, stencil_laplacian
+
+    x = _smooth_field(3, (32, 24), 0)
+    op = Poisson()  # E3: CG, rtol 1e-5, zero Dirichlet
+    y = op(x)
+    ref = spectral_poisson_solve(x, 1.0, "dirichlet")
+    assert ((y - ref).norm() / ref.norm()) < 1e-4
+    # The residual of the CG solve is within its tolerance: |lap y - x| <= 1e-5 |x| per sample.
+    res = (stencil_laplacian(y, 1.0, "dirichlet") - x).flatten(1).norm(dim=1)
+    assert (res <= 1e-5 * x.flatten(1).norm(dim=1) * (1 + 1e-9)).all()
+    x0 = x + 0.3 * _smooth_field(3, (32, 24), 1)
+    got = op.local_inverse(y, x0)
+    # The inverse is exact for the discrete forward: recovery to the CG tolerance.
+    assert ((got - x).flatten(1).norm(dim=1) <= 1e-5 * x.flatten(1).norm(dim=1) * (1 + 1e-9)).all()
+    tight = Poisson(solve=Solve(rtol=1e-12), preconditioner="spectral")
+    torch.testing.assert_close(tight.local_inverse(tight(x), x0), x, rtol=0, atol=1e-9)
+
+
+def test_poisson_periodic_is_zero_mean():
+    x = _smooth_field(2, (16, 16), 2)
+    x = x - x.mean(dim=(1, 2), keepdim=True)
+    op = Poisson(kinds="periodic", solve=Solve(rtol=1e-12))
+    y = op(x)
+    assert y.mean(dim=(1, 2)).abs().max() < 1e-12
+    torch.testing.assert_close(op.local_inverse(y, torch.zeros_like(x)), x, rtol=0, atol=1e-9)
+
+
+def test_poisson_gradcheck_implicit_gradient():
+    op = Poisson(solve=Solve(rtol=1e-13))
+    x = _smooth_field(2, (6, 5), 3).requires_grad_(True)
+    assert torch.autograd.gradcheck(op.forward, (x,), atol=1e-7)
+
+
+def test_poisson_settings_errors():
+    with pytest.raises(ParameterError):
+        Poisson(preconditioner="ilu")
+    with pytest.raises(ParameterError):
+        Poisson(solve={"rtol": 1e-5})
+    with pytest.raises(ShapeError):
+        Poisson()(torch.zeros(3, dtype=F64))
+
+
+# ------------------------------------------------------------------------------------------- E4 heat
+
+
+def _rectangles(b: int, seed: int) -> torch.Tensor:
+    from phisim.grid import Grid
+    from phisim.noise import random_rectangles
+
+    return random_rectangles(Grid((64, 64)), b, seed=seed, dtype=F64).values
+
+
+def test_heat_forward_matches_mode_decay_and_gradcheck():
+    op = Heat()
+    i = torch.arange(64, dtype=F64)
+    mode = torch.cos(2 * math.pi * 3 * i / 64)[:, None] * torch.ones(1, 64, dtype=F64)
+    y = op(mode[None])
+    decay = math.exp(-4 * math.pi**2 * (3 / 64) ** 2 * 8)
+    torch.testing.assert_close(y[0], mode * decay, rtol=1e-12, atol=1e-14)
+    x = _smooth_field(2, (8, 6), 4).requires_grad_(True)
+    assert torch.autograd.gradcheck(Heat(nu_t=0.05).forward, (x,))
+
+
+def test_heat_inverse_recovers_smooth_perturbation_exactly():
+    x = _rectangles(3, 0)
+    op = Heat()
+    i = torch.arange(64, dtype=F64)
+    d = 0.1 * torch.sin(2 * math.pi * i / 64)[:, None] * torch.cos(2 * math.pi * 2 * i / 64)[None, :]
+    got = op.local_inverse(op(x), x + d)
+    assert (got - x).norm() < 1e-10 * d.norm()
+
+
+def test_heat_inverse_accuracy_and_stability_under_noise():
+    x = _rectangles(4, 0)
+    x0 = x + 0.3 * (_rectangles(4, 5) - x)
+    op = Heat()
+    y = op(x)
+    err0 = (x0 - x).norm()
+    err = (op.local_inverse(y, x0) - x).norm()
+    # Edges of the rectangles are lost to diffusion; the low modes of the error are removed.
+    assert err < 0.3 * err0
+    g = torch.Generator().manual_seed(7)
+    # Noise at the level the inverse assumes (1e-6 of the residual): the result barely changes. Noise
+    # modes with P >= 0.68 are partly inverted, each amplified at most to about the prior's size, which
+    # shifts the error by about 1 % (0.4 % and 1.4 % for two seeds).
+    r = y - op(x0)
+    noise = torch.randn(y.shape, dtype=F64, generator=g)
+    y_noisy = y + 1e-6 * r.norm(dim=(1, 2), keepdim=True) / 64 * noise
+    assert abs((op.local_inverse(y_noisy, x0) - x).norm() - err) < 0.05 * err
+    # Noise of 1e-6 relative to the observation: bounded with the default (the prior limits the
+    # amplification) and accurate with a matching noise floor; the undamped inverse explodes.
+    y_noisy = y + 1e-6 * y.norm(dim=(1, 2), keepdim=True) / 64 * noise
+    damped = op.local_inverse(y_noisy, x0)
+    assert torch.isfinite(damped).all() and (damped - x).norm() < 3 * err0
+    floored = Heat(noise_floor=1e-6).local_inverse(y_noisy, x0)
+    assert (floored - x).norm() < 0.3 * err0
+    amp = torch.fft.fftn(y_noisy - op(x0), dim=(1, 2))
+    naive = x0 + torch.fft.ifftn(amp * torch.exp(op.exponent((64, 64), F64, "cpu")), dim=(1, 2)).real
+    assert (naive - x).norm() > 1e6 * err0
+
+
+def test_heat_inverse_from_zero_and_settings():
+    x = _rectangles(2, 3)
+    op = Heat()
+    got = op.local_inverse(op(x), torch.zeros_like(x))
+    mae0 = x.abs().sum(dim=(1, 2)).mean()
+    assert (got - x).abs().sum(dim=(1, 2)).mean() < 0.4 * mae0
+    # The mean (k = 0) is always restored exactly.
+    torch.testing.assert_close(got.mean(dim=(1, 2)), x.mean(dim=(1, 2)))
+    for bad in (
+        lambda: Heat(nu_t=0.0),
+        lambda: Heat(noise_scale=-1.0),
+        lambda: Heat(signal_scale=math.inf),
+        lambda: Heat(threshold=0.4),
+        lambda: Heat(noise_floor=-1.0),
+    ):
+        with pytest.raises(ParameterError):
+            bad()
