@@ -644,6 +644,11 @@ def _open_for_read(path: PathLike) -> h5py.File:
     try:
         return h5py.File(p, "r")
     except OSError as exc:
+        if "lock" in str(exc).lower():
+            raise FileFormatError(
+                f"{p} is open for writing in another process (HDF5 file lock): wait for the writer to close "
+                "it, or set HDF5_USE_FILE_LOCKING=FALSE to read the frames flushed so far"
+            ) from exc
         size = p.stat().st_size
         raise FileFormatError(
             f"{p} ({size} bytes) is not a readable HDF5 file (corrupt, truncated or another format): {exc}"
