@@ -301,7 +301,15 @@ class CenteredGrid(Field):
         return self.values.detach().cpu().numpy()
 
     def padded(self, width: int = 1) -> torch.Tensor:
-        """Values with ``width`` ghost layers per side (see :func:`phisim.boundary.pad`)."""
+        """Values with ``width`` ghost layers per side (see :func:`phisim.boundary.pad`).
+
+        A vector field with one component per axis pads as a velocity (component ``c`` normal to axis ``c``);
+        any other channel count pads channel by channel with the scalar rules.
+        """
+        if self.is_vector and self.values.shape[1] != self.rank:
+            B, C = self.values.shape[:2]
+            p = pad(self.values.reshape(B * C, *self.grid.resolution), self.boundary, self.grid.dx, width)
+            return p.reshape(B, C, *p.shape[1:])
         return pad(self.values, self.boundary, self.grid.dx, width, vector=self.is_vector)
 
     def sample(self, points, per_sample: bool = False) -> torch.Tensor:
