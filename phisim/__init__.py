@@ -1,5 +1,6 @@
 """phisim: differentiable PDE simulation on PyTorch (grids, fields, operators, solvers, fluids, I/O)."""
 
+from .advection import advect, maccormack, semi_lagrangian
 from .boundary import (
     Boundary,
     BoundaryCondition,
@@ -30,6 +31,7 @@ from .fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
 from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
 from .grid import Grid
 from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
+from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
 
 __all__ = [
@@ -45,6 +47,8 @@ __all__ = [
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
     "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
     "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
+    "advect", "semi_lagrangian", "maccormack",
+    "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
 ]
 
