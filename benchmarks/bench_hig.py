@@ -117,7 +117,10 @@ def main(argv: list[str] | None = None) -> str:
         for batch in args.batch_sizes:
             r = bench(batch, width, args)
             rows.append((batch, width, r))
-            print(f"B={batch:4d} width={width:3d} n_theta={r['n_theta']:6d}  total {1e3 * r['total']:8.2f} ms", flush=True)
+            print(
+                f"B={batch:4d} width={width:3d} n_theta={r['n_theta']:6d}  total {1e3 * r['total']:8.2f} ms",
+                flush=True,
+            )
     cmd = "python benchmarks/bench_hig.py " + " ".join(argv if argv is not None else sys.argv[1:])
     cpu = platform.processor() or platform.machine()
     lines = [

@@ -55,7 +55,11 @@ def laplacian(n: int) -> torch.Tensor:
     """
     if n == 1:
         return torch.zeros(1, 1, dtype=torch.float64)
-    lap = -2 * torch.eye(n, dtype=torch.float64) + torch.diag(torch.ones(n - 1), 1) + torch.diag(torch.ones(n - 1), -1)
+    lap = (
+        -2 * torch.eye(n, dtype=torch.float64)
+        + torch.diag(torch.ones(n - 1), 1)
+        + torch.diag(torch.ones(n - 1), -1)
+    )
     lap[0, 0] = lap[-1, -1] = -1
     return lap
 
@@ -124,9 +128,12 @@ def make_net(seed: int, dtype: torch.dtype) -> torch.nn.Sequential:
     torch.manual_seed(seed)
     w = 2 * N_OSC
     return torch.nn.Sequential(
-        torch.nn.Linear(w, 20), torch.nn.Tanh(),
-        torch.nn.Linear(20, 20), torch.nn.Tanh(),
-        torch.nn.Linear(20, 20), torch.nn.Tanh(),
+        torch.nn.Linear(w, 20),
+        torch.nn.Tanh(),
+        torch.nn.Linear(20, 20),
+        torch.nn.Tanh(),
+        torch.nn.Linear(20, 20),
+        torch.nn.Tanh(),
         torch.nn.Linear(20, N_STEPS),
     ).to(dtype)
 
@@ -162,7 +169,9 @@ def train(method: str, data: torch.Tensor, args: argparse.Namespace) -> dict[str
         batch = args.adam_batch_size
     else:
         exponent = 0.5 if method == "hig" else 1.0
-        opt = HIG(net, physics=lambda c, s0: simulate(c, s0), lr=args.hig_lr, rcond=args.rcond, exponent=exponent)
+        opt = HIG(
+            net, physics=lambda c, s0: simulate(c, s0), lr=args.hig_lr, rcond=args.rcond, exponent=exponent
+        )
         batch = args.hig_batch_size
     curves = {"epoch": [0], "time": [0.0], "loss": [evaluate(net, data)]}
     elapsed = 0.0

@@ -121,7 +121,9 @@ def train(method: str, lam: float, args: argparse.Namespace) -> dict[str, np.nda
     return {k: np.asarray(v, dtype=np.float64) for k, v in rec.items()}
 
 
-def plot(results: dict[str, dict[str, np.ndarray]], lam: float, sample_target: np.ndarray, path: Path) -> None:
+def plot(
+    results: dict[str, dict[str, np.ndarray]], lam: float, sample_target: np.ndarray, path: Path
+) -> None:
     """Three panels: validation loss, hidden activation mean +- std, y-space path of one sample.
 
     Args:
@@ -134,8 +136,13 @@ def plot(results: dict[str, dict[str, np.ndarray]], lam: float, sample_target: n
     for m, r in results.items():
         ax[0].semilogy(r["iteration"], r["loss"], color=COLORS[m], label=LABELS[m])
         ax[1].plot(r["iteration"], r["act_mean"], color=COLORS[m], label=LABELS[m])
-        ax[1].fill_between(r["iteration"], r["act_mean"] - r["act_std"], r["act_mean"] + r["act_std"],
-                           color=COLORS[m], alpha=0.2)
+        ax[1].fill_between(
+            r["iteration"],
+            r["act_mean"] - r["act_std"],
+            r["act_mean"] + r["act_std"],
+            color=COLORS[m],
+            alpha=0.2,
+        )
         ax[2].plot(r["y_path"][:, 0], r["y_path"][:, 1], ".-", color=COLORS[m], ms=2, lw=0.8, label=LABELS[m])
     first = next(iter(results.values()))
     ax[2].plot(*first["y_path"][0], "o", color="lightgray", ms=8, label="start")
@@ -196,8 +203,11 @@ def main(argv: list[str] | None = None) -> dict[float, dict[str, float]]:
         results = {}
         for m in args.methods:
             results[m] = train(m, lam, args)
-            print(f"lambda={lam:g} {LABELS[m]:>12}: final loss {results[m]['loss'][-1]:.3e} "
-                  f"act std {results[m]['act_std'][-1]:.3f} ({results[m]['time'][-1]:.1f} s)", flush=True)
+            print(
+                f"lambda={lam:g} {LABELS[m]:>12}: final loss {results[m]['loss'][-1]:.3e} "
+                f"act std {results[m]['act_std'][-1]:.3f} ({results[m]['time'][-1]:.1f} s)",
+                flush=True,
+            )
         finals[lam] = {m: float(r["loss"][-1]) for m, r in results.items()}
         x0 = torch.tensor([[args.sample_x]], dtype=torch.float64)
         sample_target = target(x0)[0].numpy()

@@ -96,7 +96,9 @@ def _check_rcond_exponent(rcond: float, exponent: float) -> None:
     if not isinstance(rcond, (int, float)) or not math.isfinite(rcond) or rcond < 0:
         raise ParameterError(f"rcond must be a finite number >= 0, got {rcond!r}")
     if not isinstance(exponent, (int, float)) or not math.isfinite(exponent):
-        raise ParameterError(f"exponent must be a finite number (0.5 for HIG, 1 for Gauss-Newton), got {exponent!r}")
+        raise ParameterError(
+            f"exponent must be a finite number (0.5 for HIG, 1 for Gauss-Newton), got {exponent!r}"
+        )
 
 
 def truncated_power_svd(
@@ -194,7 +196,9 @@ def squared_error(y: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         ShapeError: The shapes differ.
     """
     if y.shape != targets.shape:
-        raise ShapeError(f"outputs {tuple(y.shape)} and targets {tuple(targets.shape)} must have the same shape")
+        raise ShapeError(
+            f"outputs {tuple(y.shape)} and targets {tuple(targets.shape)} must have the same shape"
+        )
     return 0.5 * (y - targets).pow(2).reshape(y.shape[0], -1).sum(dim=1)
 
 
@@ -325,7 +329,9 @@ class HIG(torch.optim.Optimizer):
         params = _trainable(model)
         if not params:
             raise ParameterError("the model has no trainable parameters (requires_grad=True)")
-        super().__init__(list(params.values()), dict(lr=float(lr), rcond=float(rcond), exponent=float(exponent)))
+        super().__init__(
+            list(params.values()), dict(lr=float(lr), rcond=float(rcond), exponent=float(exponent))
+        )
         self.model = model
         self.physics = physics
         self.reduction = reduction

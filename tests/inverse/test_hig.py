@@ -24,7 +24,9 @@ from phisim.errors import NonFiniteError, ParameterError, PhisimError, ShapeErro
 
 def _toy_net(dtype=torch.float64, seed=0, hidden=7):
     torch.manual_seed(seed)
-    return torch.nn.Sequential(torch.nn.Linear(1, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 2)).to(dtype)
+    return torch.nn.Sequential(torch.nn.Linear(1, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, 2)).to(
+        dtype
+    )
 
 
 def _toy_batch(B, dtype=torch.float64, seed=1):
@@ -73,7 +75,9 @@ def test_exponent_one_rank_deficient_matches_pinv():
     rng = np.random.default_rng(2)
     J = rng.standard_normal((10, 3)) @ rng.standard_normal((3, 6))  # rank 3
     g = rng.standard_normal(10)
-    direction, s, kept = truncated_power_svd(torch.from_numpy(J), torch.from_numpy(g), rcond=1e-8, exponent=1.0)
+    direction, s, kept = truncated_power_svd(
+        torch.from_numpy(J), torch.from_numpy(g), rcond=1e-8, exponent=1.0
+    )
     assert int(kept.sum()) == 3
     np.testing.assert_allclose(direction.numpy(), np.linalg.pinv(J, rcond=1e-8) @ g, rtol=1e-8, atol=1e-10)
 
@@ -228,9 +232,9 @@ def test_output_scaling_hurts_hig_much_less_than_the_gradient():
                 D = torch.tensor([1.0, lam], dtype=torch.float64)
                 net = copy.deepcopy(base)
                 if name in ("hig", "gn"):
-                    HIG(net, physics=lambda o, D=D: o * D, lr=1e-3, exponent=0.5 if name == "hig" else 1.0).step(
-                        x, t * D
-                    )
+                    HIG(
+                        net, physics=lambda o, D=D: o * D, lr=1e-3, exponent=0.5 if name == "hig" else 1.0
+                    ).step(x, t * D)
                 else:
                     cls = torch.optim.Adam if name == "adam" else torch.optim.SGD
                     opt = cls(net.parameters(), lr=1e-3)
