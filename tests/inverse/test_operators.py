@@ -245,6 +245,18 @@ def test_poisson_gradcheck_implicit_gradient():
     assert torch.autograd.gradcheck(op.forward, (x,), atol=1e-7)
 
 
+def test_poisson_and_heat_accept_float32_and_compute_in_float64():
+    x = _smooth_field(2, (64, 64), 5)
+    for op in (Poisson(), Heat()):
+        y32 = op(x.float())  # a float32 CG could not reach rtol 1e-5 here (precision floor)
+        assert y32.dtype == torch.float32
+        torch.testing.assert_close(y32, op(x).float(), rtol=1e-5, atol=1e-5)
+        got = op.local_inverse(y32, x.float() + 0.01)
+        assert got.dtype == torch.float32 and torch.isfinite(got).all()
+    with pytest.raises(ParameterError):
+        Poisson(compute_dtype=torch.int64)
+
+
 def test_poisson_settings_errors():
     with pytest.raises(ParameterError):
         Poisson(preconditioner="ilu")
