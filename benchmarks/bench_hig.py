@@ -128,7 +128,8 @@ def main(argv: list[str] | None = None) -> str:
         "",
         "Time per HIG step on the coupled-oscillator problem (24 RK4 steps as the physics, 4 outputs per",
         "sample; network `4 -> 3 x width tanh -> 24`), median of "
-        f"{args.repeats} steps after {args.warmup} warm-up steps, {args.dtype}, device `{args.device}` ({cpu}),",
+        f"{args.repeats} steps after {args.warmup} warm-up steps, {args.dtype}, "
+        f"device `{args.device}` ({cpu}),",
         f"torch {torch.__version__}, {torch.get_num_threads()} intra-op threads.",
         "Jacobian: `vmap(jacrev(functional_call))` over the batch; SVD: thin `torch.linalg.svd` of the",
         "`(B*4) x n_theta` matrix plus the product `V diag(s^-1/2) U^T g`; apply: the SGD parameter update.",
