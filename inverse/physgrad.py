@@ -369,7 +369,11 @@ def physgrad(
         ParameterError: Invalid ``eta`` or ``grad_scale``.
     """
     eta = _check_eta(eta)
-    if not (math.isfinite(float(grad_scale)) and float(grad_scale) > 0):
+    try:
+        scale = float(grad_scale)
+    except (TypeError, ValueError) as err:
+        raise ParameterError(f"grad_scale must be a number, got {grad_scale!r}") from err
+    if not (math.isfinite(scale) and scale > 0):
         raise ParameterError(f"grad_scale must be a finite positive number, got {grad_scale!r}")
 
     def apply(x: torch.Tensor) -> torch.Tensor:

@@ -226,6 +226,8 @@ def test_errors():
     with pytest.raises(ParameterError):
         physgrad(op, grad_scale=0.0)
     with pytest.raises(ParameterError):
+        physgrad(op, grad_scale="b")
+    with pytest.raises(ParameterError):
         physical_gradient_loss(x, t, op, reduction="max")
     with pytest.raises(ShapeError):
         physical_gradient_loss(x, torch.zeros(2, 3, dtype=F64), op)
