@@ -170,8 +170,16 @@ class _Location:
 
 
 @functools.lru_cache(maxsize=64)
-def _location(grid: Grid, boundary: Boundary, face_axis: int | None) -> _Location:
+def _cached_location(grid: Grid, boundary: Boundary, face_axis: int | None) -> _Location:
     return _Location(grid, boundary, face_axis)
+
+
+def _location(grid: Grid, boundary: Boundary, face_axis: int | None) -> _Location:
+    """The (cached) sample location; boundaries holding unhashable values (lists) are not cached."""
+    try:
+        return _cached_location(grid, boundary, face_axis)
+    except TypeError:
+        return _Location(grid, boundary, face_axis)
 
 
 # ---- velocity at sample points -----------------------------------------------------------------------

@@ -374,3 +374,11 @@ def test_nan_velocity_raises():
     bad[0, 2, 2] = float("nan")
     with pytest.raises(NonFiniteError):
         advect(q, StaggeredGrid((v.values[0], bad), grid, "periodic"), 0.1)
+
+
+def test_boundary_with_list_values_is_accepted():
+    grid = Grid((5, 4))
+    lid = {"x": "wall", "y": ("wall", NoSlipWall(velocity=[1.0, 0.0]))}
+    v = StaggeredGrid.zeros(grid, lid, dtype=F64)
+    out = semi_lagrangian(v, StaggeredGrid.uniform((0.0, -1.0), grid, "open", dtype=F64), 0.5)
+    torch.testing.assert_close(out.values[0][0, 1:-1, -1], torch.ones(4, dtype=F64))
