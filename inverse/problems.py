@@ -229,9 +229,11 @@ class PoissonProblem(Problem):
     def operator(self) -> PhysicsOperator:
         """The Poisson forward / analytic-Laplacian inverse pair."""
         if self._operator is None:
-            from .operators import PoissonOperator
+            from phisim.linalg import Solve
 
-            self._operator = PoissonOperator(self.grid, rtol=self.rtol)
+            from .operators import Poisson
+
+            self._operator = Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol))
         return self._operator
 
     def make_network(self) -> nn.Module:
@@ -240,9 +242,10 @@ class PoissonProblem(Problem):
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` spectral noise, ``y* = P(x*)`` (solved exactly by the direct solver)."""
-        from phisim.noise import poisson_noise
+        from phisim.noise import spectral_noise
 
-        x = poisson_noise(self.grid, batch_size, generator=generator).values.to(device=device, dtype=self.dtype)
+        x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
+                           dtype=torch.float64).values.to(device=device, dtype=self.dtype)
         op = self.operator()
         with torch.no_grad():
             y = op.forward(x)
@@ -292,9 +295,9 @@ class HeatProblem(Problem):
     def operator(self) -> PhysicsOperator:
         """The heat forward / damped spectral inverse pair (float64)."""
         if self._operator is None:
-            from .operators import HeatOperator
+            from .operators import Heat
 
-            self._operator = HeatOperator(self.resolution, t_nu=self.t_nu)
+            self._operator = Heat(nu_t=self.t_nu)
         return self._operator
 
     def make_network(self) -> nn.Module:
@@ -303,9 +306,9 @@ class HeatProblem(Problem):
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` hot rectangles, ``y* = P(x*)`` in float64."""
-        from phisim.noise import hot_rectangles
+        from phisim.noise import random_rectangles
 
-        x = hot_rectangles(self.grid, batch_size, generator=generator).values.to(device=device, dtype=torch.float64)
+        x = random_rectangles(self.grid, batch_size, generator=generator, dtype=torch.float64).values.to(device)
         op = self.operator()
         with torch.no_grad():
             y = op.forward(x)
