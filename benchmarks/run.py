@@ -529,8 +529,12 @@ as ratios (ratio = PhiFlow time / phisim time; above 1 means phisim is faster).
 
 **Machine:** {machine}. The machine's 2 cores were shared with other work while these were
 taken, so single figures carry noise of tens of per cent; ratios are the meaningful part.
-**Threads:** {threads} intra-op threads for both sides (`torch.set_num_threads`, `OMP_NUM_THREADS`),
-i.e. the whole machine for each side; FFT engines are also shown with 1 and 2 threads.
+**Threads:** {threads} intra-op thread(s) for both sides (`torch.set_num_threads`, `OMP_NUM_THREADS`).
+One thread per side is the fair setting on this shared 2-core machine: with two threads a process
+stalls whenever the other core is busy (a 64^2 torch.fft round trip went from 0.025 ms with one
+thread to ~200 ms with two while other work ran). FFT engines are shown with 1 and 2 threads.
+PhiFlow and floor figures are the lowest median over the runs made (their code does not change
+between runs; other load only inflates a median); phisim figures come from the latest run.
 
 How PhiFlow is measured (see `benchmarks/peer_phiflow.py`):
 - one case per child process of `benchmarks/.phiflow-venv` (`bash benchmarks/setup_phiflow.sh`);
@@ -547,6 +551,11 @@ How PhiFlow is measured (see `benchmarks/peer_phiflow.py`):
   `Solve('CG', 1e-3, 1e-3, x0=previous pressure, rank_deficiency=0)`; uncompiled and under
   `math.jit_compile` (its fastest mode; compile time excluded, reported in the JSON);
 - 8-step forward+backward: `field.gradient` of `sum(l2_loss(smoke))` w.r.t. the initial velocity.
+
+phisim's side of the smoke step composes `advection.maccormack`, `advection.semi_lagrangian`,
+`fluid.buoyancy` and `fluid.make_incompressible` in the same order. `smoke_step` uses phisim's
+default projection (the direct spectral pressure solve of an obstacle-free box, exact);
+`smoke_step_cg` forces masked CG (spectral preconditioner) with PhiFlow's tolerances and warm start.
 
 Regenerate: `bash benchmarks/setup_phiflow.sh` once, then `python benchmarks/run.py --suite all`
 (`--reuse-peer` re-times only phisim and takes PhiFlow's figures from `benchmarks/results/phiflow_<suite>.json`).
