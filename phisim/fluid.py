@@ -46,7 +46,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
+from scipy import ndimage
 
 from .advection import SCHEMES, advect
 from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
@@ -56,7 +58,7 @@ from .errors import GridMismatchError, ParameterError, ShapeError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import Grid
 from .linalg import Solve, SolveInfo, cg
-from .poisson import field_kinds_and_values, masked_poisson_solve, spectral_poisson_solve
+from .poisson import field_kinds_and_values, masked_laplacian, spectral_poisson_solve
 
 __all__ = [
     "Obstacle",
@@ -241,6 +243,16 @@ def open_face_masks(fluid: torch.Tensor, boundary: Boundary) -> tuple[torch.Tens
     return tuple(out)
 
 
+def _zero_obstacle_faces(velocity: StaggeredGrid, obstacles) -> StaggeredGrid:
+    """Set the velocity on every face touching a solid cell to 0 (resting obstacles), walls too."""
+    v = velocity.with_boundary_faces()
+    solid = obstacle_mask(obstacles, velocity.grid, velocity.device)
+    if solid is None:
+        return v
+    faces = open_face_masks((~solid).to(velocity.dtype), velocity.boundary)
+    return v.with_values(tuple(c * o for c, o in zip(v.values, faces)))
+
+
 # ---- projection ---------------------------------------------------------------------------------------
 
 
@@ -330,8 +342,7 @@ def make_incompressible(
     else:
         mask = torch.ones_like(div[:1]) if solid is None else fluid
         x0 = _guess_tensor(pressure_guess, velocity)
-        p, info = masked_poisson_solve(div, mask, grid.dx, kinds, values, solve=solve or PRESSURE_SOLVE, x0=x0,
-                                       incompatible="project", return_info=True)
+        p, info = _masked_pressure_solve(div, mask, boundary, grid.dx, kinds, solve or PRESSURE_SOLVE, x0)
     pressure = CenteredGrid(p, grid, p_boundary)
     grad = gradient(pressure, at="face").values
     if open_faces is not None:
@@ -340,6 +351,95 @@ def make_incompressible(
     if return_info:
         return out, pressure, info
     return out, pressure
+
+
+def _singular_components(fluid: torch.Tensor, boundary: Boundary, kinds) -> torch.Tensor | None:
+    """Normalised indicators of the fluid regions whose pressure is only fixed up to a constant.
+
+    Fluid cells are connected through faces (periodic axes wrap). A region that touches a side with zero
+    pressure (open) is regular; every other region (a closed box, or a pocket enclosed by obstacles and
+    walls) adds a constant to the null space of the masked pressure operator.
+
+    Returns:
+        ``(Bm, K, *res)`` orthonormal indicators (zero-padded to the largest ``K`` of the batch), or None
+        when every region is regular.
+    """
+    rank = boundary.rank
+    masks = fluid.detach().cpu().numpy() > 0.5
+    structure = ndimage.generate_binary_structure(rank, 1)
+    per_sample = []
+    for m in masks:
+        labels, n = ndimage.label(m, structure=structure)
+        parent = list(range(n + 1))
+
+        def find(a):
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        for a in range(rank):
+            if boundary.is_periodic(a):
+                lo = np.take(labels, 0, axis=a).ravel()
+                hi = np.take(labels, -1, axis=a).ravel()
+                for x, y in zip(lo, hi):
+                    if x and y:
+                        parent[find(x)] = find(y)
+        roots = np.array([find(k) for k in range(n + 1)])
+        labels = roots[labels]
+        regular = set()
+        for a, pair in enumerate(kinds):
+            for side, kind in enumerate(pair):
+                if kind == "dirichlet":
+                    regular.update(int(k) for k in np.unique(np.take(labels, 0 if side == 0 else -1, axis=a)))
+        singular = [int(k) for k in np.unique(labels) if k != 0 and int(k) not in regular]
+        per_sample.append([labels == k for k in singular])
+    kmax = max(len(c) for c in per_sample)
+    if kmax == 0:
+        return None
+    z = np.zeros((len(per_sample), kmax, *masks.shape[1:]))
+    for b, comps in enumerate(per_sample):
+        for k, c in enumerate(comps):
+            z[b, k] = c / math.sqrt(c.sum())
+    return torch.as_tensor(z, dtype=fluid.dtype, device=fluid.device)
+
+
+def _masked_pressure_solve(div: torch.Tensor, fluid: torch.Tensor, boundary: Boundary, dx, kinds, solve: Solve,
+                           x0: torch.Tensor | None) -> tuple[torch.Tensor, SolveInfo]:
+    """Solve ``D G p = div`` on the fluid cells by CG: ``-masked_laplacian`` (identity on solid cells).
+
+    Preconditioner: the spectral inverse of the obstacle-free box, restricted to the fluid cells. The null
+    space (one constant per closed fluid region, see :func:`_singular_components`) is projected out of the
+    right-hand side, the residuals and the preconditioned residuals, so the solve stays on the range of
+    the operator even when obstacles enclose several separate pockets of fluid; the returned pressure has
+    zero mean over every closed region.
+    """
+    z = _singular_components(fluid, boundary, kinds)
+    dims = tuple(range(2, div.ndim + 1))
+
+    def project(t: torch.Tensor) -> torch.Tensor:
+        if z is None:
+            return t
+        zz = z.to(t.dtype)
+        coef = (zz * t.unsqueeze(1)).sum(dim=dims, keepdim=True)
+        return t - (coef * zz).sum(1)
+
+    def operator(x: torch.Tensor) -> torch.Tensor:
+        m = fluid.to(x.dtype)
+        return -masked_laplacian(x, m, dx, kinds) + (1 - m) * x
+
+    def preconditioner(r: torch.Tensor) -> torch.Tensor:
+        m = fluid.to(r.dtype)
+        r = project(r)
+        y = -spectral_poisson_solve(r * m, dx, kinds, incompatible="project")
+        return project(y * m + (1 - m) * r)
+
+    rhs = -div * fluid.to(div.dtype)
+    if x0 is not None:
+        x0 = x0 * fluid.to(x0.dtype)
+    x, info = cg(operator, rhs, x0, solve=solve, preconditioner=preconditioner, return_info=True,
+                 project=project if z is not None else None)
+    return x * fluid.to(x.dtype), info
 
 
 def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None = None) -> torch.Tensor:
@@ -607,7 +707,8 @@ def navier_stokes_step(
 ) -> tuple[StaggeredGrid, CenteredGrid]:
     """One incompressible Navier-Stokes step: advect, force, diffuse, project (and optionally renormalise).
 
-    ``u* = A(u; u, dt) + dt f``, ``u** = diffuse(u*)``, ``u_new, p = make_incompressible(u**)``; with
+    ``u* = A(u; u, dt) + dt f`` (then 0 on faces touching obstacles, so that viscosity sees resting
+    obstacles), ``u** = diffuse(u*)``, ``u_new, p = make_incompressible(u**)``; with
     ``energy_normalization`` the result is rescaled to the kinetic energy of ``u`` (E5 of the paper).
     First order in time (operator splitting); second order in space with MacCormack advection.
 
@@ -639,7 +740,9 @@ def navier_stokes_step(
     v = advect(velocity, velocity, dt, scheme=advection)
     if force is not None:
         _check_velocity(force, "force")
-        v = (v + dt * force).with_boundary_faces()
+        v = v + dt * force
+    if obstacles is not None:
+        v = _zero_obstacle_faces(v, obstacles)
     if float(viscosity) != 0:
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None)
@@ -683,7 +786,7 @@ def step(
     """Advance a smoke simulation by ``dt``: marker transport, buoyancy, Navier-Stokes step.
 
     Order: ``marker <- A(marker; u) + dt * source`` (zeroed inside obstacles), ``u <- A(u; u)``, buoyancy
-    from the new marker, viscosity, projection (warm-started from ``state.pressure``), optional energy
+    from the new marker, zero velocity on faces touching obstacles, viscosity, projection (warm-started from ``state.pressure``), optional energy
     rescaling.
 
     Args:
@@ -725,6 +828,8 @@ def step(
     v = advect(v0, v0, dt, scheme=advection)
     if marker is not None and buoyancy_strength != 0:
         v = buoyancy(v, marker, dt, strength=buoyancy_strength, direction=buoyancy_direction)
+    if obstacles is not None:
+        v = _zero_obstacle_faces(v, obstacles)
     if float(viscosity) != 0:
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None)
