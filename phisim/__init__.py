@@ -29,10 +29,25 @@ from .errors import (
 )
 from .fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
 from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
+from .fluid import (
+    FluidState,
+    Obstacle,
+    buoyancy,
+    cfl_dt,
+    diffuse_velocity,
+    kinetic_energy,
+    make_incompressible,
+    navier_stokes_step,
+    normalize_energy,
+    obstacle_mask,
+    relative_divergence,
+    step,
+)
 from .grid import Grid
 from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
 from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
+from .scenarios import e5_simulation
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
@@ -50,6 +65,9 @@ __all__ = [
     "advect", "semi_lagrangian", "maccormack",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
+    "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
+    "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
+    "e5_simulation",
 ]
 
 
