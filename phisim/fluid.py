@@ -54,7 +54,7 @@ from .advection import SCHEMES, advect
 from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
 from .checks import check_dt, check_finite, check_nonnegative
 from .differential import divergence, gradient, laplace
-from .errors import GridMismatchError, ParameterError, ShapeError
+from .errors import GridMismatchError, ParameterError, ShapeError, SolveError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import Grid
 from .linalg import Solve, SolveInfo, cg
@@ -77,9 +77,12 @@ __all__ = [
     "PRESSURE_SOLVE",
 ]
 
-#: Default CG settings of the masked pressure solve: a relative residual of 1e-6 keeps the relative
-#: divergence after the projection below 1e-5 with a margin.
+#: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
+#: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
+#: with these defaults a solve that stops at float32's precision floor is accepted (the pressure is then as
+#: accurate as float32 can represent it); any other failure raises SolveError.
 PRESSURE_SOLVE = Solve(rtol=1e-6)
+_PRESSURE_SOLVE_LOW = Solve(rtol=1e-5)
 
 
 # ---- obstacles ----------------------------------------------------------------------------------------
@@ -126,7 +129,7 @@ class Obstacle:
 
     @classmethod
     def from_mask(cls, mask) -> Obstacle:
-        """An obstacle given cell by cell: a boolean array ``(*resolution)`` or ``(B, *resolution)``, True = solid.
+        """An obstacle given cell by cell: a boolean array ``(*res)`` or ``(B, *res)``, True = solid.
 
         Raises:
             ParameterError: If ``mask`` is not boolean (0/1 numbers are accepted and converted).
@@ -139,7 +142,7 @@ class Obstacle:
         return cls("mask", (m,))
 
     def cell_mask(self, grid: Grid, device=None) -> torch.Tensor:
-        """Rasterise onto ``grid``: a boolean tensor ``(*resolution)`` (or ``(B, *resolution)`` for a batched mask).
+        """Rasterise onto ``grid``: a boolean tensor ``(*res)`` (``(B, *res)`` for a batched mask).
 
         Args:
             grid: The grid.
@@ -153,9 +156,14 @@ class Obstacle:
         """
         if self.kind == "mask":
             m = self.params[0].to(device)
-            if tuple(m.shape[m.ndim - grid.rank:]) != grid.resolution or m.ndim not in (grid.rank, grid.rank + 1):
-                raise ShapeError(f"obstacle mask of shape {tuple(m.shape)} does not fit {grid} "
-                                 f"(expected {grid.resolution} or (B, *resolution))")
+            if tuple(m.shape[m.ndim - grid.rank :]) != grid.resolution or m.ndim not in (
+                grid.rank,
+                grid.rank + 1,
+            ):
+                raise ShapeError(
+                    f"obstacle mask of shape {tuple(m.shape)} does not fit {grid} "
+                    f"(expected {grid.resolution} or (B, *resolution))"
+                )
             return m
         x = grid.cell_centers(torch.float64, device)
         if self.kind == "box":
@@ -202,7 +210,9 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
         if isinstance(ob, torch.Tensor):
             ob = Obstacle.from_mask(ob)
         if not isinstance(ob, Obstacle):
-            raise ParameterError(f"obstacles must be Obstacle objects or boolean masks, got {type(ob).__name__}")
+            raise ParameterError(
+                f"obstacles must be Obstacle objects or boolean masks, got {type(ob).__name__}"
+            )
         m = ob.cell_mask(grid, device)
         if m.ndim == grid.rank:
             m = m[None]
@@ -210,7 +220,9 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
             solid = m
         else:
             if m.shape[0] != solid.shape[0] and 1 not in (m.shape[0], solid.shape[0]):
-                raise ShapeError(f"obstacle masks with batch sizes {m.shape[0]} and {solid.shape[0]} cannot be combined")
+                raise ShapeError(
+                    f"obstacle masks with batch sizes {m.shape[0]} and {solid.shape[0]} cannot be combined"
+                )
             solid = solid | m
     if solid is None or not bool(solid.any()):
         return None
@@ -259,8 +271,10 @@ def _zero_obstacle_faces(velocity: StaggeredGrid, obstacles) -> StaggeredGrid:
 def _check_velocity(velocity, what: str = "velocity") -> None:
     if not isinstance(velocity, StaggeredGrid):
         raise GridMismatchError(
-            f"{what} must be a StaggeredGrid (MAC velocity), got {type(velocity).__name__}; convert a centred "
-            "velocity with CenteredGrid.to_staggered()")
+            f"{what} must be a StaggeredGrid (MAC velocity), got {type(velocity).__name__}; convert a centred"
+            " "
+            "velocity with CenteredGrid.to_staggered()"
+        )
 
 
 def _guess_tensor(pressure_guess, velocity: StaggeredGrid) -> torch.Tensor | None:
@@ -296,8 +310,9 @@ def make_incompressible(
     Args:
         velocity: MAC velocity, component ``i`` of shape ``(B, *face_shape(i))``.
         obstacles: None, an :class:`Obstacle`, a boolean solid mask ``(*res)``/``(B, *res)``, or a sequence.
-        solve: CG settings of the masked solve (default :data:`PRESSURE_SOLVE`, rtol 1e-6). Not used by the
-            direct spectral solve.
+        solve: CG settings of the masked solve. Default: :data:`PRESSURE_SOLVE` (rtol 1e-6) for float64,
+            rtol 1e-5 for float32, where stopping at float32's precision floor is accepted. An explicit
+            ``solve`` is applied as given. Not used by the direct spectral solve.
         pressure_guess: Start iterate of the CG solve (the previous step's pressure), a CenteredGrid or a
             tensor ``(B, *res)``. The direct solve needs none and ignores it.
         method: ``'auto'`` (spectral without obstacles, CG with them), ``'spectral'`` (rejects obstacles)
@@ -324,7 +339,9 @@ def make_incompressible(
     grid, boundary = velocity.grid, velocity.boundary
     solid = obstacle_mask(obstacles, grid, velocity.device)
     if solid is not None and method == "spectral":
-        raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' or 'cg'")
+        raise ParameterError(
+            "the direct spectral pressure solve cannot handle obstacles; use method='auto' or 'cg'"
+        )
     v = velocity.with_boundary_faces()
     open_faces = None
     if solid is not None:
@@ -342,7 +359,24 @@ def make_incompressible(
     else:
         mask = torch.ones_like(div[:1]) if solid is None else fluid
         x0 = _guess_tensor(pressure_guess, velocity)
-        p, info = _masked_pressure_solve(div, mask, boundary, grid.dx, kinds, solve or PRESSURE_SOLVE, x0)
+        if solve is None:
+            default = PRESSURE_SOLVE if div.dtype == torch.float64 else _PRESSURE_SOLVE_LOW
+            p, info = _masked_pressure_solve(
+                div, mask, boundary, grid.dx, kinds, replace(default, raise_on_failure=False), x0
+            )
+            failed = [
+                f"sample {b}: {st}"
+                for b, st in enumerate(info.status)
+                if st not in ("converged", "precision_floor")
+            ]
+            if failed:
+                raise SolveError(
+                    f"pressure solve failed ({', '.join(failed)}); {info!r}",
+                    iterations=info.iterations,
+                    residual=info.residual,
+                )
+        else:
+            p, info = _masked_pressure_solve(div, mask, boundary, grid.dx, kinds, solve, x0)
     pressure = CenteredGrid(p, grid, p_boundary)
     grad = gradient(pressure, at="face").values
     if open_faces is not None:
@@ -351,6 +385,14 @@ def make_incompressible(
     if return_info:
         return out, pressure, info
     return out, pressure
+
+
+def _find(parent: list[int], a: int) -> int:
+    """Root of ``a`` in a union-find forest (with path halving)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
 
 
 def _singular_components(fluid: torch.Tensor, boundary: Boundary, kinds) -> torch.Tensor | None:
@@ -371,21 +413,14 @@ def _singular_components(fluid: torch.Tensor, boundary: Boundary, kinds) -> torc
     for m in masks:
         labels, n = ndimage.label(m, structure=structure)
         parent = list(range(n + 1))
-
-        def find(a):
-            while parent[a] != a:
-                parent[a] = parent[parent[a]]
-                a = parent[a]
-            return a
-
         for a in range(rank):
             if boundary.is_periodic(a):
                 lo = np.take(labels, 0, axis=a).ravel()
                 hi = np.take(labels, -1, axis=a).ravel()
                 for x, y in zip(lo, hi):
                     if x and y:
-                        parent[find(x)] = find(y)
-        roots = np.array([find(k) for k in range(n + 1)])
+                        parent[_find(parent, x)] = _find(parent, y)
+        roots = np.array([_find(parent, k) for k in range(n + 1)])
         labels = roots[labels]
         regular = set()
         for a, pair in enumerate(kinds):
@@ -404,8 +439,15 @@ def _singular_components(fluid: torch.Tensor, boundary: Boundary, kinds) -> torc
     return torch.as_tensor(z, dtype=fluid.dtype, device=fluid.device)
 
 
-def _masked_pressure_solve(div: torch.Tensor, fluid: torch.Tensor, boundary: Boundary, dx, kinds, solve: Solve,
-                           x0: torch.Tensor | None) -> tuple[torch.Tensor, SolveInfo]:
+def _masked_pressure_solve(
+    div: torch.Tensor,
+    fluid: torch.Tensor,
+    boundary: Boundary,
+    dx,
+    kinds,
+    solve: Solve,
+    x0: torch.Tensor | None,
+) -> tuple[torch.Tensor, SolveInfo]:
     """Solve ``D G p = div`` on the fluid cells by CG: ``-masked_laplacian`` (identity on solid cells).
 
     Preconditioner: the spectral inverse of the obstacle-free box, restricted to the fluid cells. The null
@@ -437,13 +479,20 @@ def _masked_pressure_solve(div: torch.Tensor, fluid: torch.Tensor, boundary: Bou
     rhs = -div * fluid.to(div.dtype)
     if x0 is not None:
         x0 = x0 * fluid.to(x0.dtype)
-    x, info = cg(operator, rhs, x0, solve=solve, preconditioner=preconditioner, return_info=True,
-                 project=project if z is not None else None)
+    x, info = cg(
+        operator,
+        rhs,
+        x0,
+        solve=solve,
+        preconditioner=preconditioner,
+        return_info=True,
+        project=project if z is not None else None,
+    )
     return x * fluid.to(x.dtype), info
 
 
 def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None = None) -> torch.Tensor:
-    """Per-sample size of the MAC divergence, relative: ``||D u||_2 / ||D u_ref||_2`` or ``max|D u| dx / max|u|``.
+    """Per-sample relative MAC divergence: ``||D u|| / ||D u_ref||`` or ``max|D u| dx / max|u|``.
 
     Args:
         velocity: The (projected) MAC velocity.
@@ -477,12 +526,15 @@ def _scalar_values(marker, grid: Grid) -> tuple[torch.Tensor, Boundary | None]:
         return marker.values, marker.boundary
     m = torch.as_tensor(marker)
     if m.ndim != grid.rank + 1 or tuple(m.shape[1:]) != grid.resolution:
-        raise ShapeError(f"marker must have shape (B, {', '.join(map(str, grid.resolution))}), got {tuple(m.shape)}")
+        raise ShapeError(
+            f"marker must have shape (B, {', '.join(map(str, grid.resolution))}), got {tuple(m.shape)}"
+        )
     return m, None
 
 
-def buoyancy(velocity: StaggeredGrid, marker, dt, *, strength: float = 1.0,
-             direction: Sequence[float] | None = None) -> StaggeredGrid:
+def buoyancy(
+    velocity: StaggeredGrid, marker, dt, *, strength: float = 1.0, direction: Sequence[float] | None = None
+) -> StaggeredGrid:
     """Add the Boussinesq buoyancy force ``dt * strength * marker * direction`` to a MAC velocity.
 
     The marker (smoke density or temperature) is averaged from the two cells adjacent to each face (on
@@ -506,7 +558,9 @@ def buoyancy(velocity: StaggeredGrid, marker, dt, *, strength: float = 1.0,
     _check_velocity(velocity)
     dt = check_dt(dt)
     grid = velocity.grid
-    direction = tuple(float(c) for c in direction) if direction is not None else (0.0,) * (grid.rank - 1) + (1.0,)
+    direction = (
+        tuple(float(c) for c in direction) if direction is not None else (0.0,) * (grid.rank - 1) + (1.0,)
+    )
     if len(direction) != grid.rank:
         raise ParameterError(f"direction needs {grid.rank} entries, got {direction}")
     m, mb = _scalar_values(marker, grid)
@@ -525,8 +579,9 @@ def buoyancy(velocity: StaggeredGrid, marker, dt, *, strength: float = 1.0,
     return velocity.with_values(tuple(comps)).with_boundary_faces()
 
 
-def diffuse_velocity(velocity: StaggeredGrid, dt, *, viscosity: float, scheme: str = "explicit",
-                     solve: Solve | None = None) -> StaggeredGrid:
+def diffuse_velocity(
+    velocity: StaggeredGrid, dt, *, viscosity: float, scheme: str = "explicit", solve: Solve | None = None
+) -> StaggeredGrid:
     """Viscous diffusion ``du/dt = viscosity * lap(u)`` of a MAC velocity over one step ``dt``.
 
     Wall velocities enter through the ghost cells of :meth:`StaggeredGrid.padded_component`: a moving
@@ -561,8 +616,10 @@ def diffuse_velocity(velocity: StaggeredGrid, dt, *, viscosity: float, scheme: s
         number = float(alpha) * sum(2.0 / d**2 for d in velocity.grid.dx)
         if number > 1.0:
             raise ParameterError(
-                f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt or "
-                "use scheme='implicit'")
+                f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt"
+                " or "
+                "use scheme='implicit'"
+            )
         return (velocity + alpha * laplace(velocity)).with_boundary_faces()
     return _implicit_diffusion(velocity, alpha, solve or Solve(rtol=1e-8))
 
@@ -620,7 +677,11 @@ def _component_laplace(x: torch.Tensor, component: int, boundary: Boundary, dx) 
     out = 0
     for a in range(boundary.rank):
         dim = 1 + a
-        d2 = p.narrow(dim, 2, p.shape[dim] - 2) - 2 * p.narrow(dim, 1, p.shape[dim] - 2) + p.narrow(dim, 0, p.shape[dim] - 2)
+        d2 = (
+            p.narrow(dim, 2, p.shape[dim] - 2)
+            - 2 * p.narrow(dim, 1, p.shape[dim] - 2)
+            + p.narrow(dim, 0, p.shape[dim] - 2)
+        )
         for b in range(boundary.rank):
             if b != a:
                 d2 = d2.narrow(1 + b, 1, d2.shape[1 + b] - 2)
@@ -744,8 +805,13 @@ def navier_stokes_step(
     if obstacles is not None:
         v = _zero_obstacle_faces(v, obstacles)
     if float(viscosity) != 0:
-        v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
-                             solve=solve if viscosity_scheme == "implicit" else None)
+        v = diffuse_velocity(
+            v,
+            dt,
+            viscosity=viscosity,
+            scheme=viscosity_scheme,
+            solve=solve if viscosity_scheme == "implicit" else None,
+        )
     v, p = make_incompressible(v, obstacles, solve=solve, pressure_guess=pressure_guess)
     if e0 is not None:
         v = normalize_energy(v, e0)
@@ -786,8 +852,8 @@ def step(
     """Advance a smoke simulation by ``dt``: marker transport, buoyancy, Navier-Stokes step.
 
     Order: ``marker <- A(marker; u) + dt * source`` (zeroed inside obstacles), ``u <- A(u; u)``, buoyancy
-    from the new marker, zero velocity on faces touching obstacles, viscosity, projection (warm-started from ``state.pressure``), optional energy
-    rescaling.
+    from the new marker, zero velocity on faces touching obstacles, viscosity, projection (warm-started
+    from ``state.pressure``), optional energy rescaling.
 
     Args:
         state: Current :class:`FluidState`.
@@ -831,8 +897,13 @@ def step(
     if obstacles is not None:
         v = _zero_obstacle_faces(v, obstacles)
     if float(viscosity) != 0:
-        v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
-                             solve=solve if viscosity_scheme == "implicit" else None)
+        v = diffuse_velocity(
+            v,
+            dt,
+            viscosity=viscosity,
+            scheme=viscosity_scheme,
+            solve=solve if viscosity_scheme == "implicit" else None,
+        )
     v, p = make_incompressible(v, obstacles, solve=solve, pressure_guess=state.pressure)
     if e0 is not None:
         v = normalize_energy(v, e0)

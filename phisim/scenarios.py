@@ -48,8 +48,9 @@ def e5_grid(resolution: tuple[int, int] = E5_RESOLUTION) -> Grid:
     return Grid(resolution, bounds=[2.0 * n for n in resolution])
 
 
-def e5_step(marker: CenteredGrid, velocity: StaggeredGrid, pressure: CenteredGrid | None, dt: float = E5_DT
-            ) -> tuple[CenteredGrid, StaggeredGrid, CenteredGrid]:
+def e5_step(
+    marker: CenteredGrid, velocity: StaggeredGrid, pressure: CenteredGrid | None, dt: float = E5_DT
+) -> tuple[CenteredGrid, StaggeredGrid, CenteredGrid]:
     """One E5 step (see the module docstring for the order of operations).
 
     Args:
@@ -76,14 +77,18 @@ def _as_velocity(velocity0, grid: Grid, batch: int) -> StaggeredGrid:
         return velocity0.with_boundary("periodic")
     vals = velocity0.values if isinstance(velocity0, CenteredGrid) else torch.as_tensor(velocity0)
     if vals.ndim != 4 or vals.shape[1] != 2 or tuple(vals.shape[2:]) != grid.resolution:
-        raise ShapeError(f"velocity0 must be centred (B, 2, {grid.resolution[0]}, {grid.resolution[1]}) or a "
-                         f"StaggeredGrid, got shape {tuple(vals.shape)}")
+        raise ShapeError(
+            f"velocity0 must be centred (B, 2, {grid.resolution[0]}, {grid.resolution[1]}) or a "
+            f"StaggeredGrid, got shape {tuple(vals.shape)}"
+        )
     if vals.shape[0] not in (1, batch):
         raise ShapeError(f"velocity0 batch {vals.shape[0]} does not match the marker batch {batch}")
     return CenteredGrid(vals, grid, "periodic").to_staggered()
 
 
-def e5_simulation(marker0, velocity0, steps: int = E5_STEPS, dt: float = E5_DT, *, return_velocity: bool = False):
+def e5_simulation(
+    marker0, velocity0, steps: int = E5_STEPS, dt: float = E5_DT, *, return_velocity: bool = False
+):
     """Run the E5 forward simulation: the marker after ``steps`` steps of ``dt``.
 
     Args:

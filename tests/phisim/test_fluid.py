@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from phisim.advection import advect
 from phisim.boundary import Boundary, NoSlipWall
-from phisim.differential import curl, divergence
+from phisim.differential import curl
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import (
@@ -27,7 +28,6 @@ from phisim.fluid import (
     relative_divergence,
     step,
 )
-from phisim.advection import advect
 from phisim.grid import Grid
 from phisim.linalg import Solve
 from phisim.scenarios import e5_grid, e5_simulation
@@ -61,8 +61,11 @@ def _grid(rank: int) -> Grid:
 
 def _random_velocity(grid: Grid, boundary, batch: int = 3, seed: int = 0, dtype=F64) -> StaggeredGrid:
     g = torch.Generator().manual_seed(seed)
-    return StaggeredGrid([torch.randn(batch, *grid.face_shape(i), generator=g, dtype=dtype)
-                          for i in range(grid.rank)], grid, boundary)
+    return StaggeredGrid(
+        [torch.randn(batch, *grid.face_shape(i), generator=g, dtype=dtype) for i in range(grid.rank)],
+        grid,
+        boundary,
+    )
 
 
 def _obstacles(kind: str | None, grid: Grid, batch: int):
@@ -156,8 +159,11 @@ def test_projection_leaves_divergence_free_field_and_removes_gradient():
     grid = Grid((16, 16), bounds=[1, 1])
     # a pure gradient field with zero normal flux at walls is removed completely
     x = grid.cell_centers(F64)
-    phi = CenteredGrid(torch.cos(math.pi * x[..., 0]) * torch.cos(2 * math.pi * x[..., 1])[None] * 1.0,
-                       grid, Boundary.create("wall", 2).for_pressure())
+    phi = CenteredGrid(
+        torch.cos(math.pi * x[..., 0]) * torch.cos(2 * math.pi * x[..., 1])[None] * 1.0,
+        grid,
+        Boundary.create("wall", 2).for_pressure(),
+    )
     from phisim.differential import gradient
 
     g = gradient(phi, at="face", boundary=Boundary.create("wall", 2))
@@ -195,8 +201,10 @@ def test_projection_errors():
 
 def _taylor_green(x: torch.Tensor, t: float, nu: float) -> torch.Tensor:
     f = math.exp(-2 * nu * t)
-    return torch.stack([torch.sin(x[..., 0]) * torch.cos(x[..., 1]) * f,
-                        -torch.cos(x[..., 0]) * torch.sin(x[..., 1]) * f], -1)
+    return torch.stack(
+        [torch.sin(x[..., 0]) * torch.cos(x[..., 1]) * f, -torch.cos(x[..., 0]) * torch.sin(x[..., 1]) * f],
+        -1,
+    )
 
 
 def _tg_error(n: int, t_end: float, nu: float, stepper) -> float:
@@ -264,14 +272,25 @@ def test_momentum_conserved_periodic():
     gen = torch.Generator().manual_seed(0)
     x = grid.cell_centers(F64)
     k = torch.randn(2, 2, 3, generator=gen, dtype=F64)
-    smooth = torch.stack([
-        torch.stack([k[b, c, 0] * torch.sin(2 * math.pi * (x[..., 0] + k[b, c, 1]))
-                     * torch.cos(2 * math.pi * (x[..., 1] + k[b, c, 2])) for c in range(2)])
-        for b in range(2)])
+    smooth = torch.stack(
+        [
+            torch.stack(
+                [
+                    k[b, c, 0]
+                    * torch.sin(2 * math.pi * (x[..., 0] + k[b, c, 1]))
+                    * torch.cos(2 * math.pi * (x[..., 1] + k[b, c, 2]))
+                    for c in range(2)
+                ]
+            )
+            for b in range(2)
+        ]
+    )
     v = CenteredGrid(smooth + 0.3, grid, "periodic").to_staggered()
 
     def momentum(v):
-        return torch.stack([c.narrow(1 + i, 0, c.shape[1 + i] - 1).mean((1, 2)) for i, c in enumerate(v.values)], 1)
+        return torch.stack(
+            [c.narrow(1 + i, 0, c.shape[1 + i] - 1).mean((1, 2)) for i, c in enumerate(v.values)], 1
+        )
 
     m0 = momentum(v)
     # projection and viscosity conserve the mean velocity to round-off
@@ -339,7 +358,9 @@ def test_buoyancy_adds_force_on_vertical_faces():
     # sideways and downward directions; walls stay closed
     marker[:, 0, :] = 1.0
     side = buoyancy(v, CenteredGrid(marker, grid, "wall"), 1.0, strength=1.0, direction=(-1.0, 0.0))
-    assert torch.count_nonzero(side.values[0][:, 0]) == 0 and float(side.values[0][0, 1, 0]) == pytest.approx(-0.5)
+    assert torch.count_nonzero(side.values[0][:, 0]) == 0 and float(side.values[0][0, 1, 0]) == pytest.approx(
+        -0.5
+    )
     with pytest.raises(ParameterError):
         buoyancy(v, marker, 1.0, direction=(1.0,))
     with pytest.raises(ShapeError):
@@ -412,8 +433,15 @@ def test_step_smoke_state_with_obstacle():
 def test_gradcheck_make_incompressible(obstacle):
     grid = Grid((5, 4), bounds=[1.0, 0.8])
     b = Boundary.create([("wall", "open"), "free_slip"], 2)
-    obs = Obstacle.from_mask(torch.tensor([[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]],
-                                          dtype=torch.bool)) if obstacle else None
+    obs = (
+        Obstacle.from_mask(
+            torch.tensor(
+                [[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]], dtype=torch.bool
+            )
+        )
+        if obstacle
+        else None
+    )
     g = torch.Generator().manual_seed(0)
     u0 = torch.randn(2, 6, 4, generator=g, dtype=F64, requires_grad=True)
     u1 = torch.randn(2, 5, 5, generator=g, dtype=F64, requires_grad=True)
@@ -441,8 +469,15 @@ def test_gradient_through_eight_steps_matches_finite_differences():
     def loss(comps):
         state = FluidState(StaggeredGrid(comps, grid, "wall"), CenteredGrid(marker0, grid, "wall"))
         for _ in range(8):
-            state = step(state, 0.02, viscosity=0.01, buoyancy_strength=0.5, obstacles=obs,
-                         advection="semi_lagrangian", solve=TIGHT)
+            state = step(
+                state,
+                0.02,
+                viscosity=0.01,
+                buoyancy_strength=0.5,
+                obstacles=obs,
+                advection="semi_lagrangian",
+                solve=TIGHT,
+            )
         return ((state.marker.values - target) ** 2).mean() + kinetic_energy(state.velocity).sum()
 
     comps = [c.clone().requires_grad_(True) for c in v0.values]
@@ -481,8 +516,12 @@ def test_e5_simulation_shapes_translation_and_gradients():
     single = e5_simulation(marker[1:2], v[1:2].detach(), steps=4)
     torch.testing.assert_close(single[0], m[1].detach(), rtol=1e-5, atol=1e-5)
     # CenteredGrid in, CenteredGrid out; staggered velocity accepted
-    mg, vg = e5_simulation(CenteredGrid(marker, grid, "periodic"),
-                           CenteredGrid(vel, grid, "periodic").to_staggered(), steps=2, return_velocity=True)
+    mg, vg = e5_simulation(
+        CenteredGrid(marker, grid, "periodic"),
+        CenteredGrid(vel, grid, "periodic").to_staggered(),
+        steps=2,
+        return_velocity=True,
+    )
     assert isinstance(mg, CenteredGrid) and isinstance(vg, StaggeredGrid)
     with pytest.raises(ShapeError):
         e5_simulation(marker, torch.zeros(3, 3, 16, 16))
