@@ -45,6 +45,7 @@ from .fluid import (
 )
 from .grid import Grid
 from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
+from .linalg import Solve, SolveInfo, cg, remove_mean
 from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
 from .scenarios import e5_simulation
@@ -53,6 +54,7 @@ __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
     "NonFiniteError", "SolveError", "FileFormatError",
     "Grid",
+    "Solve", "SolveInfo", "cg", "remove_mean",
     "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open",
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
