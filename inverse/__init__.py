@@ -40,3 +40,7 @@ __all__ += [  # problems and the training loop
     "Method", "Batch", "Problem", "SineProblem", "PoissonProblem", "HeatProblem", "PROBLEMS", "get_problem",
     "train", "TrainResult", "batch_generator", "make_optimizer",
 ]
+
+from .fluid_inverse import FluidMarkerOperator, FluidProblem, frequency_loss  # noqa: E402
+
+__all__ += ["FluidMarkerOperator", "FluidProblem", "frequency_loss"]  # E5 fluid pair and problem

@@ -327,6 +327,16 @@ PROBLEMS: dict[str, Callable[..., Problem]] = {
 }
 
 
+def _fluid_problem(**settings) -> Problem:
+    """E5 (:class:`inverse.fluid_inverse.FluidProblem`), imported on first use (it imports this module)."""
+    from .fluid_inverse import FluidProblem
+
+    return FluidProblem(**settings)
+
+
+PROBLEMS["fluid"] = _fluid_problem
+
+
 def get_problem(name: str, **settings) -> Problem:
     """Instantiate a registered problem, e.g. ``get_problem('poisson', resolution=(32, 32), batch_size=8)``.
 
