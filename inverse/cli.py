@@ -124,9 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.plot is not None:
             from phisim.plot import plot_curves, save_figure
 
-            fig = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
-                              logy=True, title=f"{problem.name}: metric", ylabel="metric")
-            save_figure(fig, args.plot)
+            ax = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
+                             logy=True, title=f"{problem.name}: metric", ylabel="metric")
+            save_figure(ax.figure, args.plot)
         return 0
     except PhisimError as exc:
         print(f"phisim: error: {exc}", file=sys.stderr)
