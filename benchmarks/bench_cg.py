@@ -93,7 +93,8 @@ def run_case(case: dict, repeats: int = 5, device: str = "cpu") -> dict:
         x, info = once()
         sync()
         times.append(time.perf_counter() - t0)
-    rel = torch.linalg.vector_norm(b.double() - neg_laplace(x.double())) / torch.linalg.vector_norm(b.double())
+    bd = b.double()
+    rel = torch.linalg.vector_norm(bd - neg_laplace(x.double())) / torch.linalg.vector_norm(bd)
     return {**case, "median_s": statistics.median(times), "iterations": int(info.iterations.max()),
             "rel_residual": float(rel), "status": info.status[0], "refinements": info.refinements}
 

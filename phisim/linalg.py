@@ -317,7 +317,7 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         status = torch.where(breakdown, _BREAKDOWN, status)
         status = torch.where(nonfinite, _NONFINITE, status)
         active = active & ~(breakdown | nonfinite)
-        alpha = torch.where(active, rz / torch.where(active, pq, torch.ones_like(pq)), torch.zeros_like(pq))
+        alpha = torch.where(active, rz / torch.where(active, pq, 1.0), 0.0)
         ab = _bcast(alpha, x)
         x.add_(ab * p)
         r.sub_(ab * q)
@@ -339,7 +339,7 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         stagnated = active & (iters - last_improved >= window)
         status = torch.where(stagnated, _STAGNATED, status)
         active = active & ~stagnated
-        beta = torch.where(active, rz_new / torch.where(active, rz, torch.ones_like(rz)), torch.zeros_like(rz))
+        beta = torch.where(active, rz_new / torch.where(active, rz, 1.0), 0.0)
         am = _bcast(active.to(z.dtype), z)
         p = (z + _bcast(beta, p) * p) * am
         rz = rz_new

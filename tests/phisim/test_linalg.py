@@ -1,4 +1,4 @@
-"""Tests of phisim.linalg: batched preconditioned CG, implicit gradients, float32 refinement and failure modes."""
+"""Tests of phisim.linalg: batched preconditioned CG, implicit gradients, float32 refinement, failures."""
 
 from __future__ import annotations
 
