@@ -1,0 +1,81 @@
+"""examples/reproduce.py runs each experiment at tiny size and writes finite curves, figures, summaries."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from phisim.io import read_training
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("reproduce", ROOT / "examples" / "reproduce.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def reproduce():
+    return _load()
+
+
+def test_running_average(reproduce):
+    v = np.array([1.0, 3.0, np.nan, 5.0, 7.0])
+    np.testing.assert_allclose(reproduce.running_average(v, 2), [1.0, 2.0, 3.0, 5.0, 6.0])
+    np.testing.assert_allclose(reproduce.running_average(v, 100), [1.0, 2.0, 2.0, 3.0, 4.0])
+    assert reproduce.iterations_to_reach(np.array([5.0, 3.0, 1.0]), 3.0) == 1
+    assert reproduce.iterations_to_reach(np.array([5.0, 4.0]), 3.0) is None
+
+
+@pytest.mark.parametrize("exp", ["e2", "e3", "e4"])
+def test_network_experiment_tiny(reproduce, tmp_path, exp):
+    batch = "16" if exp == "e2" else "4"
+    args = ["--experiment", exp, "--iterations", "3", "--batch-size", batch, "--resolution", "16",
+            "--out", str(tmp_path), "--max-iterations", "pg_lbfgsb=2"]
+    result = reproduce.main(args)[exp]
+    methods = reproduce.EXPERIMENTS[exp]["methods"]
+    curves = read_training(tmp_path / f"{exp}.h5")
+    assert set(curves) == set(methods)
+    for name, c in curves.items():
+        expected = 2 if name == "pg_lbfgsb" else 3
+        assert len(c["metric"]) == expected, name
+        if result["runs"][name]["diverged"] is None:
+            assert np.all(np.isfinite(c["metric"])), name
+            assert np.all(np.isfinite(c["loss"])), name
+            assert (tmp_path / f"{exp}_{name}.pt").exists()
+    assert (tmp_path / f"{exp}_curves.png").stat().st_size > 5_000
+    summary = json.loads((tmp_path / f"{exp}_summary.json").read_text())
+    finite = [m for m, r in summary["runs"].items() if r["diverged"] is None]
+    assert finite, "every method diverged"
+    for m in finite:
+        assert np.isfinite(summary["methods"][m]["final"]), m
+    if exp != "e2":
+        assert summary["resolution"] == [16, 16]
+        assert (tmp_path / f"{exp}_reconstruction.png").stat().st_size > 5_000
+        assert all(np.isfinite(v) for v in summary["reconstruction_mae"].values())
+    # --plot-only redraws from the files without training
+    again = reproduce.main(args + ["--plot-only"])[exp]
+    assert again["methods"]["adam"]["final"] == pytest.approx(summary["methods"]["adam"]["final"])
+
+
+def test_heat_optimisation_tiny(reproduce, tmp_path):
+    reproduce.main(["--experiment", "e4-opt", "--iterations", "20", "--resolution", "16", "--samples", "2",
+                    "--out", str(tmp_path)])
+    curves = read_training(tmp_path / "e4-opt.h5")
+    assert set(curves) == {"opt_gd", "opt_inverse", "opt_lbfgsb"}
+    assert len(curves["opt_gd"]["metric"]) == 21
+    assert len(curves["opt_inverse"]["metric"]) == 3
+    for name, c in curves.items():
+        assert np.all(np.isfinite(c["metric"])), name
+        # every method starts from x = 0 and improves on it
+        assert c["metric"][-1] < c["metric"][0], name
+    assert (tmp_path / "e4-opt_curves.png").stat().st_size > 5_000
+    summary = json.loads((tmp_path / "e4-opt_summary.json").read_text())
+    assert set(summary["methods"]) == {"opt_gd", "opt_inverse", "opt_lbfgsb"}
