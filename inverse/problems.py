@@ -194,28 +194,24 @@ class SineProblem(Problem):
 
 
 @dataclass
-class PoissonProblem(Problem):
-    """E3: recover the source ``x`` of Poisson's equation from ``y = ∇⁻² x`` (zero Dirichlet, dx = 1).
+class _UNetGridProblem(Problem):
+    """Shared part of E3 and E4: a 2-D grid with dx = 1, a U-net ``y* -> x`` (37,697 parameters) and the
+    four methods Adam, SGD with momentum, Adam + physical gradients (the operator's own local inverse) and
+    Adam + physical gradients with L-BFGS-B."""
 
-    Data: ``x*`` spectral noise (E3 recipe, unit std per sample), ``y* = P(x*)``. Network: U-net 4 levels,
-    16 filters (37,697 parameters), input ``y*``, output ``x``. Methods: Adam through the CG solve
-    (``adam``), SGD with momentum (``sgd``), Adam + physical gradients with the analytic Laplacian
-    (``pg``) or L-BFGS-B (``pg_lbfgsb``).
-    """
-
-    name: str = "poisson"
     batch_size: int = 128
     reduction: str = "sum"
     resolution: tuple[int, int] = (64, 64)
-    rtol: float = 1e-5
-    sgd_lr: float = 1e-9
+    sgd_lr: float = 1e-3
+    lbfgsb_iterations: int = 32
 
     def __post_init__(self):
         self.methods = {
             "adam": Method("adam", "physics", lr=1e-3),
             "sgd": Method("sgd", "physics", optimizer="sgd", lr=self.sgd_lr, momentum=0.9),
             "pg": Method("pg", "physgrad", lr=1e-3),
-            "pg_lbfgsb": Method("pg_lbfgsb", "physgrad", lr=1e-3, local_solver=LBFGSBSolver(max_iter=10)),
+            "pg_lbfgsb": Method("pg_lbfgsb", "physgrad", lr=1e-3,
+                                local_solver=LBFGSBSolver(max_iter=self.lbfgsb_iterations)),
         }
         self._operator = None
 
@@ -227,21 +223,47 @@ class PoissonProblem(Problem):
         return Grid(self.resolution)
 
     def operator(self) -> PhysicsOperator:
-        """The Poisson forward / analytic-Laplacian inverse pair."""
+        """The physics pair (built once)."""
         if self._operator is None:
-            from phisim.linalg import Solve
-
-            from .operators import Poisson
-
-            self._operator = Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol))
+            self._operator = self._make_operator()
         return self._operator
+
+    def _make_operator(self) -> PhysicsOperator:
+        raise NotImplementedError
 
     def make_network(self) -> nn.Module:
         """U-net, 4 levels, 16 filters, circular padding (37,697 parameters)."""
         return UNet(1, 1, levels=4, filters=16, padding_mode="circular")
 
+    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
+        """``x = net(y*)``, shape ``(B, *resolution)``."""
+        return model(batch.inputs)[:, 0]
+
+
+@dataclass
+class PoissonProblem(_UNetGridProblem):
+    """E3: recover the source ``x`` of Poisson's equation from ``y = ∇⁻² x`` (zero Dirichlet, dx = 1).
+
+    Data: ``x*`` spectral noise (E3 recipe, unit std per sample), ``y* = P(x*)``. Network: U-net 4 levels,
+    16 filters (37,697 parameters), input ``y*``, output ``x``. Methods: Adam through the CG solve
+    (``adam``), SGD with momentum (``sgd``), Adam + physical gradients with the analytic Laplacian
+    (``pg``) or L-BFGS-B (``pg_lbfgsb``, 10 iterations: each evaluation is a CG solve).
+    """
+
+    name: str = "poisson"
+    rtol: float = 1e-5
+    sgd_lr: float = 1e-9
+    lbfgsb_iterations: int = 10
+
+    def _make_operator(self) -> PhysicsOperator:
+        from phisim.linalg import Solve
+
+        from .operators import Poisson
+
+        return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol))
+
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
-        """``x*`` spectral noise, ``y* = P(x*)`` (solved exactly by the direct solver)."""
+        """``x*`` spectral noise, ``y* = P(x*)``."""
         from phisim.noise import spectral_noise
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
@@ -251,16 +273,12 @@ class PoissonProblem(Problem):
             y = op.forward(x)
         return Batch(y.unsqueeze(1), y, x, op)
 
-    def predict(self, model: nn.Module, batch: Batch) -> torch.Tensor:
-        """``x = net(y*)``, shape ``(B, *resolution)``."""
-        return model(batch.inputs)[:, 0]
-
 
 # ---- E4 -------------------------------------------------------------------------------------------------
 
 
 @dataclass
-class HeatProblem(Problem):
+class HeatProblem(_UNetGridProblem):
     """E4: recover the initial temperature ``x`` from ``y = exp(tν∇²) x`` (periodic 64², tν = 8, float64).
 
     Data: 4–10 soft-edged hot rectangles, ``y* = P(x*)``. The network's prediction gets the target's mean
@@ -270,39 +288,12 @@ class HeatProblem(Problem):
     """
 
     name: str = "heat"
-    batch_size: int = 128
-    reduction: str = "sum"
-    resolution: tuple[int, int] = (64, 64)
     t_nu: float = 8.0
-    sgd_lr: float = 1e-3
 
-    def __post_init__(self):
-        self.methods = {
-            "adam": Method("adam", "physics", lr=1e-3),
-            "sgd": Method("sgd", "physics", optimizer="sgd", lr=self.sgd_lr, momentum=0.9),
-            "pg": Method("pg", "physgrad", lr=1e-3),
-            "pg_lbfgsb": Method("pg_lbfgsb", "physgrad", lr=1e-3, local_solver=LBFGSBSolver(max_iter=32)),
-        }
-        self._operator = None
+    def _make_operator(self) -> PhysicsOperator:
+        from .operators import Heat
 
-    @property
-    def grid(self):
-        """The problem's grid (dx = 1, periodic)."""
-        from phisim.grid import Grid
-
-        return Grid(self.resolution)
-
-    def operator(self) -> PhysicsOperator:
-        """The heat forward / damped spectral inverse pair (float64)."""
-        if self._operator is None:
-            from .operators import Heat
-
-            self._operator = Heat(nu_t=self.t_nu)
-        return self._operator
-
-    def make_network(self) -> nn.Module:
-        """U-net, 4 levels, 16 filters, circular padding (37,697 parameters)."""
-        return UNet(1, 1, levels=4, filters=16, padding_mode="circular")
+        return Heat(nu_t=self.t_nu)
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` hot rectangles, ``y* = P(x*)`` in float64."""
