@@ -1,9 +1,9 @@
-"""E5: the incompressible-fluid marker pair (forward simulation, reverse-simulation local inverse) and problem.
+"""E5: the incompressible-fluid marker pair (forward simulation, reverse-simulation local inverse), problem.
 
 Paper: Holl, Koltun, Thuerey, "Physical Gradients for Deep Learning", section 3.4 and appendix B.4
-(``EXPERIMENTS.md``, E5). The state ``x`` is the initial velocity ``v0`` at the cell centres ``(B, 2, nx, ny)``
-(the network output), ``y`` the marker ``m_t`` after ``t = steps * dt`` ``(B, nx, ny)``. The initial marker
-``m0`` is a per-sample parameter of the operator.
+(``EXPERIMENTS.md``, E5). The state ``x`` is the initial velocity ``v0`` at the cell centres
+``(B, 2, nx, ny)`` (the network output), ``y`` the marker ``m_t`` after ``t = steps * dt`` ``(B, nx, ny)``.
+The initial marker ``m0`` is a per-sample parameter of the operator.
 
 Forward (:class:`FluidMarkerOperator`): ``v0`` is resampled to the MAC faces (average of the two adjacent
 cells), projected to be divergence-free (as the reference does before simulating a prediction), and then
@@ -36,18 +36,18 @@ Deviations from the reference code (``tum-pbs/SIP``, ``fluid/fluid_base.py``), a
   ``dt`` (so up to ``4x`` too far along ``u``, while its first entry at ``tau = t`` uses ``c + u t``); we use
   ``c + u tau`` throughout. ``reference_vortex_track=True`` reproduces the reference.
 * the reference's ground-truth simulation runs on a centred velocity without the initial projection; here the
-  ground truth ``y* = P(x*)`` uses the same operator as the predictions (staggered, projected), so ``x*`` is an
-  exact solution.
+  ground truth ``y* = P(x*)`` uses the same operator as the predictions (staggered, projected), so ``x*``
+  is an exact solution.
 * the fill fraction is drawn per sample (the reference draws one per batch) and exactly
   ``round(f * cells)`` cells inside the box are marked (the reference marks the top fraction of
-  ``noise * box`` over the whole domain and then masks with the box, which caps the fill at the positive part of
-  the noise inside the box).
+  ``noise * box`` over the whole domain and then masks with the box, which caps the fill at the positive part
+  of the noise inside the box).
 
 Objective (:func:`frequency_loss`, PhiFlow's ``frequency_loss(m - m*, n=1, frequency_falloff=80,
 ignore_mean=True)``): per sample ``sum_k sqrt(max(|F(D - mean D)(k) w(k)|^2, 1e-5))`` with the unnormalised
-2-D FFT ``F``, ``D = y - y*``, ``w(k) = exp(-1/2 |k|^2 falloff^2)`` and ``k`` the numpy ``fftfreq`` wavenumbers
-in cycles per cell (``|k| = 1/64`` for the lowest mode of E5). The reference's physical gradient does not take a
-Newton step of this loss: the local inverse is given the target ``y*`` itself, which is what
+2-D FFT ``F``, ``D = y - y*``, ``w(k) = exp(-1/2 |k|^2 falloff^2)`` and ``k`` the numpy ``fftfreq``
+wavenumbers in cycles per cell (``|k| = 1/64`` for the lowest mode of E5). The reference's physical gradient
+does not take a Newton step of this loss: the local inverse is given the target ``y*`` itself, which is what
 ``QuadraticLoss()`` (identity) with ``eta = 1`` yields in :func:`inverse.physgrad.physical_update`.
 """
 
@@ -114,15 +114,18 @@ def center_of_mass(marker: torch.Tensor, grid: Grid) -> torch.Tensor:
     points = grid.cell_centers(marker.dtype, marker.device)  # (nx, ny, 2)
     mass = marker.sum(dim=(1, 2))
     moment = torch.einsum("bij,ijd->bd", marker, points)
-    centre = torch.tensor([lo + 0.5 * s for (lo, _), s in zip(grid.bounds, grid.size)], dtype=marker.dtype,
-                          device=marker.device)
+    centre = torch.tensor(
+        [lo + 0.5 * s for (lo, _), s in zip(grid.bounds, grid.size)], dtype=marker.dtype, device=marker.device
+    )
     ok = mass > 0
     safe = torch.where(ok, mass, torch.ones_like(mass))
     return torch.where(ok[:, None], moment / safe[:, None], centre.expand_as(moment))
 
 
 def _domain_centre(grid: Grid, dtype, device) -> torch.Tensor:
-    return torch.tensor([lo + 0.5 * s for (lo, _), s in zip(grid.bounds, grid.size)], dtype=dtype, device=device)
+    return torch.tensor(
+        [lo + 0.5 * s for (lo, _), s in zip(grid.bounds, grid.size)], dtype=dtype, device=device
+    )
 
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -130,8 +133,9 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def vortex_velocity(grid: Grid, strength: torch.Tensor, sigma: float, centre: torch.Tensor | None = None
-                    ) -> torch.Tensor:
+def vortex_velocity(
+    grid: Grid, strength: torch.Tensor, sigma: float, centre: torch.Tensor | None = None
+) -> torch.Tensor:
     """Centred velocity of one Gaussian vortex per sample (the prior's vortex; PhiFlow's ``AngularVelocity``).
 
     ``v(r) = s exp(-|r - c|^2 / (2 sigma^2)) (-(r - c)_y, (r - c)_x)``, no periodic wrapping.
@@ -146,8 +150,16 @@ def vortex_velocity(grid: Grid, strength: torch.Tensor, sigma: float, centre: to
         ``(B, 2, nx, ny)``.
     """
     c = _domain_centre(grid, strength.dtype, strength.device) if centre is None else centre
-    v = gaussian_vortex(grid, c, strength, sigma, staggered=False, batch_size=strength.shape[0],
-                        dtype=strength.dtype, device=strength.device)
+    v = gaussian_vortex(
+        grid,
+        c,
+        strength,
+        sigma,
+        staggered=False,
+        batch_size=strength.shape[0],
+        dtype=strength.dtype,
+        device=strength.device,
+    )
     return v.values
 
 
@@ -172,13 +184,19 @@ def vortex_strength(velocity: torch.Tensor, grid: Grid, sigma: float) -> torch.T
     Returns:
         ``(B,)``.
     """
-    r = grid.cell_centers(velocity.dtype, velocity.device) - _domain_centre(grid, velocity.dtype, velocity.device)
+    r = grid.cell_centers(velocity.dtype, velocity.device) - _domain_centre(
+        grid, velocity.dtype, velocity.device
+    )
     ang = r[..., 0] * velocity[:, 1] - r[..., 1] * velocity[:, 0]
     return ang.mean(dim=(1, 2)) / _vortex_norm(grid, sigma, velocity.dtype, velocity.device)
 
 
-def frequency_weights(resolution: Sequence[int], falloff: float = E5_FREQUENCY_FALLOFF,
-                      dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
+def frequency_weights(
+    resolution: Sequence[int],
+    falloff: float = E5_FREQUENCY_FALLOFF,
+    dtype: torch.dtype | None = None,
+    device=None,
+) -> torch.Tensor:
     """``w(k) = exp(-1/2 |k|^2 falloff^2)`` with ``k`` in cycles per cell (numpy ``fftfreq``), FFT layout.
 
     ``QuadraticLoss(weights=frequency_weights(...)**2, transform=FourierTransform(2))`` is the squared
@@ -207,8 +225,15 @@ def frequency_weights(resolution: Sequence[int], falloff: float = E5_FREQUENCY_F
     return torch.exp(-0.5 * k2 * falloff**2).to(dtype)
 
 
-def frequency_loss(y: torch.Tensor, y_target: torch.Tensor, falloff: float = E5_FREQUENCY_FALLOFF, *,
-                   n: int = 1, threshold: float = 1e-5, ignore_mean: bool = True) -> torch.Tensor:
+def frequency_loss(
+    y: torch.Tensor,
+    y_target: torch.Tensor,
+    falloff: float = E5_FREQUENCY_FALLOFF,
+    *,
+    n: int = 1,
+    threshold: float = 1e-5,
+    ignore_mean: bool = True,
+) -> torch.Tensor:
     """Per-sample frequency-weighted marker mismatch of E5 (PhiFlow's ``frequency_loss``, ``n = 1``).
 
     ``L = sum_k a_k^n / n`` with ``a_k = sqrt(max(|F(D)(k) w(k)|^2, threshold))``, ``D = y - y*`` (minus its
@@ -264,8 +289,8 @@ class FluidMarkerOperator(PhysicsOperator):
     See the module docstring for the forward process, the local inverse and the deviations from the reference.
 
     Args:
-        marker0: Initial markers ``(B, nx, ny)`` (one per sample; the grid is :func:`phisim.scenarios.e5_grid`,
-            ``dx = 2``, periodic).
+        marker0: Initial markers ``(B, nx, ny)`` (one per sample; the grid is
+            :func:`phisim.scenarios.e5_grid`, ``dx = 2``, periodic).
         steps: Simulation steps (8 in E5).
         dt: Time step (0.25 in E5).
         sigma: Falloff length of the prior's vortex (default ``20 * size / 128``: 20 in E5).
@@ -281,9 +306,17 @@ class FluidMarkerOperator(PhysicsOperator):
         ParameterError: Non-positive ``steps``/``dt``/``sigma`` or a non-finite ``delta_scale``.
     """
 
-    def __init__(self, marker0: torch.Tensor, *, steps: int = E5_STEPS, dt: float = E5_DT,
-                 sigma: float | None = None, project_initial: bool = True, delta_scale: float | None = None,
-                 reference_vortex_track: bool = False):
+    def __init__(
+        self,
+        marker0: torch.Tensor,
+        *,
+        steps: int = E5_STEPS,
+        dt: float = E5_DT,
+        sigma: float | None = None,
+        project_initial: bool = True,
+        delta_scale: float | None = None,
+        reference_vortex_track: bool = False,
+    ):
         m = torch.as_tensor(marker0)
         if not m.is_floating_point():
             m = m.to(torch.get_default_dtype())
@@ -324,9 +357,15 @@ class FluidMarkerOperator(PhysicsOperator):
         """
         if not isinstance(index, slice):
             index = torch.as_tensor(index, dtype=torch.long)
-        return FluidMarkerOperator(self.marker0[index], steps=self.steps, dt=self.dt, sigma=self.sigma,
-                                   project_initial=self.project_initial, delta_scale=self.delta_scale,
-                                   reference_vortex_track=self.reference_vortex_track)
+        return FluidMarkerOperator(
+            self.marker0[index],
+            steps=self.steps,
+            dt=self.dt,
+            sigma=self.sigma,
+            project_initial=self.project_initial,
+            delta_scale=self.delta_scale,
+            reference_vortex_track=self.reference_vortex_track,
+        )
 
     def output_shape(self, x_shape: Sequence[int]) -> torch.Size:
         """``(B, nx, ny)`` for ``x`` of shape ``(B, 2, nx, ny)``.
@@ -342,9 +381,11 @@ class FluidMarkerOperator(PhysicsOperator):
     def _check_x(self, x: torch.Tensor, name: str) -> None:
         expected = (self.marker0.shape[0], 2) + tuple(self.marker0.shape[1:])
         if tuple(x.shape) != expected:
-            raise ShapeError(f"{name} must be the centred initial velocity of shape {expected} (the operator holds "
-                             f"{self.marker0.shape[0]} markers of {tuple(self.marker0.shape[1:])}), got "
-                             f"{tuple(x.shape)}")
+            raise ShapeError(
+                f"{name} must be the centred initial velocity of shape {expected} (the operator holds "
+                f"{self.marker0.shape[0]} markers of {tuple(self.marker0.shape[1:])}), got "
+                f"{tuple(x.shape)}"
+            )
 
     def initial_velocity(self, x: torch.Tensor) -> StaggeredGrid:
         """The staggered (and, with ``project_initial``, projected) velocity the simulation starts from.
@@ -382,8 +423,13 @@ class FluidMarkerOperator(PhysicsOperator):
 
     def _trajectory(self, x0: torch.Tensor) -> _Trajectory:
         c = self._cache
-        if c is not None and c.x.shape == x0.shape and c.x.dtype == x0.dtype and c.x.device == x0.device \
-                and torch.equal(c.x, x0):
+        if (
+            c is not None
+            and c.x.shape == x0.shape
+            and c.x.dtype == x0.dtype
+            and c.x.device == x0.device
+            and torch.equal(c.x, x0)
+        ):
             return c
         with torch.no_grad():
             traj = self._simulate(x0, record=True)
@@ -422,7 +468,7 @@ class FluidMarkerOperator(PhysicsOperator):
         return (c - center_of_mass(m0, self.grid)) / self.time
 
     def strength_update(self, y_target: torch.Tensor, x0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The prior fit: ``(s0, ds)`` with ``s0`` the vortex strength of ``x0`` and ``ds`` the reverse-pass update.
+        """The prior fit ``(s0, ds)``: ``s0`` the vortex strength of ``x0``, ``ds`` the reverse-pass update.
 
         Args:
             y_target: ``(B, nx, ny)`` target markers ``m_t``.
@@ -452,7 +498,9 @@ class FluidMarkerOperator(PhysicsOperator):
             ds = torch.stack(d, 0).mean(0) * self.delta_scale
         return s0, ds
 
-    def _local_inverse(self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None) -> torch.Tensor:
+    def _local_inverse(
+        self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
+    ) -> torch.Tensor:
         self._check_x(x0, "x0")
         s0, ds = self.strength_update(y_target, x0)
         return self.prior_velocity(s0 + ds, x0.dtype, x0.device)
@@ -493,7 +541,9 @@ class FluidProblem(Problem):
     def __post_init__(self):
         self.resolution = tuple(int(n) for n in self.resolution)
         if len(self.resolution) != 2 or any(n < 16 or n % 16 for n in self.resolution):
-            raise ParameterError(f"resolution must be two multiples of 16 (the 5-level U-net), got {self.resolution}")
+            raise ParameterError(
+                f"resolution must be two multiples of 16 (the 5-level U-net), got {self.resolution}"
+            )
         lo, hi = self.fill_range
         if not (0 < lo <= hi <= 1):
             raise ParameterError(f"fill_range must satisfy 0 < lo <= hi <= 1, got {self.fill_range}")
@@ -526,14 +576,21 @@ class FluidProblem(Problem):
         Returns:
             The operator.
         """
-        return FluidMarkerOperator(marker0, steps=self.steps, dt=self.dt, sigma=self.sigma,
-                                   reference_vortex_track=self.reference_vortex_track)
+        return FluidMarkerOperator(
+            marker0,
+            steps=self.steps,
+            dt=self.dt,
+            sigma=self.sigma,
+            reference_vortex_track=self.reference_vortex_track,
+        )
 
     def make_network(self) -> nn.Module:
         """U-net, 5 levels, 16 filters, 2 -> 2 channels, circular padding (49,570 parameters)."""
         return UNet(2, 2, levels=5, filters=16, padding_mode="circular")
 
-    def sample_markers(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    def sample_markers(
+        self, batch_size: int, generator: torch.Generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Initial markers and their fill fractions (float64, CPU).
 
         Args:
@@ -557,7 +614,9 @@ class FluidProblem(Problem):
         score = torch.where(inside, noise, torch.full_like(noise, -math.inf)).flatten(1)
         ordered = torch.sort(score, dim=1, descending=True).values
         thr = ordered.gather(1, (k - 1)[:, None])
-        marker = ((score >= thr) & torch.isfinite(score)).to(torch.float64).reshape(batch_size, *grid.resolution)
+        marker = (
+            ((score >= thr) & torch.isfinite(score)).to(torch.float64).reshape(batch_size, *grid.resolution)
+        )
         return marker, marker.flatten(1).mean(1)
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
