@@ -84,52 +84,65 @@ def make_optimizer(method: Method, model: nn.Module, problem: Problem) -> torch.
     raise ParameterError(f"unknown optimizer {method.optimizer!r} (adam, sgd, hig, gauss_newton)")
 
 
-def _reduce(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
-    return per_sample.sum() if reduction == "sum" else per_sample.mean()
-
-
 def _operator(method: Method, batch: Batch):
     solver: LocalSolver | None = method.local_solver
     return batch.operator if solver is None else SolverOperator(batch.operator, solver)
 
 
-def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch) -> tuple[float, float, float]:
-    """One update. Returns (mean y-space loss, mean metric, objective value)."""
+def _slice_batch(batch: Batch, index: slice) -> Batch:
+    """The samples ``index`` of a batch (the operator restricted with :meth:`PhysicsOperator.select`)."""
+
+    def cut(t):
+        return None if t is None else t[index]
+
+    return Batch(batch.inputs[index], batch.y_target[index], cut(batch.x_true), batch.operator.select(index),
+                 cut(batch.labels), tuple(a[index] for a in batch.physics_args))
+
+
+def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch, weight: float
+          ) -> tuple[torch.Tensor, float]:
+    """One update on ``batch`` (this process's share).
+
+    The backpropagated objective is ``weight * Σ_samples objective_i``: ``weight`` is 1 (batch sum) or
+    ``1/B`` (batch mean) for a single process, times the number of processes under data parallelism
+    (whose gradient averaging then yields the full batch's gradient).
+
+    Returns:
+        ``(sums, objective)``: per-process sums of the y-space loss and the metric (a tensor of 2), and the
+        objective value.
+    """
     if method.kind == "hig":
         info = opt.step(batch.inputs, batch.y_target, loss_fn=problem.loss, physics_args=batch.physics_args)
         with torch.no_grad():
             x = problem.predict(model, batch)
-            y = batch.operator(x)
-            loss = problem.loss(y, batch.y_target).mean()
-            metric = problem.metric(x, batch).mean()
-        return float(loss), float(metric), float(info.loss)
+            loss = problem.loss(batch.operator(x), batch.y_target).sum()
+            metric = problem.metric(x, batch).sum()
+        return torch.stack([loss.double(), metric.double()]), float(info.loss)
     opt.zero_grad(set_to_none=True)
     x = problem.predict(model, batch)
     clip = method.grad_clip
-    if clip is not None and method.kind != "physgrad":
-        scale = x.shape[0] if problem.reduction == "mean" else 1
-        x.register_hook(lambda g: (g * scale).clamp(-clip, clip) / scale)
+    if clip is not None and method.kind != "physgrad":  # clamp the per-sample gradient w.r.t. x
+        x.register_hook(lambda g: (g / weight).clamp(-clip, clip) * weight)
     if method.kind == "physics":
-        y = batch.operator(x)
-        per_sample = problem.loss(y, batch.y_target)
-        objective = _reduce(per_sample, problem.reduction)
-        loss_value = per_sample.detach().mean()
+        per_sample = problem.loss(batch.operator(x), batch.y_target)
+        objective = weight * per_sample.sum()
+        loss_sum = per_sample.detach().sum()
     elif method.kind == "physgrad":
         x_tilde, y = physical_update(x, batch.y_target, _operator(method, batch), eta=method.eta,
                                      loss=problem.newton_loss)
         if clip is not None:
             x_tilde = x.detach() + (x_tilde - x.detach()).clamp(-clip, clip)
         per = 0.5 * ((x - x_tilde) ** 2).reshape(x.shape[0], -1).sum(dim=1)
-        objective = _reduce(per, problem.reduction)
+        objective = weight * per.sum()
         with torch.no_grad():
-            loss_value = problem.loss(y, batch.y_target).mean()
+            loss_sum = problem.loss(y, batch.y_target).sum()
     elif method.kind == "supervised":
         if batch.labels is None:
             raise ParameterError(f"problem {problem.name} provides no labels for supervised training")
         per = 0.5 * ((x - batch.labels) ** 2).reshape(x.shape[0], -1).sum(dim=1)
-        objective = _reduce(per, problem.reduction)
+        objective = weight * per.sum()
         with torch.no_grad():
-            loss_value = problem.loss(batch.operator(x.detach()), batch.y_target).mean()
+            loss_sum = problem.loss(batch.operator(x.detach()), batch.y_target).sum()
     else:
         raise ParameterError(f"unknown method kind {method.kind!r}")
     if not torch.isfinite(objective):
@@ -137,8 +150,8 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch)
     objective.backward()
     opt.step()
     with torch.no_grad():
-        metric = problem.metric(x.detach(), batch).mean()
-    return float(loss_value), float(metric), float(objective.detach())
+        metric_sum = problem.metric(x.detach(), batch).sum()
+    return torch.stack([loss_sum.double(), metric_sum.double()]), float(objective.detach())
 
 
 def _save_checkpoint(path: Path, state: dict) -> None:
@@ -176,6 +189,7 @@ def train(
     resume: bool = False,
     progress: bool = False,
     callback: Callable[[int, dict], None] | None = None,
+    distributed: bool | None = None,
 ) -> TrainResult:
     """Train the problem's network with one method.
 
@@ -191,6 +205,12 @@ def train(
         resume: Continue from the checkpoint next to ``out`` when there is one.
         progress: Show a tqdm progress bar.
         callback: Called as ``callback(iteration, record)`` after every iteration.
+        distributed: Data-parallel training over the processes of an initialised ``torch.distributed``
+            group (e.g. started by ``torchrun``): every process draws the same batch and trains on its
+            share (samples ``rank::world_size``) of a ``DistributedDataParallel`` model, so N processes
+            follow the single-process trajectory up to round-off; process 0 writes the log and the
+            checkpoints. ``None``: on when a process group is initialised. Not for HIG, and networks with
+            BatchNorm see per-process batch statistics.
 
     Returns:
         The :class:`TrainResult`.
@@ -215,9 +235,21 @@ def train(
         raise ParameterError(f"batch_size must be >= 1, got {batch_size}")
     device = torch.device(device)
 
+    import torch.distributed as dist
+
+    if distributed is None:
+        distributed = dist.is_available() and dist.is_initialized()
+    rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
+    if distributed and method.kind == "hig":
+        raise ParameterError("HIG builds the Jacobian of the whole batch; run it in a single process")
+    if world > batch_size:
+        raise ParameterError(f"batch_size {batch_size} is smaller than the number of processes {world}")
+
     torch.manual_seed(seed)
-    model = problem.make_network().to(device=device, dtype=problem.dtype)
+    net = problem.make_network().to(device=device, dtype=problem.dtype)
+    model = nn.parallel.DistributedDataParallel(net) if distributed else net
     opt = make_optimizer(method, model, problem)
+    weight = world * (1.0 / batch_size if problem.reduction == "mean" else 1.0)
     start = 0
     out_path = Path(out) if out is not None else None
     ckpt_path = out_path.with_name(f"{out_path.name}.{method.name}.ckpt") if out_path is not None else None
@@ -231,15 +263,18 @@ def train(
                 f"checkpoint {ckpt_path} belongs to problem={state.get('problem')} method={state.get('method')} "
                 f"seed={state.get('seed')}, not {problem.name}/{method.name}/seed {seed}"
             )
-        model.load_state_dict(state["model"])
+        net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["iteration"])
-        _truncate_log(out_path, method.name, start)
-    elif out_path is not None and out_path.exists():
+        if rank == 0:
+            _truncate_log(out_path, method.name, start)
+    elif out_path is not None and out_path.exists() and rank == 0:
         _truncate_log(out_path, method.name, 0)  # a fresh run replaces an old curve of the same method
 
+    if distributed:
+        dist.barrier()  # process 0 may have truncated the log
     log = None
-    if out_path is not None:
+    if out_path is not None and rank == 0:
         log = TrainingLog(out_path, method.name, attrs={
             "problem": problem.name, "kind": method.kind, "optimizer": method.optimizer, "lr": method.lr,
             "eta": method.eta, "batch_size": batch_size, "seed": seed,
@@ -247,7 +282,7 @@ def train(
         })
     curves: dict[str, list] = {k: [] for k in ("iteration", "loss", "metric", "objective", "time")}
     bar = None
-    if progress:
+    if progress and rank == 0:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=iterations, initial=start, desc=f"{problem.name}/{method.name}")
@@ -256,7 +291,15 @@ def train(
     try:
         for it in range(start, iterations):
             batch = problem.sample(batch_size, batch_generator(seed, it), device=device)
-            loss, metric, objective = _step(problem, method, model, opt, batch)
+            if distributed:
+                batch = _slice_batch(batch, slice(rank, None, world))
+            sums, objective = _step(problem, method, model, opt, batch, weight)
+            if distributed:
+                dist.all_reduce(sums)
+                t = torch.tensor([objective], dtype=torch.float64)
+                dist.all_reduce(t)
+                objective = float(t) / world
+            loss, metric = (float(v) / batch_size for v in sums)
             record = {"loss": loss, "metric": metric, "objective": objective, "time": time.perf_counter() - t0}
             for k, v in record.items():
                 curves[k].append(v)
@@ -268,8 +311,8 @@ def train(
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}")
-            if checkpoint_every and (it + 1) % checkpoint_every == 0:
-                _save_checkpoint(ckpt_path, {"iteration": it + 1, "model": model.state_dict(),
+            if checkpoint_every and (it + 1) % checkpoint_every == 0 and rank == 0:
+                _save_checkpoint(ckpt_path, {"iteration": it + 1, "model": net.state_dict(),
                                              "optimizer": opt.state_dict(), "problem": problem.name,
                                              "method": method.name, "seed": seed})
     finally:
@@ -278,10 +321,12 @@ def train(
         if log is not None:
             log.close()
     seconds = time.perf_counter() - t0
+    if distributed:
+        dist.barrier()
     if out_path is not None:
         arrays = _read_log(out_path, method.name)
     else:
         arrays = {k: np.asarray(v, dtype=np.int64 if k == "iteration" else np.float64) for k, v in curves.items()}
     if not math.isfinite(seconds):
         seconds = float("nan")
-    return TrainResult(method.name, model, arrays, iterations, seconds)
+    return TrainResult(method.name, net, arrays, iterations, seconds)
