@@ -69,13 +69,14 @@ def test_heat_optimisation_tiny(reproduce, tmp_path):
     reproduce.main(["--experiment", "e4-opt", "--iterations", "20", "--resolution", "16", "--samples", "2",
                     "--out", str(tmp_path)])
     curves = read_training(tmp_path / "e4-opt.h5")
-    assert set(curves) == {"opt_gd", "opt_inverse", "opt_lbfgsb"}
+    assert set(curves) == {"opt_gd", "opt_inverse", "opt_inverse_floor", "opt_lbfgsb"}
     assert len(curves["opt_gd"]["metric"]) == 21
     assert len(curves["opt_inverse"]["metric"]) == 3
+    assert len(curves["opt_inverse_floor"]["metric"]) == 3
     for name, c in curves.items():
         assert np.all(np.isfinite(c["metric"])), name
         # every method starts from x = 0 and improves on it
         assert c["metric"][-1] < c["metric"][0], name
     assert (tmp_path / "e4-opt_curves.png").stat().st_size > 5_000
     summary = json.loads((tmp_path / "e4-opt_summary.json").read_text())
-    assert set(summary["methods"]) == {"opt_gd", "opt_inverse", "opt_lbfgsb"}
+    assert set(summary["methods"]) == {"opt_gd", "opt_inverse", "opt_inverse_floor", "opt_lbfgsb"}
