@@ -182,3 +182,20 @@ def smoke_initial(resolution: tuple[int, ...], batch: int = 1, seed: int = SEED 
     inflow = np.broadcast_to(inflow, (batch, *resolution)).copy()
     vel = staggered_velocity(resolution, batch, seed + 1, amplitude=0.1, closed=True, dtype=dtype)
     return {"smoke": smoke.astype(dtype), "inflow": inflow.astype(dtype) * 0.2, "velocity": vel}
+
+
+def smoke_stats(smoke: np.ndarray, velocity_last_axis: np.ndarray) -> dict:
+    """Summary of a smoke state used to check that both codes simulate the same thing.
+
+    Args:
+        smoke: smoke density of one sample, ``(*resolution)``.
+        velocity_last_axis: the "up" velocity component at cell centres, ``(*resolution)``.
+
+    Returns:
+        dict with the total smoke, its maximum, the height of its centroid (cells) and the largest
+        upward velocity.
+    """
+    up = np.arange(smoke.shape[-1]) + 0.5
+    profile = smoke.reshape(-1, smoke.shape[-1]).sum(0)
+    return {"smoke_sum": float(smoke.sum()), "smoke_max": float(smoke.max()),
+            "centroid_up": float((profile * up).sum() / profile.sum()), "v_up_max": float(velocity_last_axis.max())}

@@ -40,12 +40,13 @@ CASES: dict[str, tuple[list[str], list[str], bool]] = {
     "smoke_step": (["64^2", "128^2", "256^2", "32^3"], ["float32"], True),
     "smoke_step_jit": (["64^2", "128^2", "256^2", "32^3"], ["float32"], True),
     "smoke_backward8": (["64^2", "64^2x16"], ["float32"], True),
+    "smoke_check": (["64^2"], ["float64"], True),
 }
 SUITES = {
     "operators": ["laplace_dirichlet", "laplace_periodic", "advect_semi_lagrangian", "advect_maccormack"],
     "poisson": ["poisson_cg"],
     "heat": ["heat_fourier"],
-    "fluid": ["smoke_step", "smoke_step_jit", "smoke_backward8"],
+    "fluid": ["smoke_step", "smoke_step_jit", "smoke_backward8", "smoke_check"],
 }
 
 
@@ -197,7 +198,16 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
             velocity, pressure = fluid.make_incompressible(velocity, (), solve)
             return smoke, velocity, pressure
 
-        if case == "smoke_step":
+        if case == "smoke_check":  # 20 steps, then statistics to compare with phisim's
+            st = (smoke0, v0, p0)
+            t0 = time.perf_counter()
+            for _ in range(20):
+                st = step(*st)
+            sm = st[0].values.numpy(order)[0]
+            vy = st[1].at_centers().values.vector[names[-1]].numpy(order)[0]
+            result = {"median_s": time.perf_counter() - t0, "repeats": 1, "stats": inputs.smoke_stats(sm, vy)}
+            state = st
+        elif case == "smoke_step":
             timing, state = time_steps(lambda st: step(*st), (smoke0, v0, p0), repeats=reps, warmup=2)
             result = timing
             with math.SolveTape() as tape:

@@ -58,6 +58,7 @@ PAIRS = {
         ("smoke_step_cg", "smoke_step", peer_phiflow.CASES["smoke_step"][0], ["float32"]),
         ("smoke_step_cg", "smoke_step_jit", peer_phiflow.CASES["smoke_step_jit"][0], ["float32"]),
         ("smoke_backward8", "smoke_backward8", peer_phiflow.CASES["smoke_backward8"][0], ["float32"]),
+        ("smoke_check", "smoke_check", ["64^2"], ["float64"]),
     ],
     "fft": [],
 }
@@ -400,18 +401,32 @@ def _ratio(peer: dict | None, ours: dict | None) -> float | None:
     return peer["median_s"] / ours["median_s"]
 
 
+def _short_error(e: str) -> str:
+    """A table-sized version of an error message."""
+    e = e.replace("['", "").replace("']", "").replace("|", "/")
+    if "precision_floor" in e:
+        tail = e.split("residual", 1)[-1].split(". ", 1)[0]
+        return "SolveError: float32 precision floor, residual" + tail
+    if "did not converge" in e and "Max residual" in e:
+        return "NotConverged within 20000 iterations, max residual " + e.rsplit("Max residual:", 1)[-1].strip()
+    return e[:120]
+
+
 def _notes(ours: dict | None, peer: dict | None) -> str:
     n = []
     if peer:
         if peer.get("patched"):
             n.append("PhiFlow patched (int64 index)")
         if "error" in peer and peer["error"] != "not installed":
-            n.append(f"PhiFlow: {peer['error'][:140]}" + (
+            n.append(f"PhiFlow: {_short_error(peer['error'])}" + (
                 f" after {peer['time_to_error_s']:.3g} s" if "time_to_error_s" in peer else ""))
         if "true_rel_residual" in peer:
             n.append(f"PhiFlow true rel. residual {peer['true_rel_residual']:.2g}")
+    if ours and peer and "stats" in ours and "stats" in peer:
+        n.append("after 20 steps (phisim / PhiFlow): " + ", ".join(
+            f"{k} {ours['stats'][k]:.4g} / {peer['stats'][k]:.4g}" for k in ours["stats"]))
     if ours and "error" in ours and not ours["error"].startswith("n/a"):
-        n.append(f"phisim: {ours['error'][:140]}")
+        n.append(f"phisim: {_short_error(ours['error'])}")
     if ours and ours.get("error", "").startswith("n/a"):
         n.append(ours["error"][4:][:100])
     return "; ".join(n)
@@ -442,7 +457,9 @@ def _suite_table(suite: str, base: str) -> list[str]:
     out = lines + [""]
     for m in meta:
         side = "phisim" if m is (ph or {}).get("meta") else "PhiFlow"
-        out.append(f"- {side} side: `{m['command']}` ({m['date']}, {m['machine']}, {m['threads']} threads, torch {m['torch']})")
+        cmd = ", ".join(f"`{c}`" for c in m.get("commands", [m["command"]]))
+        runs = f"lowest median of {m['runs']} runs, latest " if m.get("runs", 1) > 1 else ""
+        out.append(f"- {side} side: {cmd} ({runs}{m['date']}, {m['machine']}, {m['threads']} thread(s), torch {m['torch']})")
     return out if cmds else lines
 
 
@@ -454,15 +471,20 @@ def _floor_table(name: str, base: str, key: str) -> list[str]:
     for r in data["results"]:
         lines.append(f"| {r.get(key)} | {r['size']} | {r['dtype']} | {r.get('threads', '')} | {_ms(r)} |")
     m = data["meta"]
-    lines += ["", f"- made by `{m['command']}` ({m['date']}, {m['machine']})"]
+    cmd = ", ".join(f"`{c}`" for c in m.get("commands", [m["command"]]))
+    runs = f"lowest median of {m['runs']} runs, latest " if m.get("runs", 1) > 1 else ""
+    lines += ["", f"- made by {cmd} ({runs}{m['date']}, {m['machine']})"]
     return lines
 
 
-def _fastest(data: dict | None, size: str, dtype: str, key: str, exclude: str = "phisim") -> dict | None:
+def _fastest(data: dict | None, size: str, dtype: str, key: str, exclude: str = "phisim",
+             max_threads: int | None = None) -> dict | None:
+    """The fastest floor/engine row for a size and dtype (optionally using at most ``max_threads``)."""
     if not data:
         return None
     c = [r for r in data["results"] if r["size"] == size and r["dtype"] == dtype and "median_s" in r
-         and "error" not in r and not str(r.get(key, "")).startswith(exclude)]
+         and "error" not in r and not str(r.get(key, "")).startswith(exclude)
+         and (max_threads is None or r.get("threads", 1) <= max_threads)]
     return min(c, key=lambda r: r["median_s"]) if c else None
 
 
@@ -489,6 +511,8 @@ def _fft_decision(base: str) -> list[str]:
 def _goals(base: str) -> list[str]:
     """Evaluate the project's speed goals against the saved results."""
     L = ["| goal | measured | met? |", "|---|---|---|"]
+    threads = max([(_load(os.path.join(base, f"phisim_{s}.json")) or {}).get("meta", {}).get("threads", 1)
+                   for s in SUITES])
 
     def get(side, suite, case, size, dtype="float32"):
         return _index(_load(os.path.join(base, f"{side}_{suite}.json"))).get((case, size, dtype))
@@ -502,14 +526,14 @@ def _goals(base: str) -> list[str]:
     floors = _load(os.path.join(base, "floors_poisson.json"))
     for s in peer_phiflow.CASES["poisson_cg"][0]:
         ours = get("phisim", "poisson", "poisson_direct", s, "float64")
-        f = _fastest(floors, s, "float64", "floor", exclude="scipy spsolve")
+        f = _fastest(floors, s, "float64", "floor", exclude="scipy spsolve", max_threads=threads)
         r = None if not ours or "median_s" not in ours or "error" in ours or not f else ours["median_s"] / f["median_s"]
         row(f"direct Poisson within 2x of the raw transform at {s} (float64)",
             "n/a" if r is None else f"{r:.2f}x of {f['floor']}", None if r is None else r <= 2)
     heat = _load(os.path.join(base, "floors_heat.json"))
     for s in peer_phiflow.CASES["heat_fourier"][0]:
         ours = get("phisim", "heat", "heat_fourier", s)
-        f = _fastest(heat, s, "float32", "engine")
+        f = _fastest(heat, s, "float32", "engine", max_threads=threads)
         r = None if not ours or "median_s" not in ours or "error" in ours or not f else ours["median_s"] / f["median_s"]
         row(f"heat within 1.5x of the fastest raw FFT round trip at {s}",
             "n/a" if r is None else f"{r:.2f}x of {f['engine']} ({f['threads']} thr)", None if r is None else r <= 1.5)
@@ -521,6 +545,7 @@ def _goals(base: str) -> list[str]:
         r = _ratio(get("phiflow", "fluid", "smoke_backward8", size), get("phisim", "fluid", "smoke_backward8", size))
         row(f"8-step forward+backward >= 10x faster than PhiFlow at {size}", "n/a" if r is None else f"{r:.2f}x",
             None if r is None else r >= 10)
+    L += ["", f"Floors in these goals use at most {threads} thread(s), like the phisim side."]
     return L
 
 
