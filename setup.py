@@ -19,8 +19,9 @@ setup(
         "tqdm>=4.60",
     ],
     extras_require={
-        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4"],
-        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "pytest-timeout>=2"],
+        # the-well: its loader reads our HDF5 files in a test (small pure-Python dependencies)
+        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well"],
+        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "pytest-timeout>=2"],
         "well": ["the-well"],
     },
     entry_points={"console_scripts": ["phisim=inverse.cli:main"]},
