@@ -38,10 +38,8 @@ reads with every completed frame (a partly written frame beyond ``len(time)`` is
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +49,7 @@ import h5py
 import numpy as np
 import torch
 
+from ._h5util import PathLike, open_for_read, to_json
 from .boundary import (
     Boundary,
     BoundaryCondition,
@@ -64,6 +63,7 @@ from .boundary import (
 from .errors import FileFormatError, ParameterError, ShapeError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import AXIS_NAMES, Grid
+from .traininglog import TrainingLog, _read_training_group, read_training
 
 __all__ = [
     "SimulationWriter",
@@ -79,7 +79,6 @@ FIELD_KINDS = ("scalar", "vector", "staggered")
 FORMAT_NAME = "phisim-well/1"
 _COMPRESSION = "gzip"
 
-PathLike = str | os.PathLike
 
 
 # ---- helpers ------------------------------------------------------------------------------------------
@@ -102,34 +101,6 @@ def _attr_str_list(value) -> list[str]:
     if isinstance(value, (str, bytes)):
         return [_attr_str(value)]
     return [_attr_str(v) for v in np.atleast_1d(np.asarray(value, dtype=object))]
-
-
-def _json_default(obj):
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, torch.Tensor):
-        return obj.detach().cpu().tolist()
-    if isinstance(obj, torch.dtype):
-        return str(obj)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.asdict(obj)
-    if isinstance(obj, (set, frozenset)):
-        return sorted(obj)
-    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
-
-
-def _to_json(obj, what: str) -> str:
-    try:
-        return json.dumps(obj, default=_json_default, sort_keys=True)
-    except (TypeError, ValueError) as exc:
-        raise ParameterError(
-            f"{what} must be JSON-serialisable (numbers, strings, lists, dicts, numpy/torch arrays, "
-            f"dataclasses): {exc}"
-        ) from exc
 
 
 def _np_dtype(dtype) -> np.dtype:
@@ -185,7 +156,7 @@ def well_bc_type(condition: BoundaryCondition) -> str:
     raise ParameterError(f"no Well boundary type is known for condition {condition!r}")
 
 
-def _condition_to_json(c: BoundaryCondition) -> dict:
+def _conditionto_json(c: BoundaryCondition) -> dict:
     if isinstance(c, Periodic):
         return {"type": "periodic"}
     if isinstance(c, Open):
@@ -196,13 +167,13 @@ def _condition_to_json(c: BoundaryCondition) -> dict:
         v = None if c.velocity is None else [float(x) for x in c.velocity]
         return {"type": "no_slip", "velocity": v}
     if isinstance(c, Dirichlet):
-        return {"type": "dirichlet", "value": _value_to_json(c.value)}
+        return {"type": "dirichlet", "value": _valueto_json(c.value)}
     if isinstance(c, Neumann):
-        return {"type": "neumann", "flux": _value_to_json(c.flux)}
+        return {"type": "neumann", "flux": _valueto_json(c.flux)}
     raise ParameterError(f"cannot store boundary condition {c!r}")
 
 
-def _value_to_json(v):
+def _valueto_json(v):
     if isinstance(v, torch.Tensor):
         return {"tensor": v.detach().cpu().tolist()}
     if isinstance(v, np.ndarray):
@@ -338,7 +309,7 @@ class SimulationWriter:
                 )
             params[name] = value
         self.parameters = params
-        config_json = _to_json(config, "config")
+        config_json = to_json(config, "config")
         self._level = int(compression_level)
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -414,7 +385,7 @@ class SimulationWriter:
         ex.attrs["phisim_format"] = FORMAT_NAME
         ex.attrs["bounds"] = json.dumps([list(b) for b in g.bounds])
         ex.attrs["boundary"] = json.dumps(
-            [[_condition_to_json(c) for c in side] for side in self.boundary.sides]
+            [[_conditionto_json(c) for c in side] for side in self.boundary.sides]
         )
         ex.attrs["field_kinds"] = json.dumps(self.kinds)
         ex.create_dataset("config", data=config_json, dtype=h5py.string_dtype())
@@ -635,26 +606,6 @@ class SimulationData:
         return CenteredGrid(torch.as_tensor(self.fields[name][:, index]), self.grid, self.boundary)
 
 
-def _open_for_read(path: PathLike) -> h5py.File:
-    p = Path(path)
-    if not p.exists():
-        raise FileFormatError(f"{p} does not exist")
-    if p.is_dir():
-        raise FileFormatError(f"{p} is a directory, not an HDF5 file")
-    try:
-        return h5py.File(p, "r")
-    except OSError as exc:
-        if "lock" in str(exc).lower():
-            raise FileFormatError(
-                f"{p} is open for writing in another process (HDF5 file lock): wait for the writer to close "
-                "it, or set HDF5_USE_FILE_LOCKING=FALSE to read the frames flushed so far"
-            ) from exc
-        size = p.stat().st_size
-        raise FileFormatError(
-            f"{p} ({size} bytes) is not a readable HDF5 file (corrupt, truncated or another format): {exc}"
-        ) from exc
-
-
 def _need(group, key: str, path: Path, kind=None):
     try:
         obj = group[key]
@@ -719,7 +670,7 @@ def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> S
             attribute, or holds datasets whose shapes do not fit its grid.
     """
     p = Path(path)
-    with _open_for_read(p) as f:
+    with open_for_read(p) as f:
         try:
             return _read(f, p, as_torch, device)
         except FileFormatError:
@@ -835,172 +786,3 @@ def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -
         return Boundary(tuple((lo, hi) for lo, hi in sides))
     except Exception as exc:  # inconsistent periodic sides
         raise FileFormatError(f"{p}: inconsistent boundary_conditions: {exc}") from exc
-
-
-# ---- training logs ------------------------------------------------------------------------------------
-
-
-class TrainingLog:
-    """Append learning curves to ``/training/<method>`` of an HDF5 file, one record at a time.
-
-    Each curve is a resizable 1-D float64 dataset next to an int64 ``iteration`` dataset of the same
-    length. A record may leave out curves (they get NaN) and may introduce new ones (earlier entries are
-    NaN), so e.g. a validation metric can be logged every 10th iteration. The file is flushed after every
-    record, and re-opening an existing log continues it.
-
-    Args:
-        target: A file path (opened in append mode and closed by :meth:`close`) or an open ``h5py.Group``
-            / ``h5py.File`` (left open; see :meth:`SimulationWriter.training_log`).
-        method: The method name, e.g. ``'adam'``, ``'physgrad'``, ``'hig'``.
-        attrs: Optional settings stored as attributes of the method group (numbers or strings;
-            anything else is stored as JSON).
-
-    Raises:
-        ParameterError: For an invalid method name.
-        FileFormatError: If the file cannot be opened or holds a malformed log.
-
-    Example:
-        >>> with TrainingLog("results.h5", "adam", attrs={"lr": 1e-3}) as log:
-        ...     for it in range(100):
-        ...         log.append(it, loss=loss_value, metric=metric_value)  # doctest: +SKIP
-    """
-
-    def __init__(self, target: PathLike | h5py.Group, method: str, *, attrs: Mapping[str, Any] | None = None):
-        if not isinstance(method, str) or not method or "/" in method:
-            raise ParameterError(f"method must be a non-empty name without '/', got {method!r}")
-        self.method = method
-        if isinstance(target, h5py.Group):
-            self._file = None
-            root = target
-        else:
-            path = Path(target)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                self._file = h5py.File(path, "a")
-            except OSError as exc:
-                raise FileFormatError(f"cannot open {path} for appending a training log: {exc}") from exc
-            root = self._file
-        try:
-            self.group = root.require_group("training").require_group(method)
-        except (TypeError, ValueError) as exc:
-            self.close()
-            raise FileFormatError(
-                f"{root.file.filename}: /training/{method} exists and is not a group"
-            ) from exc
-        for k, v in (attrs or {}).items():
-            self.group.attrs[k] = v if isinstance(v, (int, float, str, bool, np.generic)) else _to_json(v, k)
-        if "iteration" not in self.group:
-            self.group.create_dataset("iteration", shape=(0,), maxshape=(None,), dtype=np.int64,
-                                      chunks=(1024,))
-        self._n = int(self.group["iteration"].shape[0])
-        for name, ds in self.group.items():
-            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1 or ds.shape[0] != self._n:
-                self.close()
-                raise FileFormatError(
-                    f"{self.group.name}/{name} is not a 1-D curve of the log's length {self._n}"
-                )
-
-    @property
-    def n_records(self) -> int:
-        """Number of records appended so far (including those of an earlier session)."""
-        return self._n
-
-    def append(self, iteration: int, **values: float) -> None:
-        """Append one record and flush.
-
-        Args:
-            iteration: The iteration (or step/epoch) number.
-            **values: Curve name -> number (python float, numpy scalar or 1-element tensor).
-
-        Raises:
-            ParameterError: For no values, non-numeric values or a closed log.
-        """
-        if not self.group.id.valid:
-            raise ParameterError(f"TrainingLog {self.method!r} is closed")
-        if not values:
-            raise ParameterError("append needs at least one value, e.g. log.append(it, loss=0.5)")
-        nums = {}
-        for name, v in values.items():
-            if name == "iteration" or "/" in name:
-                raise ParameterError(f"invalid curve name {name!r}")
-            if isinstance(v, torch.Tensor):
-                if v.numel() != 1:
-                    raise ParameterError(
-                        f"curve {name!r}: expected one number, got a tensor of shape {tuple(v.shape)}"
-                    )
-                v = v.item()
-            try:
-                nums[name] = float(v)
-            except (TypeError, ValueError) as exc:
-                raise ParameterError(f"curve {name!r}: {v!r} is not a number") from exc
-        n = self._n
-        for name in nums:
-            if name not in self.group:
-                ds = self.group.create_dataset(name, shape=(n,), maxshape=(None,), dtype=np.float64,
-                                               chunks=(1024,))
-                if n:
-                    ds[:] = np.nan
-        for name, ds in self.group.items():
-            ds.resize((n + 1,))
-            if name == "iteration":
-                ds[n] = int(iteration)
-            else:
-                ds[n] = nums.get(name, np.nan)
-        self.group.file.flush()
-        self._n = n + 1
-
-    def curves(self) -> dict[str, np.ndarray]:
-        """All curves of this method (``iteration`` included) as numpy arrays."""
-        return {name: ds[()] for name, ds in self.group.items()}
-
-    def close(self) -> None:
-        """Flush; close the file if this log opened it."""
-        if self._file is not None and self._file.id.valid:
-            self._file.flush()
-            self._file.close()
-
-    def __enter__(self) -> TrainingLog:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def _read_training_group(grp: h5py.Group, p: Path) -> dict[str, dict[str, np.ndarray]]:
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for method, g in grp.items():
-        if not isinstance(g, h5py.Group) or "iteration" not in g:
-            raise FileFormatError(f"{p}: {g.name} is not a training log (no 'iteration' dataset)")
-        n = g["iteration"].shape[0]
-        curves = {}
-        for name, ds in g.items():
-            if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
-                raise FileFormatError(f"{p}: {ds.name} is not a 1-D curve")
-            curves[name] = ds[:n]
-        out[method] = curves
-    return out
-
-
-def read_training(path: PathLike) -> dict[str, dict[str, np.ndarray]]:
-    """Read every training log of a file.
-
-    Args:
-        path: The HDF5 file.
-
-    Returns:
-        Method -> curve name -> 1-D array (``iteration`` included); empty if the file has no ``/training``.
-
-    Raises:
-        FileFormatError: If the file is missing, not HDF5, or its ``/training`` group is malformed.
-    """
-    p = Path(path)
-    with _open_for_read(p) as f:
-        grp = f.get("training")
-        if grp is None:
-            return {}
-        if not isinstance(grp, h5py.Group):
-            raise FileFormatError(f"{p}: /training is not a group")
-        try:
-            return _read_training_group(grp, p)
-        except (OSError, RuntimeError) as exc:
-            raise FileFormatError(f"{p}: damaged /training group: {exc}") from exc
