@@ -8,7 +8,7 @@ import torch
 
 from .errors import NonFiniteError, ParameterError
 
-__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite"]
+__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite"]
 
 
 def check_dt(dt, name: str = "dt") -> float:
@@ -62,14 +62,28 @@ def check_positive(value, name: str) -> float:
     return v
 
 
+def all_finite(x: torch.Tensor) -> bool:
+    """Whether every entry of ``x`` is finite.
+
+    Fast path: one sum reduction (a NaN or Inf entry makes the sum non-finite); only when the sum is not
+    finite (a non-finite entry, or an overflow of the sum) are the entries checked one by one. Costs a
+    device sync on GPU.
+    """
+    if x.numel() == 0:
+        return True
+    if bool(torch.isfinite(x.sum())):
+        return True
+    return bool(torch.isfinite(x).all())
+
+
 def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
-    """Raise if ``x`` contains NaN or Inf (one reduction; costs a device sync on GPU).
+    """Raise if ``x`` contains NaN or Inf (see :func:`all_finite`).
 
     Raises:
         NonFiniteError: Naming the input and how many entries are non-finite.
     """
-    finite = torch.isfinite(x)
-    if not bool(finite.all()):
+    if not all_finite(x):
+        finite = torch.isfinite(x)
         bad = int((~finite).sum())
         raise NonFiniteError(f"{name} contains {bad} NaN/Inf value(s) out of {x.numel()}")
     return x

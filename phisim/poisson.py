@@ -52,6 +52,7 @@ from functools import lru_cache
 import torch
 
 from . import fft as _fft
+from .checks import all_finite
 from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
 
 __all__ = [
@@ -296,21 +297,32 @@ def spectral_apply(
     return _apply_multiplier(x, kinds, mult, engine)
 
 
-def _apply_multiplier(x: torch.Tensor, kinds: Kinds, mult: torch.Tensor, engine) -> torch.Tensor:
-    """Forward transforms, multiply by ``mult`` (float64 multipliers in solver layout), inverse transforms."""
+def _transform_scale(res, kinds: Kinds) -> float:
+    """Normalisation of an unnormalised forward + inverse real-to-real transform pair."""
+    r2r, _ = _layout(kinds)
+    return 1.0 / math.prod(2 * res[a] for a in r2r) if r2r else 1.0
+
+
+def _apply_multiplier(x: torch.Tensor, kinds: Kinds, mult: torch.Tensor, engine, prescaled: bool = False
+                      ) -> torch.Tensor:
+    """Forward transforms, multiply by ``mult`` (multipliers in solver layout), inverse transforms.
+
+    ``mult`` is float64 and gets the transforms' normalisation here, unless ``prescaled`` (then it already
+    carries it and has ``x``'s dtype).
+    """
     r2r, per = _layout(kinds)
     res = x.shape[1:]
-    scale = 1.0
     y = x
     if r2r:
         fwd = tuple(_TRANSFORM[kinds[a]][0] for a in r2r)
         y = _fft.r2rn(y, fwd, tuple(1 + a for a in r2r), engine=engine)
-        scale = 1.0 / math.prod(2 * res[a] for a in r2r)
-    m = (mult * scale).to(x.dtype)
+    m = mult if prescaled else (mult * _transform_scale(res, kinds)).to(x.dtype)
     if per:
         axes = tuple(1 + a for a in per)
         Y = _fft.rfftn(y, axes, engine=engine)
         y = _fft.irfftn(Y * m, tuple(res[a] for a in per), axes, engine=engine)
+    elif r2r and not (torch.is_grad_enabled() and y.requires_grad):
+        y = y.mul_(m)  # y is the transform's fresh output
     else:
         y = y * m
     if r2r:
@@ -507,7 +519,7 @@ def spectral_poisson_solve(
     kinds = normalize_kinds(kinds, rank)
     dx = _normalize_dx(dx, rank)
     _check_incompatible(incompatible)
-    if not bool(torch.isfinite(rhs).all()):
+    if not all_finite(rhs):
         raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
     f = rhs
     b = boundary_source(rhs, dx, kinds, values)
@@ -516,8 +528,14 @@ def spectral_poisson_solve(
     singular = _singular(kinds)
     if singular:
         f = _remove_mean(f, incompatible=incompatible, compat_rtol=compat_rtol, what="spectral_poisson_solve")
-    inv = _inverse_eigs(tuple(rhs.shape[1:]), dx, kinds, rhs.device)
-    return _apply_multiplier(f, kinds, inv, engine)
+    inv = _solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
+    return _apply_multiplier(f, kinds, inv, engine, prescaled=True)
+
+
+@lru_cache(maxsize=128)
+def _solve_multiplier(resolution, dx, kinds, device, dtype) -> torch.Tensor:
+    """Inverse eigenvalues times the transforms' normalisation, in the solve's dtype (cached)."""
+    return (_inverse_eigs(resolution, dx, kinds, device) * _transform_scale(resolution, kinds)).to(dtype)
 
 
 @lru_cache(maxsize=128)
@@ -644,7 +662,7 @@ def masked_poisson_solve(
     _check_incompatible(incompatible)
     if preconditioner not in ("spectral", None):
         raise ParameterError(f"preconditioner must be 'spectral' or None, got {preconditioner!r}")
-    if not bool(torch.isfinite(rhs).all()):
+    if not all_finite(rhs):
         raise NonFiniteError("masked_poisson_solve: rhs contains NaN or Inf")
     solve = Solve() if solve is None else solve
     m = _mask_tensor(mask, rhs)
