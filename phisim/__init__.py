@@ -14,7 +14,7 @@ from .boundary import (
     pad_staggered_component,
     set_boundary_faces,
 )
-from .checks import check_dt, check_finite, check_nonnegative, check_positive
+from .checks import all_finite, check_dt, check_finite, check_nonnegative, check_positive
 from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
 from .diffusion import diffuse, diffuse_values, explicit_stability_limit, fourier_heat, heat_decay_factors
 from .errors import (
@@ -58,7 +58,7 @@ __all__ = [
     "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open",
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
-    "check_dt", "check_finite", "check_nonnegative", "check_positive",
+    "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite",
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",

@@ -377,4 +377,9 @@ def fourier_heat(
     res = tuple(x.shape[1:])
     decay = heat_decay_factors(res, dt, viscosity=viscosity, dtype=x.dtype, device=x.device)
     axes = tuple(range(1, rank + 1))
-    return _fft.irfftn(_fft.rfftn(x, axes, engine=engine) * decay, res, axes, engine=engine)
+    spectrum = _fft.rfftn(x, axes, engine=engine)
+    if torch.is_grad_enabled() and spectrum.requires_grad:
+        spectrum = spectrum * decay
+    else:
+        spectrum.mul_(decay)  # the transform's fresh output
+    return _fft.irfftn(spectrum, res, axes, engine=engine)
