@@ -356,7 +356,9 @@ class FluidMarkerOperator(PhysicsOperator):
             A new :class:`FluidMarkerOperator` with the same settings.
         """
         if not isinstance(index, slice):
-            index = torch.as_tensor(index, dtype=torch.long)
+            index = torch.as_tensor(index)
+            if index.dtype != torch.bool:
+                index = index.long()
         return FluidMarkerOperator(
             self.marker0[index],
             steps=self.steps,
@@ -524,6 +526,16 @@ class FluidProblem(Problem):
     reverse-simulation local inverse). Metric: ``sum_cells |v0 - v0*|_2`` per sample (the reference's
     ``l1_loss(vec_abs(v - v*))``), batch mean. The frequency-loss falloff scales with the resolution
     (``80 * nx / 64``) so that the weights depend on the physical wavenumber only.
+
+    Attributes:
+        resolution: Cells per axis (multiples of 16; E5: 64x64 on a 128x128 domain).
+        steps: Simulation steps (8).
+        dt: Time step (0.25).
+        fill_range: Range of the marker's fill fraction of the domain (0.05 to 0.15).
+        strength_range: Range of the vortex strength (-2 to 2).
+        noise_amplitude: Factor of the small-scale noise velocity (0.1).
+        lr: Adam learning rate of both methods (0.005).
+        reference_vortex_track: Passed to :class:`FluidMarkerOperator`.
     """
 
     name: str = "fluid"

@@ -89,6 +89,7 @@ def test_forward_is_batched_and_select_restricts():
     y1 = op.select([1]).forward(x[1:2])
     torch.testing.assert_close(y1, y[1:2], rtol=1e-10, atol=1e-12)
     assert op.select(slice(0, 2)).marker0.shape[0] == 2
+    assert torch.equal(op.select(torch.tensor([False, True, True])).marker0, m[1:])
 
 
 # ---- frequency loss --------------------------------------------------------------------------------------
