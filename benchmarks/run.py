@@ -503,8 +503,39 @@ def _fft_decision(base: str) -> list[str]:
         f = _fastest(data, s, d, "engine")
         lines.append(f"| {s} | {d} | " + " | ".join(cells) + f" | {f['engine']} ({f['threads']} thr) |" if f else " |")
     m = data["meta"]
-    lines += ["", f"- made by `{m['command']}` ({m['date']}, {m['machine']}); "
-              "one step = rfftn, multiply by the precomputed decay, irfftn; inputs from `benchmarks/inputs.py`."]
+    cmd = ", ".join(f"`{c}`" for c in m.get("commands", [m["command"]]))
+    runs = f"lowest median of {m['runs']} runs, latest " if m.get("runs", 1) > 1 else ""
+    lines += ["", f"- made by {cmd} ({runs}{m['date']}, {m['machine']}); "
+              "one step = rfftn, multiply by the precomputed decay, irfftn; inputs from `benchmarks/inputs.py`.",
+              "- `phisim.fft` rows call `phisim.fft.rfftn/irfftn` (torch tensors in and out, autograd wrappers, "
+              "plan cache) with the same multiply; the gap to the raw engine is the wrapper's cost.", ""]
+    # the decision: which engine wins at one thread, and whether a second FFTW thread pays off
+    wins: dict = {}
+    gains = []
+    overheads = []
+    for s_, d in combos:
+        f = _fastest(data, s_, d, "engine", max_threads=1)
+        if f:
+            wins[f["engine"]] = wins.get(f["engine"], 0) + 1
+        one, two = idx.get((s_, d, "pyfftw planned", 1)), idx.get((s_, d, "pyfftw planned", 2))
+        if one and two and "median_s" in one and "median_s" in two:
+            gains.append((s_, d, one["median_s"] / two["median_s"]))
+        ph = idx.get((s_, d, "phisim.fft engine=pyfftw", 1))
+        if one and ph and "median_s" in ph and "median_s" in one:
+            overheads.append((s_, d, ph["median_s"] / one["median_s"]))
+    if wins:
+        best = max(wins, key=wins.get)
+        lines.append(f"**Decision.** With one thread, {best} is fastest in {wins[best]} of {sum(wins.values())} "
+                     f"size/dtype cases ({', '.join(f'{k}: {v}' for k, v in sorted(wins.items()))}).")
+        if gains:
+            g = ", ".join(f"{s_} {d} {x:.2f}x" for s_, d, x in gains)
+            lines.append(f"A second FFTW thread speeds the planned round trip up by: {g} (1 thread / 2 threads); "
+                         "it pays off only on large grids and only while the other core is idle, and torch's "
+                         "two-thread pool stalls badly when it is not. Default for phisim on CPU: "
+                         f"**{best.split()[0]}, 1 thread** (more threads only by explicit setting).")
+        if overheads:
+            o = ", ".join(f"{s_} {d} {x:.2f}x" for s_, d, x in overheads)
+            lines.append(f"phisim.fft (pyfftw engine) relative to the raw planned pyfftw round trip: {o}.")
     return lines
 
 
