@@ -7,13 +7,14 @@ the runner can always produce its tables.
 
 Inputs come from ``benchmarks/inputs.py``: the same numbers the PhiFlow side uses.
 """
+
 from __future__ import annotations
 
 import importlib
 import os
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -67,10 +68,11 @@ def _staggered(comps, resolution, boundary, dtype, device):
 
 def _reps(size: str, repeats: int) -> int:
     res, b = inputs.parse_size(size)
-    return 3 if int(np.prod(res)) * b >= 1024 ** 2 else repeats
+    return 3 if int(np.prod(res)) * b >= 1024**2 else repeats
 
 
 # ---- operators ----------------------------------------------------------------------------------
+
 
 def laplace(size: str, dtype: str, repeats: int, device: str, boundary: str) -> dict:
     """``differential.laplace`` of a centred scalar with zero Dirichlet or periodic boundaries."""
@@ -85,13 +87,21 @@ def advect(size: str, dtype: str, repeats: int, device: str, scheme: str) -> dic
     fn = _need("advection", scheme)
     res, nb = inputs.parse_size(size)
     u = _centered(inputs.scalar_field(res, nb, dtype=dtype), "dirichlet", dtype, device)
-    v = _staggered(inputs.staggered_velocity(res, nb, amplitude=inputs.ADVECTION["velocity_amplitude"], dtype=dtype),
-                   res, "wall", dtype, device)
+    v = _staggered(
+        inputs.staggered_velocity(res, nb, amplitude=inputs.ADVECTION["velocity_amplitude"], dtype=dtype),
+        res,
+        "wall",
+        dtype,
+        device,
+    )
     dt = inputs.ADVECTION["dt"]
-    return time_fn(lambda: fn(u, v, dt), repeats=_reps(size, repeats), warmup=2, device=device, min_total_s=0.5)
+    return time_fn(
+        lambda: fn(u, v, dt), repeats=_reps(size, repeats), warmup=2, device=device, min_total_s=0.5
+    )
 
 
 # ---- Poisson ------------------------------------------------------------------------------------
+
 
 def poisson_cg(size: str, dtype: str, repeats: int, device: str) -> dict:
     """CG (``linalg.cg``) on phisim's zero-Dirichlet Laplacian, rtol 1e-5, with iteration count."""
@@ -122,11 +132,14 @@ def poisson_cg(size: str, dtype: str, repeats: int, device: str) -> dict:
         once()
     except SolveError as e:  # e.g. float32 precision floor: report it with the time it took
         its = getattr(e, "iterations", None)
-        out = {"error": f"SolveError: {str(e).splitlines()[0][:200]}", "time_to_error_s": time.perf_counter() - t0}
+        out = {
+            "error": f"SolveError: {str(e).splitlines()[0][:200]}",
+            "time_to_error_s": time.perf_counter() - t0,
+        }
         if its is not None:
             out["iterations"] = int(torch.as_tensor(its).max())
         return out
-    r = time_fn(once, repeats=3 if int(np.prod(res)) >= 512 ** 2 else repeats, warmup=0, device=device)
+    r = time_fn(once, repeats=3 if int(np.prod(res)) >= 512**2 else repeats, warmup=0, device=device)
     r["iterations"] = info["iterations"]
     if dtype == "float32":
         r["note"] = "float32 CG with float64 residual refinement (phisim default)"
@@ -143,17 +156,24 @@ def poisson_direct(size: str, dtype: str, repeats: int, device: str) -> dict:
 
 # ---- heat ---------------------------------------------------------------------------------------
 
+
 def heat_spectral(size: str, dtype: str, repeats: int, device: str) -> dict:
     """Exact periodic heat step ``diffusion.fourier_heat`` (PhiFlow's ``diffuse.fourier`` convention)."""
     fn = _need("diffusion", "fourier_heat")
     res, nb = inputs.parse_size(size)
     u = _tensor(inputs.periodic_scalar_field(res, nb, dtype=dtype), dtype, device)
     h = inputs.HEAT
-    return time_fn(lambda: fn(u, h["dt"], viscosity=h["viscosity"]), repeats=_reps(size, repeats), warmup=2,
-                   device=device, min_total_s=0.5)
+    return time_fn(
+        lambda: fn(u, h["dt"], viscosity=h["viscosity"]),
+        repeats=_reps(size, repeats),
+        warmup=2,
+        device=device,
+        min_total_s=0.5,
+    )
 
 
 # ---- fluid --------------------------------------------------------------------------------------
+
 
 def _smoke_setup(size: str, dtype: str, device: str, method: str):
     """Inputs and a step function mirroring the PhiFlow side's step (see inputs.SMOKE)."""
@@ -193,7 +213,9 @@ def smoke_step(size: str, dtype: str, repeats: int, device: str, method: str = "
     ``'cg'`` uses masked CG (spectral preconditioner) with the PhiFlow side's tolerances and warm start.
     """
     step, smoke, v = _smoke_setup(size, dtype, device, method)
-    timing, _ = time_steps(step, (smoke, v, None), repeats=_reps(size, max(repeats, 5)), warmup=2, device=device)
+    timing, _ = time_steps(
+        step, (smoke, v, None), repeats=_reps(size, max(repeats, 5)), warmup=2, device=device
+    )
     if "iterations" in step.info:
         timing["iterations"] = step.info["iterations"]  # pressure CG, last timed step
     return timing

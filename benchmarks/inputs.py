@@ -14,6 +14,7 @@ so every case of both sides starts from the same numbers. Conventions:
   coefficients) evaluated at cell centres or faces, so each side may also sample the same
   function at its own points.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,7 +33,8 @@ SMOKE = {
     "description": (
         "smoke <- MacCormack(smoke, v, dt) + inflow*dt; "
         "v <- semi-Lagrangian(v, v, dt) + buoyancy * smoke@faces * e_last * dt; "
-        "v, p <- make_incompressible(v) in a closed box (no-slip walls), CG warm-started from the previous pressure"
+        "v, p <- make_incompressible(v) in a closed box (no-slip walls), "
+        "CG warm-started from the previous pressure"
     ),
 }
 
@@ -103,20 +105,26 @@ def centers(resolution: tuple[int, ...]) -> np.ndarray:
 
 
 def faces(resolution: tuple[int, ...], axis: int) -> np.ndarray:
-    """Positions of the faces normal to ``axis`` (boundary faces included): ``resolution[axis] + 1`` along it."""
-    axes = [np.arange(n + (1 if i == axis else 0)) + (0.0 if i == axis else 0.5) for i, n in enumerate(resolution)]
+    """Positions of the faces normal to ``axis``, boundary faces included (``resolution[axis] + 1``)."""
+    axes = [
+        np.arange(n + (1 if i == axis else 0)) + (0.0 if i == axis else 0.5) for i, n in enumerate(resolution)
+    ]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
 
-def scalar_field(resolution: tuple[int, ...], batch: int = 1, seed: int = SEED, dtype: str = "float64") -> np.ndarray:
-    """A smooth random scalar at cell centres, ``(batch, *resolution)``; sample ``b`` uses seed ``seed + b``."""
+def scalar_field(
+    resolution: tuple[int, ...], batch: int = 1, seed: int = SEED, dtype: str = "float64"
+) -> np.ndarray:
+    """A smooth random scalar at cell centres, ``(batch, *resolution)``; sample ``b`` uses ``seed + b``."""
     pts = centers(resolution)
     out = np.stack([smooth_function(pts, resolution, seed + b) for b in range(batch)])
     return out.astype(dtype)
 
 
-def periodic_scalar_field(resolution: tuple[int, ...], batch: int = 1, seed: int = SEED, dtype: str = "float64") -> np.ndarray:
-    """A random periodic scalar at cell centres (band-limited noise, a power-law spectrum), ``(batch, *resolution)``."""
+def periodic_scalar_field(
+    resolution: tuple[int, ...], batch: int = 1, seed: int = SEED, dtype: str = "float64"
+) -> np.ndarray:
+    """A random periodic scalar at cell centres, ``(batch, *resolution)``: noise with a power-law spectrum."""
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal((batch, *resolution))
     spec = np.fft.fftn(noise, axes=tuple(range(1, len(resolution) + 1)))
@@ -132,8 +140,12 @@ def periodic_scalar_field(resolution: tuple[int, ...], batch: int = 1, seed: int
 
 
 def staggered_velocity(
-    resolution: tuple[int, ...], batch: int = 1, seed: int = SEED + 100, amplitude: float = 1.0,
-    closed: bool = True, dtype: str = "float64",
+    resolution: tuple[int, ...],
+    batch: int = 1,
+    seed: int = SEED + 100,
+    amplitude: float = 1.0,
+    closed: bool = True,
+    dtype: str = "float64",
 ) -> list[np.ndarray]:
     """A smooth random staggered velocity: list of ``d`` arrays ``(batch, *resolution + e_i)``.
 
@@ -156,13 +168,17 @@ def staggered_velocity(
     return comps
 
 
-def poisson_rhs(resolution: tuple[int, ...], batch: int = 1, seed: int = SEED + 200, dtype: str = "float64") -> np.ndarray:
+def poisson_rhs(
+    resolution: tuple[int, ...], batch: int = 1, seed: int = SEED + 200, dtype: str = "float64"
+) -> np.ndarray:
     """Right-hand side for the zero-Dirichlet Poisson case, ``(batch, *resolution)``, of unit max norm."""
     f = scalar_field(resolution, batch, seed, "float64")
     return (f / np.abs(f).max()).astype(dtype)
 
 
-def smoke_initial(resolution: tuple[int, ...], batch: int = 1, seed: int = SEED + 300, dtype: str = "float64") -> dict:
+def smoke_initial(
+    resolution: tuple[int, ...], batch: int = 1, seed: int = SEED + 300, dtype: str = "float64"
+) -> dict:
     """Initial state of the smoke case.
 
     Returns:
@@ -197,5 +213,9 @@ def smoke_stats(smoke: np.ndarray, velocity_last_axis: np.ndarray) -> dict:
     """
     up = np.arange(smoke.shape[-1]) + 0.5
     profile = smoke.reshape(-1, smoke.shape[-1]).sum(0)
-    return {"smoke_sum": float(smoke.sum()), "smoke_max": float(smoke.max()),
-            "centroid_up": float((profile * up).sum() / profile.sum()), "v_up_max": float(velocity_last_axis.max())}
+    return {
+        "smoke_sum": float(smoke.sum()),
+        "smoke_max": float(smoke.max()),
+        "centroid_up": float((profile * up).sum() / profile.sum()),
+        "v_up_max": float(velocity_last_axis.max()),
+    }

@@ -2,9 +2,10 @@
 
 Runs inside ``benchmarks/.phiflow-venv`` (made by ``benchmarks/setup_phiflow.sh``)::
 
-    benchmarks/.phiflow-venv/bin/python benchmarks/peer_phiflow.py --case poisson_cg --size 256^2 --dtype float64
-    benchmarks/.phiflow-venv/bin/python benchmarks/peer_phiflow.py --suite poisson      # every case, one child each
-    benchmarks/.phiflow-venv/bin/python benchmarks/peer_phiflow.py --list
+    PY=benchmarks/.phiflow-venv/bin/python
+    $PY benchmarks/peer_phiflow.py --case poisson_cg --size 256^2 --dtype float64
+    $PY benchmarks/peer_phiflow.py --suite poisson      # every case, one child process each
+    $PY benchmarks/peer_phiflow.py --list
 
 Each case prints ``{case, size, dtype, median_s, repeats, iterations?, patched?, error?, note?}``.
 Inputs come from ``benchmarks/inputs.py`` (the same numbers as the phisim side). PhiFlow
@@ -13,6 +14,7 @@ is measured on its torch backend, on CPU, with a fixed thread count (``--threads
 The module level imports only the standard library, so the runner (in phisim's venv) can
 import the case table and :func:`drive` without PhiFlow installed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,8 +69,17 @@ def case_list(suite: str) -> list[tuple[str, str, str]]:
     return [(c, s, d) for c in names for s in CASES[c][0] for d in CASES[c][1]]
 
 
-def drive(case: str, size: str, dtype: str, *, python: str = VENV_PYTHON, threads: int = 1, repeats: int = 5,
-          timeout_s: float = 900.0, quick: bool = False) -> dict:
+def drive(
+    case: str,
+    size: str,
+    dtype: str,
+    *,
+    python: str = VENV_PYTHON,
+    threads: int = 1,
+    repeats: int = 5,
+    timeout_s: float = 900.0,
+    quick: bool = False,
+) -> dict:
     """Run one case in a child process of the PhiFlow venv and return its JSON result.
 
     Never raises: a missing venv, a crash or a timeout comes back as ``{"error": ...}``.
@@ -83,8 +94,20 @@ def drive(case: str, size: str, dtype: str, *, python: str = VENV_PYTHON, thread
             return {**base, "error": "needs the phiml int64 patch (run benchmarks/setup_phiflow.sh)"}
         env["PYTHONPATH"] = PATCHED_PATH + os.pathsep + env.get("PYTHONPATH", "")
     env["OMP_NUM_THREADS"] = str(threads)
-    cmd = [python, os.path.abspath(__file__), "--case", case, "--size", size, "--dtype", dtype,
-           "--threads", str(threads), "--repeats", str(repeats)] + (["--quick"] if quick else [])
+    cmd = [
+        python,
+        os.path.abspath(__file__),
+        "--case",
+        case,
+        "--size",
+        size,
+        "--dtype",
+        dtype,
+        "--threads",
+        str(threads),
+        "--repeats",
+        str(repeats),
+    ] + (["--quick"] if quick else [])
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=env)
     except subprocess.TimeoutExpired:
@@ -100,13 +123,27 @@ def drive(case: str, size: str, dtype: str, *, python: str = VENV_PYTHON, thread
 # Inside the PhiFlow venv
 # ----------------------------------------------------------------------------------------------
 
+
 def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> dict:
     sys.path.insert(0, HERE)
-    import numpy as np
     import inputs
+    import numpy as np
+    from phi.torch.flow import (
+        Box,
+        CenteredGrid,
+        Solve,
+        StaggeredGrid,
+        advect,
+        batch,
+        diffuse,
+        extrapolation,
+        field,
+        fluid,
+        math,
+        resample,
+        spatial,
+    )
     from timing import time_fn, time_steps
-    from phi.torch.flow import (Box, CenteredGrid, Solve, StaggeredGrid, advect, batch, diffuse, extrapolation,
-                                field, fluid, math, resample, spatial)
 
     math.set_global_precision(64 if dtype == "float64" else 32)
     resolution, nb = inputs.parse_size(size)
@@ -131,7 +168,7 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
         values = math.stack(inner, math.dual(vector=",".join(names)))
         return StaggeredGrid(values, 0, bounds)
 
-    slow = _cells(size) * nb >= 1024 ** 2
+    slow = _cells(size) * nb >= 1024**2
     reps = 3 if (slow or quick) else repeats
 
     if case.startswith("laplace"):
@@ -140,11 +177,16 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
         result = time_fn(lambda: field.laplace(u), repeats=reps, warmup=2, min_total_s=0.5)
     elif case.startswith("advect"):
         u = scalar(inputs.scalar_field(resolution, nb, dtype=dtype), 0)
-        v = staggered(inputs.staggered_velocity(resolution, nb, amplitude=inputs.ADVECTION["velocity_amplitude"], dtype=dtype))
+        v = staggered(
+            inputs.staggered_velocity(
+                resolution, nb, amplitude=inputs.ADVECTION["velocity_amplitude"], dtype=dtype
+            )
+        )
         dt = inputs.ADVECTION["dt"]
         fn = advect.semi_lagrangian if case == "advect_semi_lagrangian" else advect.mac_cormack
         result = time_fn(lambda: fn(u, v, dt), repeats=reps, warmup=2, min_total_s=0.5)
     elif case == "poisson_cg":
+
         @math.jit_compile_linear
         def lap(x):
             return field.laplace(x)
@@ -164,22 +206,27 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
         t_first = time.perf_counter()
         try:
             x = once()  # builds and caches the sparse matrix
-            result = time_fn(once, repeats=3 if _cells(size) >= 512 ** 2 else reps, warmup=0)
+            result = time_fn(once, repeats=3 if _cells(size) >= 512**2 else reps, warmup=0)
             result["iterations"] = info["iterations"]
             r = rhs.values.numpy(order) - field.laplace(x).values.numpy(order)
             result["true_rel_residual"] = float(np.linalg.norm(r) / np.linalg.norm(rhs.values.numpy(order)))
         except Exception as e:  # NotConverged in float32: report it with the time it took
-            result = {"error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}",
-                      "time_to_error_s": time.perf_counter() - t_first}
+            result = {
+                "error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}",
+                "time_to_error_s": time.perf_counter() - t_first,
+            }
             res = getattr(e, "result", None)
             if res is not None:
                 result["iterations"] = int(math.max(res.iterations))
-        result["note"] = "jit_compile_linear operator (sparse matrix built once, cached; timed solves exclude the build)"
+        result["note"] = (
+            "jit_compile_linear operator (sparse matrix built once, cached; timed solves exclude the build)"
+        )
     elif case == "heat_fourier":
         u = scalar(inputs.periodic_scalar_field(resolution, nb, dtype=dtype), extrapolation.PERIODIC)
         h = inputs.HEAT
-        result = time_fn(lambda: diffuse.fourier(u, h["viscosity"], h["dt"]), repeats=reps, warmup=2,
-                         min_total_s=0.5)
+        result = time_fn(
+            lambda: diffuse.fourier(u, h["viscosity"], h["dt"]), repeats=reps, warmup=2, min_total_s=0.5
+        )
     elif case.startswith("smoke"):
         s = inputs.SMOKE
         init = inputs.smoke_initial(resolution, nb, dtype=dtype)
@@ -194,7 +241,9 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
             smoke = advect.mac_cormack(smoke, velocity, dt) + inflow * dt
             buoyancy = resample(smoke * up, to=velocity)
             velocity = advect.semi_lagrangian(velocity, velocity, dt) + buoyancy * dt
-            solve = Solve("CG", s["rtol"], s["atol"], x0=pressure, max_iterations=s["max_iter"], rank_deficiency=0)
+            solve = Solve(
+                "CG", s["rtol"], s["atol"], x0=pressure, max_iterations=s["max_iter"], rank_deficiency=0
+            )
             velocity, pressure = fluid.make_incompressible(velocity, (), solve)
             return smoke, velocity, pressure
 
@@ -221,6 +270,7 @@ def _run_case(case: str, size: str, dtype: str, repeats: int, quick: bool) -> di
             timing, state = time_steps(lambda st: jstep(*st), state, repeats=max(reps, 10), warmup=3)
             result = {**timing, "first_call_s": result_first}
         else:  # smoke_backward8
+
             def loss(velocity):
                 st = (smoke0, velocity, p0)
                 for _ in range(8):
@@ -257,8 +307,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.suite:
         for c, s, d in case_list(a.suite):
-            print(json.dumps(drive(c, s, d, python=sys.executable, threads=a.threads, repeats=a.repeats, quick=a.quick)),
-                  flush=True)
+            print(
+                json.dumps(
+                    drive(c, s, d, python=sys.executable, threads=a.threads, repeats=a.repeats, quick=a.quick)
+                ),
+                flush=True,
+            )
         return 0
     import warnings
 
@@ -270,8 +324,15 @@ def main(argv: list[str] | None = None) -> int:
     import phi
     import phiml
 
-    base = {"case": a.case, "size": a.size, "dtype": a.dtype, "threads": a.threads,
-            "phiflow": phi.__version__, "phiml": phiml.__version__, "backend": "torch-cpu"}
+    base = {
+        "case": a.case,
+        "size": a.size,
+        "dtype": a.dtype,
+        "threads": a.threads,
+        "phiflow": phi.__version__,
+        "phiml": phiml.__version__,
+        "backend": "torch-cpu",
+    }
     patched = "phiml-patched" in phiml.__file__
     if patched:
         base["patched"] = True

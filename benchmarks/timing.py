@@ -2,12 +2,14 @@
 
 Imports in both virtual environments (torch is optional here).
 """
+
 from __future__ import annotations
 
 import os
 import statistics
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 #: Threads used by both sides unless told otherwise (see docs/BENCHMARKS.md: 2 shared cores).
 DEFAULT_THREADS = 1
@@ -38,8 +40,13 @@ def _sync_fn(device: Any) -> Callable[[], None]:
 
 
 def time_fn(
-    fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1, device: Any = None,
-    min_total_s: float = 0.0, max_total_s: float = 60.0,
+    fn: Callable[[], Any],
+    *,
+    repeats: int = 5,
+    warmup: int = 1,
+    device: Any = None,
+    min_total_s: float = 0.0,
+    max_total_s: float = 60.0,
 ) -> dict:
     """Median wall time of ``fn()`` after warm-up.
 
@@ -72,12 +79,23 @@ def time_fn(
         dt = time.perf_counter() - t0
         times.append(dt)
         total += dt
-    return {"median_s": statistics.median(times), "min_s": min(times), "repeats": len(times), "times_s": times}
+    return {
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "repeats": len(times),
+        "times_s": times,
+    }
 
 
 def time_steps(
-    step: Callable[[Any], Any], state: Any, *, repeats: int = 5, warmup: int = 1, device: Any = None,
-    min_total_s: float = 0.0, max_total_s: float = 60.0,
+    step: Callable[[Any], Any],
+    state: Any,
+    *,
+    repeats: int = 5,
+    warmup: int = 1,
+    device: Any = None,
+    min_total_s: float = 0.0,
+    max_total_s: float = 60.0,
 ) -> tuple[dict, Any]:
     """Median wall time of one step of a running simulation: ``state = step(state)`` repeatedly.
 
@@ -91,5 +109,7 @@ def time_steps(
     def once():
         box[0] = step(box[0])
 
-    timing = time_fn(once, repeats=repeats, warmup=warmup, device=device, min_total_s=min_total_s, max_total_s=max_total_s)
+    timing = time_fn(
+        once, repeats=repeats, warmup=warmup, device=device, min_total_s=min_total_s, max_total_s=max_total_s
+    )
     return timing, box[0]
