@@ -110,17 +110,19 @@ def _method_key(method: str, seed: int, seeds: Sequence[int]) -> str:
 # ----------------------------------------------------------------------------------------- training
 
 
-def _problem(exp: str, resolution: int | None) -> Problem:
+def _problem(exp: str, resolution: int | None, sgd_lr: float | None = None) -> Problem:
     spec = EXPERIMENTS[exp]
     settings = {}
     if resolution is not None and spec["problem"] != "sine":
         settings["resolution"] = (resolution, resolution)
+    if sgd_lr is not None and spec["problem"] != "sine":
+        settings["sgd_lr"] = sgd_lr
     return get_problem(spec["problem"], **settings)
 
 
 def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resolution: int | None,
                      seeds: Sequence[int], out: Path, methods: Sequence[str] | None = None,
-                     max_iterations: dict[str, int] | None = None) -> dict:
+                     max_iterations: dict[str, int] | None = None, sgd_lr: float | None = None) -> dict:
     """Train every method of a network experiment on the same data stream and save curves and weights.
 
     Args:
@@ -132,6 +134,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
         out: Output folder (``<exp>.h5`` and ``<exp>_<key>.pt`` are written there).
         methods: Subset of the experiment's methods (default: all).
         max_iterations: Per-method cap on the iterations (for expensive methods such as L-BFGS-B).
+        sgd_lr: Learning rate of the ``sgd`` method of E3/E4 (None: the problem's default).
 
     Returns:
         ``{key: {'method', 'seed', 'iterations', 'seconds', 'diverged'}}`` per run; ``diverged`` holds the
@@ -139,7 +142,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
     """
     spec = EXPERIMENTS[exp]
     methods = list(spec["methods"] if methods is None else methods)
-    problem = _problem(exp, resolution)
+    problem = _problem(exp, resolution, sgd_lr)
     unknown = [m for m in methods if m not in problem.methods]
     assert not unknown, f"{exp}: unknown methods {unknown}; choose from {sorted(problem.methods)}"
     caps = dict(max_iterations or {})
@@ -382,7 +385,7 @@ def run_network_experiment(exp: str, args: argparse.Namespace) -> dict:
     if not args.plot_only:
         runs = train_experiment(exp, iterations=iterations, batch_size=args.batch_size,
                                 resolution=args.resolution, seeds=args.seeds, out=out, methods=args.methods,
-                                max_iterations=_parse_caps(args.max_iterations))
+                                max_iterations=_parse_caps(args.max_iterations), sgd_lr=args.sgd_lr)
     curves = read_training(out / f"{exp}.h5")
     assert curves, f"{out / f'{exp}.h5'} holds no training curves"
     window = min(spec["window"], max(len(c["metric"]) for c in curves.values()))
@@ -444,6 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", nargs="+", default=None, help="subset of the experiment's methods")
     p.add_argument("--max-iterations", nargs="*", default=[], metavar="METHOD=N",
                    help="per-method iteration caps, e.g. pg_lbfgsb=30")
+    p.add_argument("--sgd-lr", type=float, default=None, help="E3/E4: learning rate of the sgd method")
     p.add_argument("--samples", type=int, default=4, help="e4-opt: number of problems optimised")
     p.add_argument("--plot-only", action="store_true", help="redraw figures and summary from existing files")
     p.add_argument("--out", type=Path, default=Path("out/reproduce"))

@@ -295,15 +295,26 @@ class Sine(PhysicsOperator):
       attainable output). ``x0 = 0`` is treated as ``+tiny`` (the solution closest to 0 on the positive
       side, which is ``≈ 0``).
 
+    With ``closest="phase"`` the candidate closest to ``x0`` in the phase ``u = a/x`` is returned instead:
+    for ``t = −1`` this is the paper's rule ``n = round(a/(2π x0) − 3/4)`` (with the same outermost-minimum
+    handling). E2's training needs it: the closest-in-x choice is biased towards ``x → 0`` (the boundary
+    between two neighbouring solutions lies at the harmonic, not the arithmetic, mean of their phases),
+    and a network trained with it can drift into the ever denser solutions near ``x = 0``.
+
     Args:
         a: The parameter ``a``: a number (shared by all samples) or a tensor of shape ``(B,)`` with one
             value per sample (numpy arrays are accepted). Must be finite and non-zero.
+        closest: ``"x"`` (default) or ``"phase"``: the distance that selects the solution.
 
     Raises:
-        ParameterError: ``a`` contains zero or a non-finite value, or has more than one dimension.
+        ParameterError: ``a`` contains zero or a non-finite value, or has more than one dimension;
+            unknown ``closest``.
     """
 
-    def __init__(self, a: float | torch.Tensor):
+    def __init__(self, a: float | torch.Tensor, closest: str = "x"):
+        if closest not in ("x", "phase"):
+            raise ParameterError(f"closest must be 'x' or 'phase', got {closest!r}")
+        self.closest = closest
         a_t = torch.as_tensor(a)
         if not a_t.is_floating_point():
             a_t = a_t.to(torch.get_default_dtype())
@@ -332,7 +343,7 @@ class Sine(PhysicsOperator):
         """
         if self.a.ndim == 0:
             return self
-        return Sine(self.a[index])
+        return Sine(self.a[index], closest=self.closest)
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sin(self._a_like(x) / x)
@@ -356,7 +367,8 @@ class Sine(PhysicsOperator):
         u = torch.stack(candidates, dim=0)  # (4, B, ...)
         valid = (u * u0.unsqueeze(0)) > 0  # same side of u = 0 as u0; excludes u = 0
         x_cand = a.unsqueeze(0) / torch.where(valid, u, torch.ones_like(u))
-        dist = torch.where(valid, (x_cand - x0s.unsqueeze(0)).abs(), torch.full_like(u, math.inf))
+        gap = (u - u0.unsqueeze(0)) if self.closest == "phase" else (x_cand - x0s.unsqueeze(0))
+        dist = torch.where(valid, gap.abs(), torch.full_like(u, math.inf))
         best = dist.argmin(dim=0, keepdim=True)
         return torch.gather(x_cand, 0, best).squeeze(0)
 

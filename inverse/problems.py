@@ -140,8 +140,10 @@ class SineProblem(Problem):
 
     The physics loss is the height above the minimum, ``h = sin(a/x) + 1`` per sample (also the metric);
     physical gradients take the Newton step of ``½(y − y*)²`` with ``y* = −1``. Supervised labels are the
-    solutions closest to the fixed guess ``x0 = 1``. Gradients w.r.t. ``x`` are clipped to ``[−1, 1]``
-    where the paper does (Adam through the physics, Newton, inverse gradient).
+    solutions closest to the fixed guess ``x0 = 1``. The analytic inverse (``pg_analytic`` and the labels)
+    picks the solution closest in phase (``Sine(closest="phase")``, the paper's rounding rule
+    ``n = round(a/(2π x0) − 3/4)``). Gradients w.r.t. ``x`` are clipped to ``[−1, 1]`` where the paper does
+    (Adam through the physics, Newton, inverse gradient).
     """
 
     name: str = "sine"
@@ -172,7 +174,7 @@ class SineProblem(Problem):
         lo, hi = self.a_range
         a = lo + (hi - lo) * torch.rand(batch_size, 1, generator=generator, dtype=torch.float64)
         a = a.to(device=device, dtype=self.dtype)
-        op = Sine(a[:, 0])
+        op = Sine(a[:, 0], closest="phase")  # the paper's rounding rule (appendix B.1)
         y_target = -torch.ones_like(a)
         labels = op.local_inverse(y_target, torch.ones_like(a))
         return Batch(a, y_target, None, op, labels=labels, physics_args=(a,))

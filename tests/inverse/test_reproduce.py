@@ -80,3 +80,26 @@ def test_heat_optimisation_tiny(reproduce, tmp_path):
     assert (tmp_path / "e4-opt_curves.png").stat().st_size > 5_000
     summary = json.loads((tmp_path / "e4-opt_summary.json").read_text())
     assert set(summary["methods"]) == {"opt_gd", "opt_inverse", "opt_inverse_floor", "opt_lbfgsb"}
+
+
+def test_sine_phase_inverse_is_the_papers_rounding_rule():
+    """E2 inverse: ``n = round(a/(2π x0) − 3/4)``, ``x* = a/(3π/2 + 2πn)``, outermost minima kept."""
+    import math
+
+    import torch
+
+    from inverse.operators import Sine
+
+    gen = torch.Generator().manual_seed(0)
+    a = 0.1 + 10 * torch.rand(2000, generator=gen, dtype=torch.float64)
+    x0 = torch.empty(2000, dtype=torch.float64).uniform_(-3, 3, generator=gen)
+    n = torch.round(a / (2 * math.pi * x0) - 0.75)
+    n = torch.where((x0 > 0) & (n < 0), 0.0, n)
+    n = torch.where((x0 < 0) & (n >= 0), -1.0, n)
+    expected = a / (1.5 * math.pi + 2 * math.pi * n)
+    got = Sine(a, closest="phase").local_inverse(-torch.ones(2000, 1, dtype=torch.float64), x0[:, None])[:, 0]
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=0)
+    closest_x = Sine(a).local_inverse(-torch.ones(2000, 1, dtype=torch.float64), x0[:, None])[:, 0]
+    assert (closest_x != got).any(), "the two selection rules should differ somewhere"
+    assert torch.all(torch.sin(a / got) + 1 < 1e-9)
+    assert Sine(a, closest="phase").select(slice(0, 3)).closest == "phase"
