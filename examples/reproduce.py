@@ -427,6 +427,7 @@ def run_opt_experiment(args: argparse.Namespace) -> dict:
                 title=f"E4 optimisation from x = 0 ({args.samples} samples, {res[0]}x{res[1]})",
                 ylabel="x MAE (mean over samples)")
     ax.set_xscale("symlog", linthresh=1.0)
+    ax.set_xlim(left=0)
     save_figure(fig, out / "e4-opt_curves.png")
     with open(out / "e4-opt_summary.json", "w") as f:
         json.dump({"experiment": "e4-opt", "samples": args.samples, "resolution": list(res),
