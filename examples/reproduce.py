@@ -191,9 +191,8 @@ def summarize(exp: str, curves: dict[str, dict[str, np.ndarray]], window: int) -
                  "at": {str(i): float(s[i]) for i in CHECKPOINTS[exp] if i < len(s)}}
         summary[key] = entry
     for key, entry in summary.items():
-        head, sep, tail = key.rpartition("_s")
-        suffix = sep + tail if sep and tail.isdigit() else ""  # multi-seed keys: compare within a seed
-        ref_key = spec["reference"] + suffix
+        _, seed = _split_key(key)
+        ref_key = spec["reference"] + ("" if seed is None else f"_s{seed}")  # compare within a seed
         if ref_key not in smooth or ref_key == key:
             continue
         ref = smooth[ref_key]
@@ -213,8 +212,34 @@ def plot_learning_curves(curves: dict[str, dict[str, np.ndarray]], window: int, 
     """PNG of the running averages (over ``window`` mini-batches) of each method's metric, log scale."""
     fig, ax = new_figure(figsize=(6.4, 4.2), dpi=90)
     data = {k: (c["iteration"], running_average(c["metric"], window)) for k, c in curves.items()}
-    plot_curves(data, ax, logy=True, title=f"{title} (running average over {window})", ylabel=ylabel)
+    split = {k: _split_key(k) for k in data}
+    if all(seed is None for _, seed in split.values()):
+        plot_curves(data, ax, logy=True, title=f"{title} (running average over {window})", ylabel=ylabel)
+        return save_figure(fig, path)
+    # several seeds: one colour per method, one line style per seed
+    methods = list(dict.fromkeys(m for m, _ in split.values()))
+    seeds = sorted({seed for _, seed in split.values()})
+    styles = ["-", "--", ":", "-."]
+    for key, (it, val) in data.items():
+        method, seed = split[key]
+        keep = np.isfinite(val) & (val > 0)
+        ax.plot(it[keep], val[keep], color=f"C{methods.index(method) % 10}",
+                linestyle=styles[seeds.index(seed) % len(styles)], linewidth=1.0,
+                label=method if seed == seeds[0] else None)
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both", alpha=0.3)
+    legend_title = f"seeds {', '.join(map(str, seeds))} ({' '.join(styles[: len(seeds)])})"
+    ax.legend(fontsize=8, title=legend_title, title_fontsize=7)
+    ax.set_title(f"{title} (running average over {window})")
     return save_figure(fig, path)
+
+
+def _split_key(key: str) -> tuple[str, int | None]:
+    """``'adam_s3'`` -> ``('adam', 3)``; ``'adam'`` -> ``('adam', None)``."""
+    head, sep, tail = key.rpartition("_s")
+    return (head, int(tail)) if sep and tail.isdigit() else (key, None)
 
 
 def _load_models(exp: str, problem: Problem, out: Path, keys: Sequence[str]) -> dict[str, torch.nn.Module]:
@@ -418,8 +443,9 @@ def run_opt_experiment(args: argparse.Namespace) -> dict:
         summary = optimise_heat(samples=args.samples, resolution=args.resolution, gd_iterations=gd_it,
                                 inverse_iterations=inv_it, lbfgsb_iterations=lb_it, seed=args.seeds[0],
                                 out=out)
-    else:
-        summary = {}
+    else:  # keep the numbers of the run that made the curves
+        old = out / "e4-opt_summary.json"
+        summary = json.loads(old.read_text())["methods"] if old.exists() else {}
     curves = read_training(out / "e4-opt.h5")
     fig, ax = new_figure(figsize=(6.4, 4.2), dpi=90)
     res = _problem("e4", args.resolution).resolution
