@@ -286,8 +286,9 @@ def _cpu_name() -> str:
 def _merge_best(path: str, meta: dict, results: list[dict]) -> tuple[dict, list[dict]]:
     """Keep, per (case/floor/engine, size, dtype, threads), the lower median of this run and the saved file.
 
-    Used for the PhiFlow side and the floors (code that does not change between runs) because the
-    benchmark machine is shared: a run's median can only be inflated by other load.
+    Used for the PhiFlow side (code that does not change between runs) because the benchmark
+    machine is shared: a run's median can only be inflated by other load. phisim and the floors are
+    always timed together in one run, so the goals against floors compare figures of the same run.
     """
     old = _load(path)
     if not old:
@@ -396,7 +397,7 @@ def run_suite(suite: str, args) -> None:
                     fl += rows
         name = "fft_engines.json" if suite == "fft" else f"floors_{suite}.json"
         set_threads(args.threads)
-        _save(os.path.join(out, name), meta, fl, merge=not args.fresh)
+        _save(os.path.join(out, name), meta, fl)  # floors: same run as phisim, never merged
 
 
 # ---------------------------------------------------------------------------------------------
@@ -712,8 +713,8 @@ taken, so single figures carry noise of tens of per cent; ratios are the meaning
 One thread per side is the fair setting on this shared 2-core machine: with two threads a process
 stalls whenever the other core is busy (a 64^2 torch.fft round trip went from 0.025 ms with one
 thread to ~200 ms with two while other work ran). FFT engines are shown with 1 and 2 threads.
-PhiFlow and floor figures are the lowest median over the runs made (their code does not change
-between runs; other load only inflates a median); phisim figures come from the latest run.
+PhiFlow figures are the lowest median over the runs made (its code does not change between runs;
+other load only inflates a median); phisim and floor figures come from one run, the latest.
 
 How PhiFlow is measured (see `benchmarks/peer_phiflow.py`):
 - one case per child process of `benchmarks/.phiflow-venv` (`bash benchmarks/setup_phiflow.sh`);
