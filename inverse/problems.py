@@ -291,6 +291,7 @@ class HeatProblem(_UNetGridProblem):
 
     name: str = "heat"
     t_nu: float = 8.0
+    sgd_lr: float = 1e-5  # 1e-3 and 1e-4 diverge within a few iterations (batch-sum loss); 1e-5 trains
 
     def _make_operator(self) -> PhysicsOperator:
         from .operators import Heat
