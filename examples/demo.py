@@ -42,7 +42,7 @@ def simulate_smoke(out: Path, resolution: int, steps: int, dt: float = 0.5) -> d
                           fields={"density": "scalar", "velocity": "staggered"}, parameters=params,
                           batch_size=1, config={"resolution": resolution, "steps": steps}) as writer:
         writer.append(0.0, density=state.marker, velocity=state.velocity)
-        for i in range(steps):
+        for _ in range(steps):
             state = step(state, dt, buoyancy_strength=params["buoyancy"], marker_source=inflow,
                          obstacles=[obstacle], advection="maccormack")
             writer.append(state.time, density=state.marker, velocity=state.velocity)

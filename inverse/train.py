@@ -146,7 +146,8 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
     else:
         raise ParameterError(f"unknown method kind {method.kind!r}")
     if not torch.isfinite(objective):
-        raise NonFiniteError(f"{method.name}: the training objective became {float(objective)}; lower the learning rate")
+        raise NonFiniteError(
+            f"{method.name}: the training objective became {float(objective)}; lower the learning rate")
     objective.backward()
     opt.step()
     with torch.no_grad():

@@ -12,7 +12,6 @@ and E5's Gaussian vortex and uniform velocity.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import torch
 
@@ -147,7 +146,8 @@ def _as_batched(x, batch: int | None, width: int, name: str, dtype, device) -> t
         t = t.reshape((1, 1, width)) if t.ndim == 1 else t
         t = t[:, None, :] if t.ndim == 2 else t
         if t.ndim != 3:
-            raise ShapeError(f"{name} must have shape ({width},), (B, {width}) or (B, K, {width}), got {tuple(t.shape)}")
+            raise ShapeError(
+                f"{name} must have shape ({width},), (B, {width}) or (B, K, {width}), got {tuple(t.shape)}")
     else:
         t = t.reshape(1, 1) if t.ndim == 0 else t
         t = t[:, None] if t.ndim == 1 else t
