@@ -37,6 +37,7 @@ from .poisson import (
     _laplace_zero,
     _normalize_dx,
     boundary_source,
+    field_kinds_and_values,
     normalize_kinds,
     spectral_apply,
 )
@@ -183,30 +184,6 @@ def diffuse_values(
     return u
 
 
-def _component_kinds(boundary, component: int | None):
-    """Per-side kinds/values of one field component, from the boundary's ghost rules."""
-    kinds, values = [], []
-    for axis, (lo, hi) in enumerate(boundary.sides):
-        if component is None:
-            role = "scalar"
-        else:
-            role = "normal" if component == axis else "tangential"
-        pk, pv = [], []
-        for cond in (lo, hi):
-            rule = cond.rule(role, component)
-            if rule[0] == "periodic":
-                pk.append("periodic")
-                pv.append(None)
-            elif rule[0] in ("odd", "even"):
-                pk.append("dirichlet" if rule[0] == "odd" else "neumann")
-                pv.append(rule[1])
-            else:
-                raise BoundaryError(f"boundary condition {cond!r} has an unknown ghost rule {rule!r}")
-        kinds.append(tuple(pk))
-        values.append(tuple(pv))
-    return tuple(kinds), tuple(values)
-
-
 def diffuse(
     field,
     dt,
@@ -259,11 +236,11 @@ def diffuse(
         engine=engine,
     )
     if not field.is_vector:
-        kinds, values = _component_kinds(field.boundary, None)
+        kinds, values = field_kinds_and_values(field.boundary)
         return field.with_values(diffuse_values(field.values, dt, kinds=kinds, values=values, **kw))
     comps = []
     for c in range(field.values.shape[1]):
-        kinds, values = _component_kinds(field.boundary, c if field.values.shape[1] == grid.rank else None)
+        kinds, values = field_kinds_and_values(field.boundary, c if field.values.shape[1] == grid.rank else None)
         values = tuple(tuple(_slice_channel(v, c) for v in pair) for pair in values)
         comps.append(diffuse_values(field.values[:, c], dt, kinds=kinds, values=values, **kw))
     return field.with_values(torch.stack(comps, dim=1))

@@ -733,15 +733,17 @@ def masked_poisson_solve(
 # fields
 
 
-def field_kinds_and_values(boundary) -> tuple[Kinds, tuple]:
-    """Translate a :class:`phisim.boundary.Boundary` into per-side kinds and values for a scalar.
+def field_kinds_and_values(boundary, component: int | None = None) -> tuple[Kinds, tuple]:
+    """Translate a :class:`phisim.boundary.Boundary` into per-side kinds and values.
 
-    Each side's scalar ghost rule decides: an odd rule (Dirichlet, and the pressure of an open side)
-    gives ``'dirichlet'`` with its face value, an even rule (Neumann, walls, open) ``'neumann'`` with
-    its outward flux, periodic stays periodic.
+    Each side's ghost rule for the quantity decides: an odd rule (Dirichlet, walls for a normal velocity)
+    gives ``'dirichlet'`` with its face value, an even rule (Neumann, walls for a scalar, open)
+    ``'neumann'`` with its outward flux, periodic stays periodic.
 
     Args:
         boundary: A :class:`phisim.boundary.Boundary`.
+        component: ``None`` for a scalar; else the velocity component (normal to its own axis,
+            tangential to the others).
 
     Returns:
         ``(kinds, values)`` as accepted by :func:`spectral_poisson_solve`.
@@ -750,18 +752,16 @@ def field_kinds_and_values(boundary) -> tuple[Kinds, tuple]:
         BoundaryError: For a rule this solver does not know.
     """
     kinds, values = [], []
-    for lo, hi in boundary.sides:
+    for axis, (lo, hi) in enumerate(boundary.sides):
+        role = "scalar" if component is None else ("normal" if component == axis else "tangential")
         pk, pv = [], []
         for cond in (lo, hi):
-            rule = cond.rule("scalar", None)
+            rule = cond.rule(role, component)
             if rule[0] == "periodic":
                 pk.append("periodic")
                 pv.append(None)
-            elif rule[0] == "odd":
-                pk.append("dirichlet")
-                pv.append(rule[1])
-            elif rule[0] == "even":
-                pk.append("neumann")
+            elif rule[0] in ("odd", "even"):
+                pk.append("dirichlet" if rule[0] == "odd" else "neumann")
                 pv.append(rule[1])
             else:
                 raise BoundaryError(f"boundary condition {cond!r} has an unknown ghost rule {rule!r}")
