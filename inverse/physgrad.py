@@ -38,6 +38,7 @@ from collections.abc import Callable
 
 import torch
 
+from phisim.checks import check_positive
 from phisim.errors import ParameterError, ShapeError
 
 from .operators import PhysicsOperator, check_finite
@@ -321,12 +322,7 @@ class PhysicalGradient(torch.autograd.Function):
             ParameterError: Invalid ``eta`` or ``grad_scale``.
         """
         eta = _check_eta(eta)
-        try:
-            scale = float(grad_scale)
-        except (TypeError, ValueError) as err:
-            raise ParameterError(f"grad_scale must be a number, got {grad_scale!r}") from err
-        if not (math.isfinite(scale) and scale > 0):
-            raise ParameterError(f"grad_scale must be a finite positive number, got {grad_scale!r}")
+        scale = float(check_positive(grad_scale, "grad_scale"))
         y = operator.forward(x.detach())
         ctx.operator = operator
         ctx.eta = eta
@@ -369,12 +365,7 @@ def physgrad(
         ParameterError: Invalid ``eta`` or ``grad_scale``.
     """
     eta = _check_eta(eta)
-    try:
-        scale = float(grad_scale)
-    except (TypeError, ValueError) as err:
-        raise ParameterError(f"grad_scale must be a number, got {grad_scale!r}") from err
-    if not (math.isfinite(scale) and scale > 0):
-        raise ParameterError(f"grad_scale must be a finite positive number, got {grad_scale!r}")
+    check_positive(grad_scale, "grad_scale")
 
     def apply(x: torch.Tensor) -> torch.Tensor:
         return PhysicalGradient.apply(x, operator, eta, grad_scale)
