@@ -353,10 +353,4 @@ def fourier_heat(
     rank = _check_rhs(x, "x")
     res = tuple(x.shape[1:])
     decay = heat_decay_factors(res, dt, viscosity=viscosity, dtype=x.dtype, device=x.device)
-    axes = tuple(range(1, rank + 1))
-    spectrum = _fft.rfftn(x, axes, engine=engine)
-    if torch.is_grad_enabled() and spectrum.requires_grad:
-        spectrum = spectrum * decay
-    else:
-        spectrum.mul_(decay)  # the transform's fresh output
-    return _fft.irfftn(spectrum, res, axes, engine=engine)
+    return _fft.fourier_multiply(x, decay, tuple(range(1, rank + 1)), engine=engine)
