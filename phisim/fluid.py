@@ -804,16 +804,16 @@ def navier_stokes_step(
     if force is not None:
         _check_velocity(force, "force")
         v = v + dt * force
+    return _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess)
+
+
+def _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess):
+    """The part of a step after advection and forcing: obstacle faces, viscosity, projection, energy."""
     if obstacles is not None:
         v = _zero_obstacle_faces(v, obstacles)
     if float(viscosity) != 0:
-        v = diffuse_velocity(
-            v,
-            dt,
-            viscosity=viscosity,
-            scheme=viscosity_scheme,
-            solve=solve if viscosity_scheme == "implicit" else None,
-        )
+        v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
+                             solve=solve if viscosity_scheme == "implicit" else None)
     v, p = make_incompressible(v, obstacles, solve=solve, pressure_guess=pressure_guess)
     if e0 is not None:
         v = normalize_energy(v, e0)
@@ -896,17 +896,5 @@ def step(
     v = advect(v0, v0, dt, scheme=advection)
     if marker is not None and buoyancy_strength != 0:
         v = buoyancy(v, marker, dt, strength=buoyancy_strength, direction=buoyancy_direction)
-    if obstacles is not None:
-        v = _zero_obstacle_faces(v, obstacles)
-    if float(viscosity) != 0:
-        v = diffuse_velocity(
-            v,
-            dt,
-            viscosity=viscosity,
-            scheme=viscosity_scheme,
-            solve=solve if viscosity_scheme == "implicit" else None,
-        )
-    v, p = make_incompressible(v, obstacles, solve=solve, pressure_guess=state.pressure)
-    if e0 is not None:
-        v = normalize_energy(v, e0)
+    v, p = _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure)
     return replace(state, velocity=v, marker=marker, pressure=p, time=state.time + float(dt))
