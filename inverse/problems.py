@@ -44,6 +44,8 @@ class Method:
         grad_clip: Clamp the per-sample gradient w.r.t. the network output ``x`` (for physical gradients:
             the update ``x̃ − x``) to ``[-c, c]`` before it reaches the network (E2).
         rcond: HIG truncation.
+        loss: Per-sample y-space loss ``(y, y*) -> (B,)`` that HIG differentiates instead of the problem's
+            :meth:`Problem.loss` (None: the problem's). E2's ``hig_squared`` uses ``½ (y − y*)²``.
     """
 
     name: str
@@ -55,6 +57,7 @@ class Method:
     local_solver: LocalSolver | None = None
     grad_clip: float | None = None
     rcond: float = 1e-5
+    loss: Callable | None = None
 
 
 @dataclass
@@ -134,6 +137,10 @@ class Problem:
 # ---- E2 -------------------------------------------------------------------------------------------------
 
 
+def _half_squared(y: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+    return 0.5 * ((y - y_target) ** 2).reshape(y.shape[0], -1).sum(dim=1)
+
+
 @dataclass
 class SineProblem(Problem):
     """E2: find ``x`` with ``sin(a/x) = −1`` for ``a ∈ [0.1, 10.1)``; network ``a -> x`` (MLP, 461 parameters).
@@ -162,6 +169,9 @@ class SineProblem(Problem):
                                           local_solver=InverseGradientSolver()),
             "pg_analytic": Method("pg_analytic", "physgrad", lr=lr),
             "hig": Method("hig", "hig", optimizer="hig", lr=lr, rcond=1e-5),
+            # HIG as it is normally run: a squared y-space loss and SGD with lr 1
+            "hig_squared": Method("hig_squared", "hig", optimizer="hig", lr=1.0, rcond=1e-5,
+                                  loss=_half_squared),
         }
         self.hig_physics = lambda out, a: torch.sin(a / out)
 
