@@ -16,7 +16,14 @@ from .boundary import (
 )
 from .checks import all_finite, check_dt, check_finite, check_nonnegative, check_positive
 from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
-from .diffusion import diffuse, diffuse_values, explicit_stability_limit, fourier_heat, heat_decay_factors
+from .diffusion import (
+    diffuse,
+    diffuse_staggered,
+    diffuse_values,
+    explicit_stability_limit,
+    fourier_heat,
+    heat_decay_factors,
+)
 from .errors import (
     BoundaryError,
     FileFormatError,
@@ -62,7 +69,7 @@ __all__ = [
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
-    "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
+    "diffuse", "diffuse_staggered", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
     "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
     "advect", "semi_lagrangian", "maccormack",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
