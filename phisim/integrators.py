@@ -23,18 +23,34 @@ explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equatio
 
 Orders in time (velocity; measured in ``tests/phisim/test_integrators.py``):
 
-==================  ===============================================  ==========  ========================
-integrator          stages                                           order       stability (convection)
-==================  ===============================================  ==========  ========================
-``'split'``         :func:`~phisim.fluid.navier_stokes_step`         1           unconditional (SL)
-``'rk2'``           Heun / SSP-RK2, 2 projections                    2           needs viscosity *
-``'rk3'``           Shu-Osher SSP-RK3, 3 projections                 3 (≥ 2)     CFL ≲ 1.7 / π per axis
-==================  ===============================================  ==========  ========================
+==================  ==================================================  ===========  ========================
+integrator          stages                                              order        stability
+==================  ==================================================  ===========  ========================
+``'split'``         :func:`~phisim.fluid.navier_stokes_step`            1            unconditional (SL)
+``'rk2'``           Heun / SSP-RK2, 2 projections, explicit viscosity   2            needs viscosity *
+``'rk3'``           Shu-Osher SSP-RK3, 3 projections, explicit visc.    3 (≥ 2)      CFL ≲ 1.7 / π per axis
+``'imex2'``         Crank-Nicolson viscosity, Heun convection,          2            any viscous number;
+                    incremental pressure, 2 implicit solves + 2 proj.                CFL as ``'rk2'``
+==================  ==================================================  ===========  ========================
 
-\\* Heun's amplification for purely imaginary eigenvalues (central convection without viscosity) is
+(*) Heun's amplification for purely imaginary eigenvalues (central convection without viscosity) is
 ``|1 + z + z²/2| = (1 + y⁴/4)^{1/2} > 1``: a weak growth ``≈ (cfl π)⁴ / 8`` per step that viscosity must
-damp; prefer ``'rk3'`` for nearly inviscid flow. Viscosity is explicit in both: ``ν dt Σ 4/dx² ≤ 2``
-(RK2) or ``≤ 2.5`` (RK3) keeps it stable; larger viscous numbers raise :class:`ParameterError`.
+damp; prefer ``'rk3'`` for nearly inviscid flow. Viscosity is explicit in ``'rk2'`` and ``'rk3'``:
+``ν dt Σ 4/dx² ≤ 2`` (RK2) or ``≤ 2.5`` (RK3); larger viscous numbers raise :class:`ParameterError` and
+call for ``'imex2'``.
+
+``'imex2'`` (a pressure-correction scheme, e.g. Guermond, Minev & Shen 2006, "An overview of projection
+methods for incompressible flows", Comput. Methods Appl. Mech. Engrg. 195): with ``E(u, t) = -C(u) + f(t)``
+and ``q`` the previous step's pressure potential (``pressure_guess``, in the ``dt * p`` convention),
+
+    ``(I - ν dt/2 L) u* = u_n + dt E(u_n, t_n) + ν dt/2 L u_n - G q``,   ``u1 = P u*``,
+    ``(I - ν dt/2 L) u** = u_n + dt/2 (E(u_n, t_n) + E(u1, t_n + dt)) + ν dt/2 L u_n - G q``,
+    ``u_{n+1} = P u**``,  ``q_{n+1} = q + φ`` (``φ`` the potential of the last projection).
+
+The implicit solves are :func:`phisim.diffusion.diffuse_staggered` (exact spectral box solves; PCG with
+the faces touching obstacles held at 0). The incremental pressure ``-G q`` makes the splitting error of
+viscosity and projection at walls second order: pass the returned pressure back as ``pressure_guess``
+(``None`` on the first step is fine; without it on every step the scheme is first order at walls).
 
 The returned pressure is the potential of the last stage's correction rescaled to the convention of
 :func:`phisim.fluid.make_incompressible` (``dt * p / rho``), so it is an approximation of the pressure at
@@ -56,7 +72,7 @@ from .field import CenteredGrid, StaggeredGrid
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
 
 #: Time integrators of incompressible flow with their order in time for the velocity.
-INTEGRATORS = {"split": 1, "rk2": 2, "rk3": 3}
+INTEGRATORS = {"split": 1, "rk2": 2, "rk3": 3, "imex2": 2}
 
 # (weight of u_n, weight of the previous stage after its Euler step, time offset of the stage) per stage
 _SHU_OSHER = {
@@ -149,21 +165,23 @@ def navier_stokes_rk_step(
         velocity: Divergence-free MAC velocity at ``t_n`` (e.g. the output of a projection).
         dt: Time step ``>= 0``.
         viscosity: Kinematic viscosity ``>= 0`` (explicit; see the stability limits in the module docstring).
-        integrator: ``'rk2'`` (Heun, second order) or ``'rk3'`` (SSP-RK3, third order).
+        integrator: ``'rk2'`` (Heun, second order), ``'rk3'`` (SSP-RK3, third order) or ``'imex2'``
+            (Crank-Nicolson viscosity, Heun convection, incremental pressure; second order).
         force: Body force (acceleration): a StaggeredGrid, or ``force(t) -> StaggeredGrid`` evaluated at the
             stage times (needed for second order with time-dependent forcing).
         time: ``t_n``, passed to a callable force.
         obstacles: Obstacles (see :func:`phisim.fluid.make_incompressible`).
         solve: CG settings of the masked pressure solves.
-        pressure_guess: Warm start of the first stage's CG solve (later stages use the previous stage's).
+        pressure_guess: The previous step's pressure (as returned): a warm start of the CG solves for
+            ``'rk2'``/``'rk3'``, and the incremental pressure of ``'imex2'`` (see the module docstring).
         energy_normalization: Rescale the result to the kinetic energy of ``velocity``.
 
     Returns:
         ``(velocity, pressure)`` at ``t_n + dt``; the pressure in the convention of ``make_incompressible``.
 
     Raises:
-        ParameterError: Unknown integrator, negative dt/viscosity, or a viscous number beyond the explicit
-            stability limit.
+        ParameterError: Unknown integrator, negative dt/viscosity, or (``'rk2'``, ``'rk3'``) a viscous
+            number beyond the explicit stability limit.
         GridMismatchError: For a non-StaggeredGrid velocity or force.
         SolveError: If a CG pressure solve does not converge.
     """
@@ -171,15 +189,17 @@ def navier_stokes_rk_step(
 
     if not isinstance(velocity, StaggeredGrid):
         raise GridMismatchError(f"velocity must be a StaggeredGrid, got {type(velocity).__name__}")
-    if integrator not in _SHU_OSHER:
-        raise ParameterError(f"integrator must be one of {tuple(_SHU_OSHER)}, got {integrator!r}")
+    if integrator not in (*_SHU_OSHER, "imex2"):
+        raise ParameterError(f"integrator must be one of {(*_SHU_OSHER, 'imex2')}, got {integrator!r}")
     dt = check_dt(dt)
     nu = check_nonnegative(viscosity, "viscosity")
+    if integrator == "imex2":
+        return _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure_guess, energy_normalization)
     number = float(nu) * float(dt) * sum(4.0 / d**2 for d in velocity.grid.dx)
     if number > _VISCOUS_LIMIT[integrator] * (1 + 1e-12):
         raise ParameterError(
             f"explicit viscosity in {integrator!r} is unstable: ν dt Σ 4/dx² = {number:.3g} > "
-            f"{_VISCOUS_LIMIT[integrator]}; reduce dt or use the split step with implicit viscosity"
+            f"{_VISCOUS_LIMIT[integrator]}; reduce dt or use integrator='imex2' (implicit viscosity)"
         )
     e0 = kinetic_energy(velocity) if energy_normalization else None
     u0 = velocity
@@ -208,3 +228,63 @@ def navier_stokes_rk_step(
     if e0 is not None:
         stage = normalize_energy(stage, e0)
     return stage, pressure
+
+
+def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
+    """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
+    from .differential import gradient
+    from .diffusion import diffuse_staggered
+    from .fluid import (
+        _zero_obstacle_faces,
+        kinetic_energy,
+        make_incompressible,
+        normalize_energy,
+        obstacle_mask,
+        open_face_masks,
+    )
+
+    grid = velocity.grid
+    e0 = kinetic_energy(velocity) if energy_normalization else None
+    solid = obstacle_mask(obstacles, grid, velocity.device)
+    fixed = None
+    if solid is not None:
+        fixed = tuple(1 - o for o in open_face_masks((~solid).to(velocity.dtype), velocity.boundary))
+    q_prev = None
+    if pressure is not None:
+        q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
+        q = q.to(dtype=velocity.dtype, device=velocity.device)
+        q_prev = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
+    u0 = velocity
+    half_lap = 0.5 * dt * nu * laplace(u0) if float(nu) != 0 else None
+    explicit0 = -convection(u0)
+    f0 = _force_at(force, time, u0)
+    if f0 is not None:
+        explicit0 = explicit0 + f0
+    grad_q = None
+    if q_prev is not None:
+        grad_q = StaggeredGrid(gradient(q_prev, at="face").values, grid, velocity.boundary)
+        if solid is not None:
+            grad_q = grad_q.with_values(tuple(g * (1 - m) for g, m in zip(grad_q.values, fixed)))
+
+    def stage(explicit):
+        y = u0 + dt * explicit
+        if grad_q is not None:
+            y = y - grad_q
+        if half_lap is not None:
+            y = y + half_lap
+        if solid is not None:
+            y = _zero_obstacle_faces(y, obstacles)
+        if float(nu) != 0:
+            y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve)
+        return make_incompressible(y, obstacles, solve=solve, pressure_guess=None)
+
+    u1, _ = stage(explicit0)
+    explicit1 = -convection(u1)
+    f1 = _force_at(force, time + float(dt), u1)
+    if f1 is not None:
+        explicit1 = explicit1 + f1
+    u2, phi = stage(0.5 * (explicit0 + explicit1))
+    p = phi if q_prev is None else phi.with_values(phi.values + q_prev.values)
+    if e0 is not None:
+        u2 = normalize_energy(u2, e0)
+    return u2, p
