@@ -235,3 +235,25 @@ def test_bad_arguments():
         navier_stokes_rk_step(v, 0.1, force=lambda t: 1.0)
     with pytest.raises(GridMismatchError):
         convection(v.values[0])
+
+
+def test_cavity_steady_answer_does_not_depend_on_dt_with_imex2():
+    """Lid-driven cavity, Re 100, 32², t = 8: u_min on the vertical centre line for CFL 1 and 0.5.
+
+    Measured: imex2 -0.2072352 / -0.2072347 (0.25: -0.2072345); the first-order split step (MacCormack,
+    implicit viscosity) gives -0.2004 / -0.2026 / -0.2037 for CFL 1 / 0.5 / 0.25.
+    """
+    from phisim import NoSlipWall
+
+    lid = {"x": "wall", "y": ("wall", NoSlipWall(velocity=(1.0, 0.0)))}
+    n = 32
+    grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+    u_min = []
+    for cfl in (1.0, 0.5):
+        dt = cfl / n
+        v, p = StaggeredGrid.zeros(grid, lid, dtype=F64), None
+        for _ in range(int(round(8.0 / dt))):
+            v, p = navier_stokes_rk_step(v, dt, viscosity=0.01, integrator="imex2", pressure_guess=p)
+        u_min.append(float(v.values[0][0, n // 2, :].min()))
+    assert abs(u_min[0] - u_min[1]) < 2e-6, u_min
+    assert -0.215 < u_min[0] < -0.200, u_min  # Ghia et al. (1982): -0.2109 at Re 100 (fine grid)
