@@ -12,7 +12,7 @@ from phisim import Grid, StaggeredGrid
 from phisim.differential import divergence
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.fluid import Obstacle, kinetic_energy, make_incompressible, navier_stokes_step
-from phisim.integrators import INTEGRATORS, convection, navier_stokes_rk_step
+from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
 
 F64 = torch.float64
 

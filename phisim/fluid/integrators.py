@@ -63,11 +63,14 @@ from collections.abc import Callable
 
 import torch
 
-from .boundary import pad_staggered_component
-from .checks import check_dt, check_nonnegative
-from .differential import laplace
-from .errors import GridMismatchError, ParameterError
-from .field import CenteredGrid, StaggeredGrid
+from ..boundary import pad_staggered_component
+from ..checks import check_dt, check_nonnegative
+from ..differential import gradient, laplace
+from ..errors import GridMismatchError, ParameterError
+from ..field import CenteredGrid, StaggeredGrid
+from .bodies import solid_layout
+from .projection import impose_solids, make_incompressible
+from .step import _to_time, kinetic_energy, normalize_energy
 
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
 
@@ -140,7 +143,7 @@ def _force_at(force, t, velocity: StaggeredGrid) -> StaggeredGrid | None:
     f = force(t) if callable(force) and not isinstance(force, StaggeredGrid) else force
     if not isinstance(f, StaggeredGrid) or f.grid != velocity.grid:
         raise GridMismatchError("force must be a StaggeredGrid on the velocity's grid (or a callable returning one)")
-    return f
+    return f.with_boundary(velocity.boundary)
 
 
 def navier_stokes_rk_step(
@@ -156,22 +159,26 @@ def navier_stokes_rk_step(
     pressure_guess: CenteredGrid | torch.Tensor | None = None,
     energy_normalization: bool = False,
 ) -> tuple[StaggeredGrid, CenteredGrid]:
-    """One incompressible Navier-Stokes step by a projected SSP Runge-Kutta method (order 2 or 3 in time).
+    """One incompressible Navier-Stokes step of second (or third) order in time.
 
-    Stage ``s`` (Shu-Osher form): ``u^(s) = P[a_s u_n + b_s (u^(s-1) + dt F(u^(s-1), t_n + c_s dt))]`` with
-    ``F = -C(u) + ν L u + f`` (see the module docstring), ``P`` the pressure projection with obstacles.
+    ``'rk2'``/``'rk3'``: stage ``s`` (Shu-Osher form) is
+    ``u^(s) = P[a_s u_n + b_s (u^(s-1) + dt F(u^(s-1), t_n + c_s dt))]`` with ``F = -C(u) + ν L u + f`` and
+    ``P`` the projection with the solids imposed at the stage's time; ``'imex2'`` is the Crank-Nicolson /
+    Heun pressure-correction scheme (see the module docstring). Inflow profiles and moving bodies are
+    evaluated at the stage times.
 
     Args:
         velocity: Divergence-free MAC velocity at ``t_n`` (e.g. the output of a projection).
         dt: Time step ``>= 0``.
-        viscosity: Kinematic viscosity ``>= 0`` (explicit; see the stability limits in the module docstring).
+        viscosity: Kinematic viscosity ``>= 0`` (explicit in ``'rk2'``/``'rk3'``, see the stability limits
+            in the module docstring; Crank-Nicolson in ``'imex2'``).
         integrator: ``'rk2'`` (Heun, second order), ``'rk3'`` (SSP-RK3, third order) or ``'imex2'``
             (Crank-Nicolson viscosity, Heun convection, incremental pressure; second order).
         force: Body force (acceleration): a StaggeredGrid, or ``force(t) -> StaggeredGrid`` evaluated at the
             stage times (needed for second order with time-dependent forcing).
-        time: ``t_n``, passed to a callable force.
-        obstacles: Obstacles (see :func:`phisim.fluid.make_incompressible`).
-        solve: CG settings of the masked pressure solves.
+        time: ``t_n``, for a callable force, moving bodies and time-dependent inflows.
+        obstacles: Obstacles and bodies (see :func:`phisim.fluid.make_incompressible`).
+        solve: CG settings of the pressure solves with solids (and of the viscous solve with solids).
         pressure_guess: The previous step's pressure (as returned): a warm start of the CG solves for
             ``'rk2'``/``'rk3'``, and the incremental pressure of ``'imex2'`` (see the module docstring).
         energy_normalization: Rescale the result to the kinetic energy of ``velocity``.
@@ -183,16 +190,15 @@ def navier_stokes_rk_step(
         ParameterError: Unknown integrator, negative dt/viscosity, or (``'rk2'``, ``'rk3'``) a viscous
             number beyond the explicit stability limit.
         GridMismatchError: For a non-StaggeredGrid velocity or force.
-        SolveError: If a CG pressure solve does not converge.
+        SolveError: If a CG solve does not converge.
     """
-    from .fluid import _zero_obstacle_faces, kinetic_energy, make_incompressible, normalize_energy
-
     if not isinstance(velocity, StaggeredGrid):
         raise GridMismatchError(f"velocity must be a StaggeredGrid, got {type(velocity).__name__}")
     if integrator not in (*_SHU_OSHER, "imex2"):
         raise ParameterError(f"integrator must be one of {(*_SHU_OSHER, 'imex2')}, got {integrator!r}")
     dt = check_dt(dt)
     nu = check_nonnegative(viscosity, "viscosity")
+    time = float(time)
     if integrator == "imex2":
         return _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure_guess, energy_normalization)
     number = float(nu) * float(dt) * sum(4.0 / d**2 for d in velocity.grid.dx)
@@ -207,7 +213,8 @@ def navier_stokes_rk_step(
     guess = pressure_guess
     pressure = None
     b_last = 1.0
-    for a, b, c in _SHU_OSHER[integrator]:
+    stages = _SHU_OSHER[integrator]
+    for k, (a, b, c) in enumerate(stages):
         rate = -convection(stage)
         if float(nu) != 0:
             rate = rate + nu * laplace(stage)
@@ -219,9 +226,11 @@ def navier_stokes_rk_step(
             w = w * b
         if a != 0.0:
             w = w + a * u0
-        if obstacles is not None:
-            w = _zero_obstacle_faces(w, obstacles)
-        stage, pressure = make_incompressible(w, obstacles, solve=solve, pressure_guess=guess)
+        t_out = time + float(dt) * (stages[k + 1][2] if k + 1 < len(stages) else 1.0)
+        w = _to_time(w, t_out)
+        layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
+        w = impose_solids(w, layout)
+        stage, pressure = make_incompressible(w, layout, solve=solve, pressure_guess=guess, time=t_out)
         guess = pressure.values / b if b != 1.0 else pressure
         b_last = b
     pressure = pressure.with_values(pressure.values / b_last) if b_last != 1.0 else pressure
@@ -232,28 +241,15 @@ def navier_stokes_rk_step(
 
 def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
     """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
-    from .differential import gradient
-    from .diffusion import diffuse_staggered
-    from .fluid import (
-        _zero_obstacle_faces,
-        kinetic_energy,
-        make_incompressible,
-        normalize_energy,
-        obstacle_mask,
-        open_face_masks,
-    )
+    from ..diffusion import diffuse_staggered
 
     grid = velocity.grid
+    t_new = time + float(dt)
     e0 = kinetic_energy(velocity) if energy_normalization else None
-    solid = obstacle_mask(obstacles, grid, velocity.device)
+    layout = solid_layout(obstacles, grid, velocity.boundary, t_new, velocity.dtype, velocity.device)
     fixed = None
-    if solid is not None:
-        fixed = tuple(1 - o for o in open_face_masks((~solid).to(velocity.dtype), velocity.boundary))
-    q_prev = None
-    if pressure is not None:
-        q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
-        q = q.to(dtype=velocity.dtype, device=velocity.device)
-        q_prev = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
+    if layout is not None:  # faces entirely inside solids keep the solids' velocity in the viscous solve
+        fixed = tuple((th <= 0).to(velocity.dtype) for th in layout.theta)
     u0 = velocity
     half_lap = 0.5 * dt * nu * laplace(u0) if float(nu) != 0 else None
     explicit0 = -convection(u0)
@@ -261,30 +257,34 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     if f0 is not None:
         explicit0 = explicit0 + f0
     grad_q = None
-    if q_prev is not None:
-        grad_q = StaggeredGrid(gradient(q_prev, at="face").values, grid, velocity.boundary)
-        if solid is not None:
-            grad_q = grad_q.with_values(tuple(g * (1 - m) for g, m in zip(grad_q.values, fixed)))
+    if pressure is not None:
+        q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
+        q = q.to(dtype=velocity.dtype, device=velocity.device)
+        q = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
+        g = gradient(q, at="face").values
+        if layout is not None:
+            g = tuple(x * th.to(x.dtype) for x, th in zip(g, layout.theta))
+        grad_q = (q, g)
 
     def stage(explicit):
         y = u0 + dt * explicit
         if grad_q is not None:
-            y = y - grad_q
+            y = y.with_values(tuple(c - x for c, x in zip(y.values, grad_q[1])))
         if half_lap is not None:
             y = y + half_lap
-        if solid is not None:
-            y = _zero_obstacle_faces(y, obstacles)
+        y = impose_solids(_to_time(y, t_new), layout)
         if float(nu) != 0:
             y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve)
-        return make_incompressible(y, obstacles, solve=solve, pressure_guess=None)
+        return make_incompressible(y, layout, solve=solve, time=t_new,
+                                   pressure_guess=None if grad_q is None else torch.zeros_like(grad_q[0].values))
 
     u1, _ = stage(explicit0)
     explicit1 = -convection(u1)
-    f1 = _force_at(force, time + float(dt), u1)
+    f1 = _force_at(force, t_new, u1)
     if f1 is not None:
         explicit1 = explicit1 + f1
     u2, phi = stage(0.5 * (explicit0 + explicit1))
-    p = phi if q_prev is None else phi.with_values(phi.values + q_prev.values)
+    p = phi if grad_q is None else phi.with_values(phi.values + grad_q[0].values)
     if e0 is not None:
         u2 = normalize_energy(u2, e0)
     return u2, p
