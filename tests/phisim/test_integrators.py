@@ -257,3 +257,28 @@ def test_cavity_steady_answer_does_not_depend_on_dt_with_imex2():
         u_min.append(float(v.values[0][0, n // 2, :].min()))
     assert abs(u_min[0] - u_min[1]) < 2e-6, u_min
     assert -0.215 < u_min[0] < -0.200, u_min  # Ghia et al. (1982): -0.2109 at Re 100 (fine grid)
+
+
+def test_step_and_navier_stokes_step_select_the_integrator():
+    from phisim import CenteredGrid
+    from phisim.fluid import FluidState, step
+
+    grid = Grid((12, 16), bounds=[(0, 12.0), (0, 16.0)])
+    v0 = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    direct, p = navier_stokes_rk_step(v0, 0.5, viscosity=0.1, integrator="imex2")
+    via, q = navier_stokes_step(v0, 0.5, viscosity=0.1, integrator="imex2")
+    assert _max_diff(direct, via) == 0
+    marker = CenteredGrid.from_function(lambda x: (((x - torch.tensor([6.0, 4.0], dtype=F64)) ** 2).sum(-1) < 9)
+                                        .to(F64), grid, "neumann", dtype=F64)
+    state = FluidState(v0, marker)
+    for _ in range(5):
+        state = step(state, 0.5, viscosity=0.1, buoyancy_strength=0.5, integrator="imex2",
+                     marker_advection="conservative")
+    assert abs(float(state.marker.values.sum()) - float(marker.values.sum())) < 1e-12 * float(marker.values.sum())
+    assert float(state.marker.values.min()) >= 0
+    assert float(state.velocity.values[1].max()) > 0.1  # the plume rises
+    assert float(divergence(state.velocity).values.abs().max()) < 1e-10
+    with pytest.raises(ParameterError, match="marker advection"):
+        step(state, 0.5, marker_advection="upwind")
+    with pytest.raises(ParameterError, match="integrator"):
+        navier_stokes_step(v0, 0.5, integrator="euler")
