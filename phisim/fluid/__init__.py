@@ -18,9 +18,9 @@ Modules:
 from .bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
 from .forces import BodyForces, body_forces, probe_pressure
 from .geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
+from .integrators import INTEGRATORS, convection, navier_stokes_rk_step
 from .projection import PRESSURE_SOLVE, impose_solids, make_incompressible, net_boundary_flux, relative_divergence
 from .step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
-from .integrators import INTEGRATORS, convection, navier_stokes_rk_step
 from .viscosity import VISCOSITY_SCHEMES, diffuse_velocity
 
 __all__ = [
