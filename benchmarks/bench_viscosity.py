@@ -12,7 +12,11 @@ explicit limit; the explicit step is timed at its own stable size, the cost per 
 * ``crank_nicolson``: the same with the explicit half step (one extra stencil);
 * ``implicit, body (PCG)``: backward Euler with the faces of a disc body fixed, CG preconditioned by the
   exact box solve;
-* ``implicit, old CG``: the unpreconditioned CG of the fluid module before this change (for the record).
+* ``implicit, old CG``: the unpreconditioned CG of the fluid module before this change, when it is still
+  importable (it is not after the change; its figures are kept in ``docs/BENCHMARKS.md``).
+
+A second table times whole Navier-Stokes steps (float32, walls, ν = 0.01, dt = 0.5 dx): the split step
+with explicit and with implicit viscosity, and the second-order integrators ``rk2`` and ``imex2``.
 """
 
 from __future__ import annotations
@@ -25,7 +29,10 @@ import torch
 
 from phisim import Grid, StaggeredGrid, fft
 from phisim.diffusion import diffuse_staggered
+from phisim.fluid import navier_stokes_step
 from phisim.linalg import Solve
+
+NU = 1.0  # viscosity of the single-step table
 
 
 def bench(fn, repeat: int = 30, min_total: float = 0.3) -> float:
@@ -67,7 +74,6 @@ def main() -> None:
             v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
                                     for i in range(2)), grid, "wall").with_boundary_faces()
             dx = grid.dx[0]
-            nu = 1.0
             dt = 2 * dx**2
             dt_explicit = 0.2 * dx**2
             x = grid.cell_centers(torch.float64)
@@ -79,20 +85,45 @@ def main() -> None:
                 m = f.narrow(i, 0, n + 1).narrow(1 - i, 1, n) + f.narrow(i, 1, n + 1).narrow(1 - i, 1, n)
                 masks.append(m > 0)
             solve = Solve(rtol=1e-6 if dtype == torch.float32 else 1e-8)
-            explicit = bench(lambda: diffuse_staggered(v, dt_explicit, viscosity=nu, method="explicit"))
-            implicit = bench(lambda: diffuse_staggered(v, dt, viscosity=nu, method="implicit"))
-            cn = bench(lambda: diffuse_staggered(v, dt, viscosity=nu, method="crank_nicolson"))
-            body = bench(lambda: diffuse_staggered(v, dt, viscosity=nu, method="implicit", fixed=masks,
-                                                   solve=solve), repeat=10)
-            old = _old_cg(v, nu * dt, solve)
+            explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
+            implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
+            cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
+            body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
+                                                                               fixed=m, solve=s), repeat=10)
+            old = _old_cg(v, NU * dt, solve)
             old_ms = bench(old, repeat=5) if old is not None else float("nan")
             rows.append((n, explicit, implicit, cn, body, old_ms))
+        steps_table = lambda: bench_steps(args.sizes, dtype)  # noqa: E731
     print(f"dtype {args.dtype}, batch 1, walls, ν dt/dx² = 2, 1 thread; times in ms (ratio to explicit)\n")
     print("| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (PCG) | implicit, old CG |")
     print("|---|---|---|---|---|---|")
     for n, e, i, c, b, o in rows:
-        print(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | "
-              f"{o:.2f} ({o / e:.1f}x) |")
+        old = f"{o:.2f} ({o / e:.1f}x)" if o == o else "n/a"
+        print(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | {old} |")
+    with fft.fft_settings(planner_effort="FFTW_MEASURE"):
+        steps_table()
+
+
+def bench_steps(sizes, dtype) -> None:
+    """Whole steps: split (explicit / implicit viscosity), rk2, imex2."""
+    print("\nWhole Navier-Stokes steps (walls, ν = 0.01, dt = 0.5 dx), ms per step\n")
+    print("| n² | split, explicit visc. | split, implicit visc. | rk2 | imex2 |")
+    print("|---|---|---|---|---|")
+    for n in sizes:
+        grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+        g = torch.Generator().manual_seed(0)
+        v = StaggeredGrid(tuple(0.1 * torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
+                                for i in range(2)), grid, "wall").with_boundary_faces()
+        dt = 0.5 / n
+        row = []
+        for kw in ({"viscosity_scheme": "explicit"}, {"viscosity_scheme": "implicit"}, {"integrator": "rk2"},
+                   {"integrator": "imex2"}):
+            try:
+                row.append(bench(lambda kw=kw, v=v, dt=dt: navier_stokes_step(
+                    v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10))
+            except Exception:  # noqa: BLE001 - e.g. an explicit scheme beyond its limit
+                row.append(float("nan"))
+        print(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")
 
 
 if __name__ == "__main__":
