@@ -1,6 +1,8 @@
 """Cost of one viscosity step of a MAC velocity: explicit vs implicit (median of repeats, ms), Markdown table.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32] [--sizes 48 64 128 256]``.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32] [--sizes 48 64 128 256]
+[--write]``; ``--write`` saves the tables to ``benchmarks/results/viscosity.md``, which
+``benchmarks/run.py`` copies into ``docs/BENCHMARKS.md`` (section "Viscosity step").
 
 Cases per resolution (2-D closed box with no-slip walls, batch 1, ``ν dt / dx² = 2``, far beyond the
 explicit limit; the explicit step is timed at its own stable size, the cost per call does not depend on dt):
@@ -22,6 +24,8 @@ with explicit and with implicit viscosity, and the second-order integrators ``rk
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 import statistics
 import time
 
@@ -63,6 +67,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="+", default=[48, 64, 128, 256])
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--write", action="store_true", help="save the tables to benchmarks/results/viscosity.md")
     args = ap.parse_args()
     torch.set_num_threads(1)
     dtype = getattr(torch, args.dtype)
@@ -93,22 +98,32 @@ def main() -> None:
             old = _old_cg(v, NU * dt, solve)
             old_ms = bench(old, repeat=5) if old is not None else float("nan")
             rows.append((n, explicit, implicit, cn, body, old_ms))
-        steps_table = lambda: bench_steps(args.sizes, dtype)  # noqa: E731
-    print(f"dtype {args.dtype}, batch 1, walls, ν dt/dx² = 2, 1 thread; times in ms (ratio to explicit)\n")
-    print("| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (PCG) | implicit, old CG |")
-    print("|---|---|---|---|---|---|")
+    lines = [f"One viscosity step of a MAC velocity, {args.dtype}, batch 1, walls, ν dt/dx² = 2, 1 thread; "
+             "ms (ratio to explicit):", "",
+             "| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (PCG) | implicit, old CG |",
+             "|---|---|---|---|---|---|"]
     for n, e, i, c, b, o in rows:
         old = f"{o:.2f} ({o / e:.1f}x)" if o == o else "n/a"
-        print(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | {old} |")
+        lines.append(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | "
+                     f"{old} |")
     with fft.fft_settings(planner_effort="FFTW_MEASURE"):
-        steps_table()
+        lines += bench_steps(args.sizes, dtype)
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.write:
+        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "viscosity.md")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S")
+        with open(path, "w") as fh:
+            fh.write(f"Made by `python benchmarks/bench_viscosity.py --write` ({stamp}, {platform.machine()}, "
+                     f"{os.cpu_count()} cores).\n\n" + text)
 
 
-def bench_steps(sizes, dtype) -> None:
-    """Whole steps: split (explicit / implicit viscosity), rk2, imex2."""
-    print("\nWhole Navier-Stokes steps (walls, ν = 0.01, dt = 0.5 dx), ms per step\n")
-    print("| n² | split, explicit visc. | split, implicit visc. | rk2 | imex2 |")
-    print("|---|---|---|---|---|")
+def bench_steps(sizes, dtype) -> list[str]:
+    """Whole steps: split (explicit / implicit viscosity), rk2, imex2 (a Markdown table, one line per size)."""
+    lines = ["", "Whole Navier-Stokes steps (walls, ν = 0.01, dt = 0.5 dx), ms per step; `nan`: the explicit "
+             "viscosity of that scheme is unstable at this dt:", "",
+             "| n² | split, explicit visc. | split, implicit visc. | rk2 | imex2 |", "|---|---|---|---|---|"]
     for n in sizes:
         grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
         g = torch.Generator().manual_seed(0)
@@ -123,7 +138,8 @@ def bench_steps(sizes, dtype) -> None:
                     v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10))
             except Exception:  # noqa: BLE001 - e.g. an explicit scheme beyond its limit
                 row.append(float("nan"))
-        print(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")
+        lines.append(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")
+    return lines
 
 
 if __name__ == "__main__":

@@ -196,7 +196,8 @@ def navier_stokes_step(
         dt: Time step ``>= 0``.
         viscosity: Kinematic viscosity ``>= 0`` (0 skips diffusion).
         advection: ``'semi_lagrangian'`` or ``'maccormack'`` self-advection.
-        viscosity_scheme: ``'explicit'`` or ``'implicit'`` (see :func:`diffuse_velocity`).
+        viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (see
+            :func:`diffuse_velocity`; the implicit ones are exact spectral solves, about as cheap as explicit).
         force: Optional body force (acceleration) as a StaggeredGrid on the same grid.
         obstacles: Obstacles (see :func:`make_incompressible`).
         solve: CG settings of the masked pressure solve and of implicit viscosity.
