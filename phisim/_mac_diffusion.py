@@ -31,6 +31,7 @@ vertex-centred Neumann stencil is symmetric in that weighted inner product).
 
 from __future__ import annotations
 
+import copy
 import math
 from functools import lru_cache
 
@@ -198,10 +199,17 @@ def _cached_component(grid, boundary, i: int) -> _Component:
 
 
 def _component(grid, boundary, i: int) -> _Component:
+    """The (cached) geometry of component ``i``, bound to this very ``boundary`` object.
+
+    Boundaries that compare equal may still hold different evaluated inflow profiles (not part of their
+    equality), so the cached geometry is copied and given the caller's boundary for the value terms.
+    """
     try:
-        return _cached_component(grid, boundary, i)
+        comp = copy.copy(_cached_component(grid, boundary, i))
     except TypeError:  # boundaries holding unhashable values (tensors in lists)
         return _Component(grid, boundary, i)
+    comp.boundary = boundary
+    return comp
 
 
 def _fixed_masks(fixed, velocity):

@@ -225,7 +225,7 @@ def navier_stokes_rk_step(
         if b != 1.0:
             w = w * b
         if a != 0.0:
-            w = w + a * u0
+            w = w + a * u0.with_boundary(w.boundary)
         t_out = time + float(dt) * (stages[k + 1][2] if k + 1 < len(stages) else 1.0)
         w = _to_time(w, t_out)
         layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
@@ -283,6 +283,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     f1 = _force_at(force, t_new, u1)
     if f1 is not None:
         explicit1 = explicit1 + f1
+    explicit1 = explicit1.with_boundary(u0.boundary)  # time-dependent inflows: u1 carries the new time
     u2, phi = stage(0.5 * (explicit0 + explicit1))
     p = phi if grad_q is None else phi.with_values(phi.values + grad_q[0].values)
     if e0 is not None:

@@ -310,3 +310,33 @@ def test_taylor_green_at_a_convective_time_step_second_order_in_space_and_time(i
         energy.append(float(kinetic_energy(v) / kinetic_energy(exact)) - 1)
     assert errors[0] < 7e-5 and math.log2(errors[0] / errors[1]) > 1.95, errors
     assert abs(energy[0]) < 1.5e-4 and abs(energy[1]) < 4e-5, energy
+
+
+@pytest.mark.parametrize("integrator", ["imex2", "rk2"])
+def test_channel_with_inflow_profile_and_outflow_stays_developed(integrator):
+    """Plane Poiseuille flow: parabolic Inflow on the left, Open on the right, walls above and below."""
+    from phisim import Open
+    from phisim.boundary import Inflow
+    from phisim.fluid import net_boundary_flux
+
+    h = 1.0
+
+    def profile(x):
+        y = x[..., 1]
+        return torch.stack([4 * y * (h - y) / h**2, torch.zeros_like(y)], -1)
+
+    grid = Grid((32, 16), bounds=[(0, 2.0), (0, h)])
+    boundary = {"x": (Inflow(profile), Open()), "y": "wall"}
+    v = StaggeredGrid.from_function(profile, grid, boundary, dtype=F64)
+    nu = 0.05
+    # the pressure gradient that drives this flow: dp/dx = -8 ν / h² (as a potential, dt * p)
+    p = None
+    for k in range(20):
+        v, p = navier_stokes_step(v, 0.01, viscosity=nu, integrator=integrator, pressure_guess=p, time=0.01 * k)
+    assert float(divergence(v).values.abs().max()) < 1e-9
+    assert abs(float(net_boundary_flux(v)[0])) < 1e-9
+    exact = StaggeredGrid.from_function(profile, grid, boundary, dtype=F64)
+    assert _max_diff(v, exact) < 0.02  # the discrete channel flow stays at the parabola (ghosts at the walls)
+    x = grid.cell_centers(F64)[..., 0]
+    slope = float(((p.values[0, 20:24] - p.values[0, 8:12]) / (x[20:24] - x[8:12])).mean()) / 0.01
+    assert slope == pytest.approx(-8 * nu / h**2, rel=0.05)
