@@ -43,8 +43,9 @@ def simulate_smoke(out: Path, resolution: int, steps: int, dt: float = 0.5) -> d
                           batch_size=1, config={"resolution": resolution, "steps": steps}) as writer:
         writer.append(0.0, density=state.marker, velocity=state.velocity)
         for _ in range(steps):
+            # conservative smoke transport: the smoke mass is exactly what the inflow added
             state = step(state, dt, buoyancy_strength=params["buoyancy"], marker_source=inflow,
-                         obstacles=[obstacle], advection="maccormack")
+                         obstacles=[obstacle], advection="maccormack", marker_advection="conservative")
             writer.append(state.time, density=state.marker, velocity=state.velocity)
             frames.append(state.marker)
     animate(frames, out / "smoke.gif", fps=10)

@@ -22,6 +22,8 @@ def test_demo_tiny(tmp_path):
         assert (tmp_path / name).stat().st_size > 0, name
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     assert summary["smoke"]["max_divergence"] < 1e-4
+    # conservative smoke transport: 3 steps of dt 0.5 from an inflow of 4 cells of volume 16 put in exactly 96
+    assert abs(summary["smoke"]["smoke_mass"] - 96.0) < 1e-3
     sim = read_simulation(tmp_path / "smoke.h5")
     assert sim.n_frames == 4 and sim.fields["density"].shape == (1, 4, 16, 16)
     assert np.isfinite(sim.fields["density"]).all() and sim.fields["density"][0, -1].sum() > 0
