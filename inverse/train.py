@@ -112,7 +112,8 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
         objective value.
     """
     if method.kind == "hig":
-        info = opt.step(batch.inputs, batch.y_target, loss_fn=problem.loss, physics_args=batch.physics_args)
+        loss_fn = problem.loss if method.loss is None else method.loss
+        info = opt.step(batch.inputs, batch.y_target, loss_fn=loss_fn, physics_args=batch.physics_args)
         with torch.no_grad():
             x = problem.predict(model, batch)
             loss = problem.loss(batch.operator(x), batch.y_target).sum()
