@@ -30,7 +30,7 @@ from .grid import Grid
 
 __all__ = [
     "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
-    "ffmpeg_available", "draw_mask",
+    "ffmpeg_available", "draw_mask", "plot_training_curves",
 ]
 
 PathLike = str | os.PathLike
@@ -348,10 +348,83 @@ def plot_curves(
         ax.plot(it, val, label=name)
     if logy:
         ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate([val for _, _, val in prepared]))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def _readable_log_ticks(ax: Axes, values: np.ndarray) -> None:
+    """Label a log y axis at 1-2-5 (or every integer multiple, for data within half a decade) per decade,
+    as plain numbers, so a curve spanning less than a decade still gets several labelled ticks."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    v = values[np.isfinite(values) & (values > 0)]
+    if v.size == 0:
+        return
+    decades = float(np.log10(v.max() / v.min()))
+    subs = tuple(range(1, 10)) if decades < 0.5 else (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=subs))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def plot_training_curves(
+    runs: Mapping[str, Mapping[str, np.ndarray]],
+    metric_name: str = "metric",
+    ax: Axes | None = None,
+    *,
+    curve: str = "metric",
+    title: str | None = None,
+    logy: bool = True,
+) -> Axes:
+    """Learning curves of several runs: the training-batch curve (thin, faded) and the held-out curve
+    (``eval_<curve>``, solid with markers) of each method in one colour.
+
+    Args:
+        runs: Method -> curves as written by :func:`inverse.train.train` (``iteration``, ``metric``,
+            ``eval_metric``, ...).
+        metric_name: The y-axis label (what the curve measures, with units).
+        ax: Axes to draw into; a new figure is made when ``None``.
+        curve: ``'metric'`` or ``'loss'``.
+        title: Axes title.
+        logy: Logarithmic y axis with readable tick labels.
+
+    Returns:
+        The axes, with a legend naming "train batch" and "held-out" for each method.
+
+    Raises:
+        ParameterError: For an empty mapping or runs without ``iteration`` and ``curve``.
+    """
+    if not isinstance(runs, Mapping) or not runs:
+        raise ParameterError("runs must be a non-empty mapping method -> curves")
+    ax = _axes(ax)
+    everything = []
+    for k, (name, c) in enumerate(runs.items()):
+        if "iteration" not in c or curve not in c:
+            raise ParameterError(f"run {name!r} has no 'iteration' and {curve!r} curves")
+        color = f"C{k % 10}"
+        it = _np(c["iteration"]).astype(np.float64)
+        train = _np(c[curve]).astype(np.float64)
+        keep = np.isfinite(train) & ((train > 0) if logy else True)
+        ax.plot(it[keep], train[keep], color=color, alpha=0.35, lw=1.0, label=f"{name} (train batch)")
+        everything.append(train[keep])
+        if f"eval_{curve}" in c:
+            held = _np(c[f"eval_{curve}"]).astype(np.float64)
+            keep = np.isfinite(held) & ((held > 0) if logy else True)
+            ax.plot(it[keep], held[keep], color=color, lw=1.8, marker="o", ms=3, label=f"{name} (held-out)")
+            everything.append(held[keep])
+    if logy:
+        ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate(everything) if everything else np.zeros(0))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(metric_name)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
     if title is not None:
         ax.set_title(title)
     return ax
