@@ -46,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--eval-every", type=int, default=None,
                         help="iterations between held-out evaluations (default: about 20 per run; 0: at the end)")
         sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
+        sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                        help="network and data precision (default: the problem's)")
 
     t = sub.add_parser("train", help="train one method")
     common(t)
@@ -99,6 +101,10 @@ def _problem(args):
         settings["resolution"] = tuple(args.resolution)
     if args.heldout_size is not None:
         settings["heldout_size"] = args.heldout_size
+    if args.dtype is not None:
+        import torch
+
+        settings["dtype"] = getattr(torch, args.dtype)
     return get_problem(args.problem, **settings)
 
 
