@@ -359,15 +359,16 @@ def plot_curves(
 
 
 def _readable_log_ticks(ax: Axes, values: np.ndarray) -> None:
-    """Label a log y axis at 1-2-5 (or every integer multiple, for data within half a decade) per decade,
-    as plain numbers, so a curve spanning less than a decade still gets several labelled ticks."""
+    """Label a log y axis at 1-2-5 per decade (every integer multiple for data within one decade, only
+    powers of ten beyond three decades), as plain numbers, so a curve spanning less than a decade still
+    gets several labelled ticks."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     v = values[np.isfinite(values) & (values > 0)]
     if v.size == 0:
         return
     decades = float(np.log10(v.max() / v.min()))
-    subs = tuple(range(1, 10)) if decades < 0.5 else (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
+    subs = tuple(range(1, 10)) if decades < 1 else (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
     ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=subs))
     ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
     ax.yaxis.set_minor_formatter(NullFormatter())
