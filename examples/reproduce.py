@@ -190,7 +190,8 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
 def summarize(exp: str, curves: dict[str, dict[str, np.ndarray]], window: int) -> dict:
     """Final running averages, seconds per iteration and the comparisons stated in EXPERIMENTS.md.
 
-    For every method: ``final`` (running average of the metric at the last iteration), ``iterations``,
+    For every method: ``final`` (running average of the training-batch metric at the last iteration),
+    ``heldout_final`` (the last held-out evaluation, when logged), ``iterations``,
     ``sec_per_it`` (median), ``at`` (running average at the checkpoints of :data:`CHECKPOINTS`). Against the
     reference method (Adam) of the same seed: ``ratio_final`` and ``ratio_at`` (reference / method, >1 means
     the method is more accurate) and ``iters_to_reference_final`` (first iteration at which the method's
@@ -205,6 +206,9 @@ def summarize(exp: str, curves: dict[str, dict[str, np.ndarray]], window: int) -
         entry = {"iterations": int(len(s)), "final": float(s[-1]) if len(s) else math.nan,
                  "sec_per_it": float(np.median(t)) if t.size else math.nan,
                  "at": {str(i): float(s[i]) for i in CHECKPOINTS[exp] if i < len(s)}}
+        held = np.asarray(c.get("eval_metric", []), dtype=np.float64)
+        if np.isfinite(held).any():  # the final network in eval mode on the problem's held-out set
+            entry["heldout_final"] = float(held[np.isfinite(held)][-1])
         summary[key] = entry
     for key, entry in summary.items():
         _, seed = _split_key(key)

@@ -6,6 +6,12 @@ Examples::
     phisim train poisson pg --iterations 200 --batch-size 16 --resolution 32 32 --out out/poisson.h5
     phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
     phisim info out/poisson.h5
+
+Data-parallel training: start the same command under ``torchrun``; the process group is initialised from
+its environment (gloo on CPU, NCCL with ``--device cuda``, one GPU per process), process 0 writes the files
+and prints, and N processes follow the one-process run::
+
+    torchrun --standalone --nproc_per_node 2 -m inverse.cli train poisson adam --iterations 100 --out out/p.h5
 """
 
 from __future__ import annotations
@@ -37,6 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--checkpoint-every", type=int, default=0)
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        sp.add_argument("--eval-every", type=int, default=None,
+                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end)")
+        sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
+        sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                        help="network and data precision (default: the problem's)")
 
     t = sub.add_parser("train", help="train one method")
     common(t)
@@ -88,24 +99,38 @@ def _problem(args):
     settings = {}
     if args.resolution is not None:
         settings["resolution"] = tuple(args.resolution)
+    if args.heldout_size is not None:
+        settings["heldout_size"] = args.heldout_size
+    if args.dtype is not None:
+        import torch
+
+        settings["dtype"] = getattr(torch, args.dtype)
     return get_problem(args.problem, **settings)
 
 
 def _train(args, problem, method):
+    from .distributed import is_main_process
     from .train import train
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet)
-    print(json.dumps({"problem": problem.name, "method": method, "iterations": r.iterations,
-                      "final_loss": r.final("loss"), "final_metric": r.final("metric"),
-                      "seconds": round(r.seconds, 3)}))
+              progress=not args.quiet, eval_every=args.eval_every)
+    if is_main_process():
+        print(json.dumps({
+            "problem": problem.name, "method": method, "iterations": r.iterations,
+            "loss_name": problem.loss_name, "metric_name": problem.metric_name,
+            "final_loss": r.final("loss"), "final_metric": r.final("metric"),
+            "final_measured_on": "training batches, mean of the last 10 iterations",
+            "heldout_loss": r.final_eval("loss"), "heldout_metric": r.final_eval("metric"),
+            "heldout_measured_on": f"final model, eval mode, {problem.heldout_size} held-out samples",
+            "seconds": round(r.seconds, 3)}, ensure_ascii=False))
     return r
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ``phisim`` command; returns the exit status (2 for user errors, with a one-line message)."""
     args = build_parser().parse_args(argv)
+    started = False
     try:
         if args.command == "list":
             from .problems import PROBLEMS
@@ -116,21 +141,40 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "info":
             print(describe_file(args.path))
             return 0
+        from .distributed import is_main_process
+
+        started = _start_process_group(args.device)
         problem = _problem(args)
         if args.command == "train":
             _train(args, problem, args.method)
             return 0
         results = {m: _train(args, problem, m) for m in args.methods}
-        if args.plot is not None:
-            from phisim.plot import plot_curves, save_figure
+        if args.plot is not None and is_main_process():
+            from phisim.plot import plot_training_curves, save_figure
 
-            ax = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
-                             logy=True, title=f"{problem.name}: metric", ylabel="metric")
+            ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
+                                      title=f"{problem.name}: {problem.metric_name}")
             save_figure(ax.figure, args.plot)
         return 0
     except PhisimError as exc:
         print(f"phisim: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if started:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _start_process_group(device: str) -> bool:
+    """Under torchrun, initialise the process group from its environment; True when this call did."""
+    import torch.distributed as dist
+
+    from .distributed import init_from_env, launched_by_torchrun
+
+    if not launched_by_torchrun() or (dist.is_available() and dist.is_initialized()):
+        return False
+    return init_from_env(device)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -543,6 +543,8 @@ class FluidProblem(Problem):
     name: str = "fluid"
     batch_size: int = 64
     reduction: str = "mean"
+    loss_name: str = "marker frequency loss per sample"
+    metric_name: str = "v0 error per sample (sum over cells of |v0−v0*|₂)"
     resolution: tuple[int, int] = (64, 64)
     steps: int = E5_STEPS
     dt: float = E5_DT

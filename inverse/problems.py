@@ -5,8 +5,14 @@ A :class:`Problem` bundles what :func:`inverse.train.train` needs; a :class:`Met
 settings follow ``EXPERIMENTS.md`` (E2 sine, E3 Poisson, E4 heat); sizes can be reduced for tests.
 
 Conventions of the reference figures: the y-space loss ``l2`` is ``½ Σ`` over a sample's cells (a sum, not
-a mean); Poisson and heat backpropagate the batch **sum**, sine and fluid the batch **mean**; the metric
-"x MAE" is ``Σ_cells |x − x*|`` per sample, averaged over the batch.
+a mean); Poisson and heat backpropagate the batch **sum**, sine and fluid the batch **mean**; the metric of
+E3/E4 is the x L1 error per sample, ``Σ_cells |x − x*|`` (a sum over cells, not a mean), averaged over
+samples. Each problem names its loss and metric with units in :attr:`Problem.loss_name` and
+:attr:`Problem.metric_name`.
+
+Every problem has a fixed held-out set (:meth:`Problem.heldout`): ``heldout_size`` samples (default 128, as
+the published reference code's test set) drawn from a generator seeded with ``heldout_seed`` (default
+``2**63 + 2024``, a seed the training stream never uses, so held-out samples are not training batches).
 """
 
 from __future__ import annotations
@@ -24,7 +30,11 @@ from .nets import MLP, UNet
 from .operators import PhysicsOperator, Sine
 from .physgrad import QuadraticLoss
 
-__all__ = ["Method", "Batch", "Problem", "SineProblem", "PoissonProblem", "HeatProblem", "PROBLEMS", "get_problem"]
+HELDOUT_SEED = 2**63 + 2024
+HELDOUT_SIZE = 128
+
+__all__ = ["HELDOUT_SEED", "HELDOUT_SIZE", "Method", "Batch", "Problem", "SineProblem", "PoissonProblem",
+           "HeatProblem", "PROBLEMS", "get_problem"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +102,10 @@ class Problem:
         dtype: Network dtype.
         methods: The problem's methods by name.
         newton_loss: The y-space quadratic loss whose Newton step drives physical gradients.
+        heldout_size: Samples in the fixed held-out set (:meth:`heldout`).
+        heldout_seed: Seed of the held-out set's generator (independent of the training seed).
+        loss_name: What the ``loss`` curve measures, with its reduction (files, plots, CLI).
+        metric_name: What the ``metric`` curve measures, with its reduction.
     """
 
     name: str = "problem"
@@ -100,6 +114,11 @@ class Problem:
     dtype: torch.dtype = torch.float32
     methods: dict[str, Method] = field(default_factory=dict)
     newton_loss: QuadraticLoss = field(default_factory=QuadraticLoss)
+    heldout_size: int = HELDOUT_SIZE
+    heldout_seed: int = HELDOUT_SEED
+    loss_name: str = "y loss ½Σ_cells (y−y*)² per sample"
+    metric_name: str = "x L1 per sample (sum over cells of |x−x*|)"
+    _heldout_cache: dict = field(default_factory=dict, repr=False, compare=False, init=False)
 
     def method(self, name: str) -> Method:
         """The method called ``name``.
@@ -114,6 +133,25 @@ class Problem:
     def make_network(self) -> nn.Module:
         """A freshly initialised network (seed torch before calling for reproducibility)."""
         raise NotImplementedError
+
+    def heldout(self, device=None) -> Batch:
+        """The fixed held-out set: ``heldout_size`` samples from a generator seeded with ``heldout_seed``.
+
+        The same for every training seed, method and process; built once per device and cached.
+
+        Raises:
+            ParameterError: For a non-positive ``heldout_size``.
+        """
+        size = self.heldout_size
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise ParameterError(f"heldout_size must be a positive int, got {size!r}")
+        key = (str(torch.device(device) if device is not None else "cpu"), size, int(self.heldout_seed))
+        if key not in self._heldout_cache:
+            gen = torch.Generator(device="cpu")
+            gen.manual_seed(int(self.heldout_seed))
+            self._heldout_cache.clear()
+            self._heldout_cache[key] = self.sample(size, gen, device=device)
+        return self._heldout_cache[key]
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """Draw a batch of problems from ``generator``."""
@@ -156,6 +194,8 @@ class SineProblem(Problem):
     name: str = "sine"
     batch_size: int = 1000
     reduction: str = "mean"
+    loss_name: str = "height sin(a/x)+1 per sample"
+    metric_name: str = "height sin(a/x)+1 per sample"
     a_range: tuple[float, float] = (0.1, 10.1)
 
     def __post_init__(self):
