@@ -177,6 +177,21 @@ def _read_log(h5path: Path, method: str) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in grp.items() if isinstance(v, h5py.Dataset)}
 
 
+def _write_model(out_path: Path, net: nn.Module, problem: Problem, method: Method, seed: int, iterations: int,
+                 input_shape, batch_size: int, device) -> Path:
+    """The end-of-run model file beside ``out_path`` (:func:`inverse.models.model_path`), named in the log."""
+    from .models import model_path, save_model
+
+    if input_shape is None:  # nothing trained in this session (a resumed, finished run): draw one sample
+        input_shape = tuple(problem.sample(1, batch_generator(seed, 0), device=device).inputs.shape[1:])
+    path = save_model(model_path(out_path, method.name), net, problem, method=method.name, seed=seed,
+                      iterations=iterations, input_shape=input_shape)
+    with h5py.File(out_path, "a") as f:
+        grp = f.require_group(f"training/{method.name}")
+        grp.attrs["model_file"] = path.name
+    return path
+
+
 def train(
     problem: Problem | str,
     method: Method | str,
@@ -201,7 +216,9 @@ def train(
         batch_size: Samples per batch (default: the problem's).
         seed: Seeds the network initialisation and the data stream.
         device: Torch device.
-        out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints).
+        out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints). At the
+            end of the run the trained network is written to ``<out>.<method>.model.pt``
+            (:func:`inverse.models.load_model` rebuilds it; the log's attribute ``model_file`` names it).
         checkpoint_every: Iterations between checkpoints (0: none).
         resume: Continue from the checkpoint next to ``out`` when there is one.
         progress: Show a tqdm progress bar.
@@ -288,10 +305,13 @@ def train(
 
         bar = tqdm(total=iterations, initial=start, desc=f"{problem.name}/{method.name}")
     t0 = time.perf_counter()
+    input_shape = None
     model.train()
     try:
         for it in range(start, iterations):
             batch = problem.sample(batch_size, batch_generator(seed, it), device=device)
+            if input_shape is None:
+                input_shape = tuple(batch.inputs.shape[1:])
             if distributed:
                 batch = _slice_batch(batch, slice(rank, None, world))
             sums, objective = _step(problem, method, model, opt, batch, weight)
@@ -324,6 +344,8 @@ def train(
     seconds = time.perf_counter() - t0
     if distributed:
         dist.barrier()
+    if out_path is not None and rank == 0:
+        _write_model(out_path, net, problem, method, seed, iterations, input_shape, batch_size, device)
     if out_path is not None:
         arrays = _read_log(out_path, method.name)
     else:
