@@ -6,6 +6,14 @@ Examples::
     phisim train poisson pg --iterations 200 --batch-size 16 --resolution 32 32 --out out/poisson.h5
     phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
     phisim info out/poisson.h5
+    phisim train examples/burgers_inverse.py:burgers_problem adam --setting resolution=16 --out out/b.h5
+    phisim train well pg --setting data_dir=data/heat --out out/well.h5
+    phisim simulate smoke --trajectories 16 --workers 2 --out data/smoke
+    phisim plot data/smoke/data/train/smoke_00000.h5 --field vorticity
+    phisim predict out/poisson.h5.pg.model.pt inputs.h5 --key inputs --out predictions.h5
+
+``problem`` is a registered name (``phisim list``) or a factory of your own, ``module:function`` or
+``file.py:function`` (see :mod:`inverse.custom`).
 """
 
 from __future__ import annotations
@@ -37,6 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--checkpoint-every", type=int, default=0)
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        sp.add_argument("--setting", action="append", metavar="KEY=VALUE", default=[],
+                        help="a problem setting (repeatable), e.g. --setting lr=0.01")
+        sp.add_argument("--tensorboard", type=Path, default=None, help="TensorBoard folder (if installed)")
+        sp.add_argument("--csv", type=Path, default=None, help="folder for CSV copies of the curves")
 
     t = sub.add_parser("train", help="train one method")
     common(t)
@@ -47,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", type=Path, default=None, help="PNG of the learning curves")
     i = sub.add_parser("info", help="summarise an HDF5 file written by phisim")
     i.add_argument("path", type=Path)
+    from .cli_workflows import add_workflow_parsers
+
+    add_workflow_parsers(sub)
     return p
 
 
@@ -83,9 +98,10 @@ def describe_file(path: Path) -> str:
 
 
 def _problem(args):
+    from .cli_workflows import parse_settings
     from .problems import get_problem
 
-    settings = {}
+    settings = parse_settings(args.setting)
     if args.resolution is not None:
         settings["resolution"] = tuple(args.resolution)
     return get_problem(args.problem, **settings)
@@ -96,7 +112,11 @@ def _train(args, problem, method):
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet)
+              progress=not args.quiet, tensorboard=args.tensorboard)
+    if args.csv is not None and args.out is not None:
+        from .export import export_csv
+
+        export_csv(args.out, args.csv)
     print(json.dumps({"problem": problem.name, "method": method, "iterations": r.iterations,
                       "final_loss": r.final("loss"), "final_metric": r.final("metric"),
                       "seconds": round(r.seconds, 3)}))
@@ -116,6 +136,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "info":
             print(describe_file(args.path))
             return 0
+        from .cli_workflows import WORKFLOW_COMMANDS, run_workflow
+
+        if args.command in WORKFLOW_COMMANDS:
+            return run_workflow(args)
         problem = _problem(args)
         if args.command == "train":
             _train(args, problem, args.method)

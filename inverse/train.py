@@ -206,6 +206,7 @@ def train(
     progress: bool = False,
     callback: Callable[[int, dict], None] | None = None,
     distributed: bool | None = None,
+    tensorboard: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Train the problem's network with one method.
 
@@ -229,6 +230,8 @@ def train(
             follow the single-process trajectory up to round-off; process 0 writes the log and the
             checkpoints. ``None``: on when a process group is initialised. Not for HIG, and networks with
             BatchNorm see per-process batch statistics.
+        tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
+            the ``tensorboard`` package is not installed.
 
     Returns:
         The :class:`TrainResult`.
@@ -304,6 +307,11 @@ def train(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=iterations, initial=start, desc=f"{problem.name}/{method.name}")
+    tb = None
+    if tensorboard is not None and rank == 0:
+        from .export import TensorBoardLogger
+
+        tb = TensorBoardLogger(tensorboard, method.name)
     t0 = time.perf_counter()
     input_shape = None
     model.train()
@@ -329,6 +337,8 @@ def train(
                 log.append(it, **record)
             if callback is not None:
                 callback(it, record)
+            if tb is not None:
+                tb.log(it, record)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}")
@@ -341,6 +351,8 @@ def train(
             bar.close()
         if log is not None:
             log.close()
+        if tb is not None:
+            tb.close()
     seconds = time.perf_counter() - t0
     if distributed:
         dist.barrier()
