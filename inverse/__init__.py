@@ -50,3 +50,8 @@ from .models import load_model, model_path, predict_file, save_model  # noqa: E4
 
 __all__ += ["CallableOperator", "CustomProblem", "make_problem", "load_problem"]  # your own physics
 __all__ += ["load_model", "save_model", "model_path", "predict_file"]  # trained models
+
+from .export import TensorBoardLogger, export_csv  # noqa: E402
+from .offline import DatasetSampler, FieldNet, dataset_problem  # noqa: E402
+
+__all__ += ["export_csv", "TensorBoardLogger", "DatasetSampler", "FieldNet", "dataset_problem"]  # offline, CSV

@@ -131,7 +131,10 @@ def main(argv: list[str] | None = None) -> int:
             from .problems import PROBLEMS
 
             for name, cls in PROBLEMS.items():
-                print(f"{name}: {', '.join(cls().methods)}")
+                try:
+                    print(f"{name}: {', '.join(cls().methods)}")
+                except (TypeError, PhisimError):  # needs settings, e.g. the dataset of `well`
+                    print(f"{name}: supervised (needs --setting data_dir=DIR --setting field=NAME)")
             return 0
         if args.command == "info":
             print(describe_file(args.path))

@@ -331,6 +331,16 @@ def _fluid_problem(**settings) -> Problem:
 PROBLEMS["fluid"] = _fluid_problem
 
 
+def _well_problem(**settings) -> Problem:
+    """Offline supervised training from a Well-layout dataset (:func:`inverse.offline.dataset_problem`)."""
+    from .offline import dataset_problem
+
+    return dataset_problem(**settings)
+
+
+PROBLEMS["well"] = _well_problem
+
+
 def get_problem(name: str, **settings) -> Problem:
     """Instantiate a registered problem, e.g. ``get_problem('poisson', resolution=(32, 32), batch_size=8)``.
 

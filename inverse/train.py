@@ -142,7 +142,10 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
         per = 0.5 * ((x - batch.labels) ** 2).reshape(x.shape[0], -1).sum(dim=1)
         objective = weight * per.sum()
         with torch.no_grad():
-            loss_sum = problem.loss(batch.operator(x.detach()), batch.y_target).sum()
+            if getattr(problem, "has_physics", True):
+                loss_sum = problem.loss(batch.operator(x.detach()), batch.y_target).sum()
+            else:  # offline data without a forward physics: no y-space loss
+                loss_sum = torch.tensor(float("nan"), device=x.device)
     else:
         raise ParameterError(f"unknown method kind {method.kind!r}")
     if not torch.isfinite(objective):
