@@ -130,7 +130,7 @@ def resolve_config(scenario: str, config: Mapping[str, Any] | None = None, **ove
         cfg[key] = merged.get(key, None if (par.low is not None and key in sc.parameters) else par.default)
     cfg["dim"] = sc.dims[0] if cfg["dim"] is None else cfg["dim"]
     if cfg["dim"] not in sc.dims:
-        raise ParameterError(f"scenario {scenario!r} runs in {', '.join(map(str, sorted(sc.dims)))}-D, not "
+        raise ParameterError(f"scenario {scenario!r} runs in {' or '.join(f'{d}-D' for d in sorted(sc.dims))}, not "
                              f"dim={cfg['dim']!r}")
     cfg["resolution"] = sc.resolution if cfg["resolution"] is None else cfg["resolution"]
     r = cfg["resolution"]
