@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -202,3 +203,28 @@ def test_cli_simulate_and_one_line_errors(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "did you mean 'viscosity'" in err
     assert main(["simulate", "--list"]) == 0
     assert "taylor_green" in capsys.readouterr().out
+
+
+def _rank_worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        torch.set_num_threads(1)
+        r = simulate_dataset(out_dir, _small(), progress=False)
+        (Path(out_dir) / f"rank{rank}.json").write_text(json.dumps({"written": r["written"]}))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_ranks_share_the_files_and_match_one_process(tmp_path):
+    import torch.multiprocessing as mp
+
+    one = _contents(simulate_dataset(tmp_path / "one", _small(), progress=False)["root"])
+    mp.spawn(_rank_worker, args=(2, str(tmp_path / "init"), str(tmp_path / "two")), nprocs=2, join=True)
+    written = [json.loads((tmp_path / "two" / f"rank{r}.json").read_text())["written"] for r in (0, 1)]
+    assert written == [2, 1]  # files 0, 2 on rank 0 and file 1 on rank 1
+    two = _contents(tmp_path / "two")
+    assert one.keys() == two.keys()
+    assert all(np.array_equal(one[k][0], two[k][0]) for k in one)
+    assert (tmp_path / "two" / "stats.yaml").is_file()
