@@ -82,7 +82,7 @@ def field_frames(data, name: str, sample: int = 0) -> np.ndarray:
         raise ParameterError(f"no field {name!r} in {data.path}; choose from {choices}")
     v = np.asarray(data.fields[name][sample], dtype=np.float64)
     if data.kinds[name] != "scalar":
-        v = np.sqrt((v**2).sum(axis=1))
+        v = v[:, 0] if v.shape[1] == 1 else np.sqrt((v**2).sum(axis=1))  # 1-D: the signed component
     return v
 
 
@@ -288,6 +288,13 @@ def plot_file(path: str | Path, out: str | Path | None = None, *, field: str | N
         raise FileFormatError(f"{path}: not a readable HDF5 file ({exc})") from exc
     if not has_fields and not has_training:
         raise FileFormatError(f"{path} holds neither simulation fields nor training curves")
+    if animation not in (None, "gif", "mp4"):
+        raise ParameterError(f"animation must be 'gif', 'mp4' or None, got {animation!r}")
+    if animation == "mp4":
+        from .plot import ffmpeg_available
+
+        if not ffmpeg_available():
+            raise ParameterError("writing MP4 needs ffmpeg on the PATH; install ffmpeg or write a .gif")
     out_dir = path.parent if out is None else Path(out)
     written = []
     if has_training:
@@ -300,7 +307,8 @@ def plot_file(path: str | Path, out: str | Path | None = None, *, field: str | N
             return written
         if field is None:
             scal = [n for n, k in data.kinds.items() if k == "scalar" and n not in _MASK_NAMES]
-            field = scal[0] if scal else "speed"
+            vec = [n for n, k in data.kinds.items() if k != "scalar"]
+            field = scal[0] if scal else vec[0] if data.grid.rank == 1 else "speed"
         written.append(plot_frames(data, field, out_dir / f"{path.stem}_{field}.png", sample=sample, frames=frames))
         if animation and data.grid.rank > 1 and data.n_frames > 1:
             written.append(animate_file(data, field, out_dir / f"{path.stem}_{field}.{animation}", sample=sample,
