@@ -66,6 +66,8 @@ class DatasetSampler:
                     names = [n for g in ("t0_fields", "t1_fields") if g in f for n in f[g]]
                     raise FileFormatError(f"{p} has no field {field!r}; fields: {names}")
                 ds = f[group][field]
+                if not ds.attrs.get("time_varying", True):
+                    raise FileFormatError(f"{p}: field {field!r} is constant in time; pick a time-varying field")
                 if i == 0:
                     self.vector = group == "t1_fields"
                     self.n_frames = ds.shape[1]

@@ -357,10 +357,10 @@ def train(
         if tb is not None:
             tb.close()
     seconds = time.perf_counter() - t0
+    if out_path is not None and rank == 0:  # before the barrier: no process reads the log while it is written
+        _write_model(out_path, net, problem, method, seed, iterations, input_shape, batch_size, device)
     if distributed:
         dist.barrier()
-    if out_path is not None and rank == 0:
-        _write_model(out_path, net, problem, method, seed, iterations, input_shape, batch_size, device)
     if out_path is not None:
         arrays = _read_log(out_path, method.name)
     else:

@@ -320,9 +320,11 @@ def _prepare_root(root: Path, cfg: dict, overwrite: bool, rank: int) -> None:
         if not same and overwrite and rank == 0:
             shutil.rmtree(root / "data", ignore_errors=True)
             (root / "stats.yaml").unlink(missing_ok=True)
-    elif root.is_dir() and (root / "data").exists() and rank == 0 and not overwrite:
-        raise ParameterError(f"{root}/data exists but {saved.name} does not: not a phisim dataset folder; "
-                             "choose another output folder or pass --overwrite")
+    elif root.is_dir() and (root / "data").exists() and rank == 0:
+        if not overwrite:
+            raise ParameterError(f"{root}/data exists but {saved.name} does not: not a phisim dataset folder; "
+                                 "choose another output folder or pass --overwrite")
+        shutil.rmtree(root / "data")
     if rank == 0:
         for split in SPLITS:
             (root / "data" / split).mkdir(parents=True, exist_ok=True)
