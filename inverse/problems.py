@@ -403,16 +403,41 @@ def _fluid_problem(**settings) -> Problem:
 PROBLEMS["fluid"] = _fluid_problem
 
 
+def _well_problem(**settings) -> Problem:
+    """Offline supervised training from a Well-layout dataset (:func:`inverse.offline.dataset_problem`)."""
+    from .offline import dataset_problem
+
+    return dataset_problem(**settings)
+
+
+PROBLEMS["well"] = _well_problem
+
+
 def get_problem(name: str, **settings) -> Problem:
     """Instantiate a registered problem, e.g. ``get_problem('poisson', resolution=(32, 32), batch_size=8)``.
 
+    A name ``module:function`` or ``path/to/file.py:function`` calls a factory of your own
+    (:func:`inverse.custom.load_problem`). The problem records ``spec = {'factory': name, 'settings': ...}``
+    (what :func:`inverse.load_model` uses to rebuild its network).
+
     Raises:
-        ParameterError: For an unknown name or setting.
+        ParameterError: For an unknown name or setting (the closest registered name is suggested).
     """
+    if ":" in str(name):
+        from .custom import load_problem
+
+        return load_problem(name, **settings)
     if name not in PROBLEMS:
-        raise ParameterError(f"unknown problem {name!r}; choose from {sorted(PROBLEMS)}")
+        import difflib
+
+        close = difflib.get_close_matches(str(name), list(PROBLEMS), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ParameterError(f"unknown problem {name!r}{hint} (choose from {sorted(PROBLEMS)}, or give a "
+                             "factory as module:function)")
     try:
-        return PROBLEMS[name](**settings)
+        problem = PROBLEMS[name](**settings)
     except TypeError as exc:
         raise ParameterError(f"bad settings for problem {name!r}: {exc}") from exc
+    problem.spec = {"factory": name, "settings": dict(settings)}
+    return problem
 
