@@ -345,3 +345,23 @@ def test_free_slip_body_keeps_the_tangential_velocity_on_cut_faces():
     # free-slip: the flow passes the plate's side faster than the stream (it goes around the blockage)
     assert float(slip.sample(probe)[0, 0, 0]) > 1.0
     assert float(stick.sample(probe)[0, 0, 0]) < 0.9  # no-slip blends towards the body's velocity (0)
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_inflow_on_any_side(rank):
+    """Inflow on an upper side (blowing in the -axis direction), outflow opposite, bodies in between."""
+    res = (10, 12) if rank == 2 else (8, 10, 6)
+    grid = Grid(res, bounds=[(0, 1), (0, 1.2)] + ([(0, 0.6)] if rank == 3 else []))
+    spec = {"x": "periodic", "y": (Open(), Inflow(-0.7))}
+    if rank == 3:
+        spec["z"] = ("wall", Inflow(lambda x: torch.stack([0 * x[..., 0], 0 * x[..., 0], -0.2 + 0 * x[..., 0]], -1)))
+        spec["y"] = (Open(), Inflow(-0.7))
+    v = _random(grid, spec, seed=5)
+    body = Body(Sphere((0.5, 0.6) + ((0.3,) if rank == 3 else ()), 0.2))
+    out, _ = make_incompressible(v, body, solve=TIGHT)
+    scale = float(divergence(v.with_boundary_faces()).values.abs().max())
+    assert float(divergence(out).values.abs().max()) < 1e-8 * scale
+    top = out.values[1].narrow(2, res[1], 1)
+    assert torch.allclose(top, torch.full_like(top, -0.7))
+    flux = net_boundary_flux(out)
+    assert float(flux.abs().max()) < 1e-9
