@@ -27,6 +27,15 @@ Engines:
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
 
+Planner effort and reproducibility: the default is ``FFTW_ESTIMATE``. FFTW's ``FFTW_MEASURE`` picks
+among candidate algorithms by timing them, so two processes can pick different plans whose round-off
+differs (a 64x96 plume differed from frame 3-5 on, 7e-7 growing to 1e-4); an estimated plan is chosen by
+a fixed cost model and gives bit-identical results in every fresh process. The price (measured by
+``benchmarks/bench_planner.py``, see ``docs/BENCHMARKS.md``) is a slower transform for some sizes and no
+planning delay. ``FFTW_MEASURE`` is opt-in, for runs that need speed more than cross-process
+reproducibility: ``set_fft_settings(planner_effort='FFTW_MEASURE')`` or the environment variable
+``PHISIM_FFT_PLANNER=FFTW_MEASURE`` read at import.
+
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
 18.3 ms vs 18.5 ms for 128³), so one thread is the default.
@@ -36,6 +45,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
@@ -96,14 +106,16 @@ class FFTSettings:
             or ``'pyfftw'`` (CPU tensors only).
         threads: FFTW threads per plan (pyfftw engine). Default 1: two threads measured no faster
             on the 2-core development machine.
-        planner_effort: FFTW planner flag; ``'FFTW_MEASURE'`` (default) times candidate algorithms
-            once per plan (10–500 ms, cached), ``'FFTW_ESTIMATE'`` plans instantly but runs up to
-            2–3x slower for real-to-real transforms.
+        planner_effort: FFTW planner flag. ``'FFTW_ESTIMATE'`` (default) plans instantly from a fixed
+            cost model, so every process computes bit-identical results. ``'FFTW_MEASURE'`` (opt-in,
+            also via the environment variable ``PHISIM_FFT_PLANNER``) times candidate algorithms once
+            per plan (10–500 ms, cached) and may run faster, but the chosen plan, and so the round-off,
+            can differ between processes.
     """
 
     engine: str = "auto"
     threads: int = 1
-    planner_effort: str = "FFTW_MEASURE"
+    planner_effort: str = "FFTW_ESTIMATE"
 
     def __post_init__(self) -> None:
         if self.engine not in _ENGINES:
@@ -114,7 +126,20 @@ class FFTSettings:
             raise ParameterError(f"planner_effort must be one of {_EFFORTS}, got {self.planner_effort!r}")
 
 
-_SETTINGS = FFTSettings()
+def _settings_from_environment() -> FFTSettings:
+    effort = os.environ.get("PHISIM_FFT_PLANNER", "").strip().upper()
+    if not effort:
+        return FFTSettings()
+    if not effort.startswith("FFTW_"):
+        effort = "FFTW_" + effort
+    if effort not in _EFFORTS:
+        warnings.warn(f"PHISIM_FFT_PLANNER={os.environ['PHISIM_FFT_PLANNER']!r} is not one of {_EFFORTS}; "
+                      "using FFTW_ESTIMATE", stacklevel=2)
+        return FFTSettings()
+    return FFTSettings(planner_effort=effort)
+
+
+_SETTINGS = _settings_from_environment()
 _WARNED_NO_PYFFTW = False
 
 
