@@ -214,7 +214,8 @@ def test_unwritable_output_folder_fails_before_work(tmp_path, monkeypatch):
     import os
 
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if Path(p) == tmp_path / "ro" else real_access(p, mode))
+    ro = tmp_path / "ro"
+    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if Path(p) == ro else real_access(p, mode))
     (tmp_path / "ro").mkdir()
     with pytest.raises(FileFormatError, match="not writable"):
         SimulationWriter(tmp_path / "ro" / "x.h5", GRID, "wall", dataset_name="t", fields={"rho": "scalar"},
