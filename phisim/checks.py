@@ -8,7 +8,8 @@ import torch
 
 from .errors import NonFiniteError, ParameterError
 
-__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device"]
+__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
+           "check_finite_number"]
 
 
 def check_dt(dt, name: str = "dt") -> float:
@@ -117,3 +118,24 @@ def check_device(device) -> torch.device:
     elif dev.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
         raise ParameterError(f"device {device!r} was asked for but MPS is not available here; use 'cpu'")
     return dev
+
+
+def check_finite_number(value, name: str) -> float:
+    """Validate a finite real number of either sign (a strength, an offset, ...).
+
+    Returns:
+        The value (a float; 0-d tensors are returned unchanged so gradients survive).
+
+    Raises:
+        ParameterError: If the value is not a number, or NaN/Inf.
+    """
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        raise ParameterError(f"{name} must be a number, got {value!r}")
+    v = value.detach() if isinstance(value, torch.Tensor) else value
+    try:
+        f = float(v)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"{name} must be a single number, got {value!r}") from exc
+    if not math.isfinite(f):
+        raise ParameterError(f"{name} must be finite, got {f}")
+    return value if isinstance(value, torch.Tensor) else f

@@ -94,6 +94,12 @@ class Grid:
             raise ParameterError(f"every resolution entry must be >= 1, got {res}")
         object.__setattr__(self, "resolution", res)
         object.__setattr__(self, "bounds", _as_bounds(res, bounds))
+        for axis, d in enumerate(self.dx):
+            if not 1e-18 <= d <= 1e18:
+                raise ParameterError(
+                    f"cell size dx = {d:g} along axis {AXIS_NAMES[axis]} is out of range [1e-18, 1e18]: 1/dx^2 "
+                    "would overflow float32 (derivatives give Inf/NaN); rescale the units of the domain"
+                )
 
     # ---- basic geometry -------------------------------------------------------------------------
     @property

@@ -681,8 +681,10 @@ def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> S
             return data
         except FileFormatError:
             raise
-        except (OSError, RuntimeError, KeyError) as exc:
-            raise FileFormatError(f"{p}: damaged HDF5 content: {exc}") from exc
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError) as exc:
+            raise FileFormatError(
+                f"{p}: damaged or malformed HDF5 content (written by another program?): {exc}"
+            ) from exc
 
 
 def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
