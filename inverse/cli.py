@@ -168,6 +168,8 @@ def _dispatch(args) -> int:
             print(describe_file(args.path))
             return 0
         problem = _problem(args)
+        for m in [args.method] if args.command == "train" else args.methods:
+            problem.method(m)  # every method known before the first one trains
         if args.command == "train":
             _train(args, problem, args.method)
             return 0

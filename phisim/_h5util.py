@@ -80,7 +80,9 @@ def check_output_path(path: PathLike, *, append: bool = False) -> Path:
 
 
 def _journal_exists(p: Path) -> bool:
-    return p.with_name(p.name + ".journal").exists()
+    from ._journal import journal_path
+
+    return journal_path(p).exists()
 
 
 def open_for_read(path: PathLike) -> h5py.File:

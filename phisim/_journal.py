@@ -39,7 +39,9 @@ _U32 = struct.Struct("<I")
 def journal_path(path) -> Path:
     """The journal belonging to an HDF5 file: ``<path>.journal``."""
     p = Path(path)
-    return p.with_name(p.name + ".journal")
+    if not p.name:  # '.', '/'
+        p = p.absolute()
+    return p.with_name((p.name or "root") + ".journal")
 
 
 def write_failure(path, exc: BaseException, what: str) -> PhisimError:

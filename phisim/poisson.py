@@ -155,6 +155,8 @@ def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     if rhs.dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"{name} must be float32 or float64, got {rhs.dtype}")
     rank = rhs.ndim - 1
+    if rhs.numel() == 0 and rhs.ndim >= 1:
+        raise ShapeError(f"{name} is empty (shape {tuple(rhs.shape)}); it needs at least one sample and one cell")
     if not 1 <= rank <= 3:
         raise ShapeError(
             f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
