@@ -796,9 +796,15 @@ def write_doc(base: str, path: str) -> None:
     fd = _fft_decision(base)
     if fd:
         parts += ["## FFT engines on this machine (decides phisim's default)", ""] + fd + [""]
+    rel = os.path.join(RESULTS, "reliability.json")
+    if os.path.exists(rel):  # written by bench_reliability.py
+        from bench_reliability import markdown
+
+        with open(rel) as fh:
+            parts += markdown(json.load(fh))
     others = [
         f
-        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py")
+        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_reliability.py")
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:

@@ -58,6 +58,32 @@ def write_failure(path, exc: BaseException, what: str) -> PhisimError:
     return FileFormatError(f"cannot {what} {path}: {reason}{hint}")
 
 
+#: Free space kept in reserve on the output file system: HDF5 metadata flushes must never meet a full disk,
+#: because h5py cannot release a file whose flush failed (it crashes the interpreter when the objects are
+#: freed), so a write that would leave less than this is refused beforehand with a FileFormatError.
+DISK_RESERVE = 1 << 20
+
+
+def check_space(path, nbytes: int) -> None:
+    """Raise FileFormatError (before writing) if ``nbytes`` plus :data:`DISK_RESERVE` do not fit next to ``path``.
+
+    Another process may still fill the disk between this check and the write; the margin covers HDF5's own
+    metadata, not a race.
+    """
+    p = Path(path)
+    try:
+        st = os.statvfs(p.parent if p.parent.exists() else ".")
+    except OSError:
+        return  # no statvfs here (or the folder vanished: the write itself reports that)
+    free = st.f_bavail * st.f_frsize
+    if free < nbytes + DISK_RESERVE:
+        raise FileFormatError(
+            f"cannot write {p}: the disk is full ({free / 2**20:.1f} MiB free, {nbytes / 2**20:.2f} MiB needed plus "
+            f"a {DISK_RESERVE >> 20} MiB reserve); free space or write elsewhere. Everything written so far stays "
+            "readable"
+        )
+
+
 class Journal:
     """Append-only writer of journal records (see the module docstring)."""
 
@@ -81,10 +107,15 @@ class Journal:
         payload = memoryview(payload).cast("B")
         head = _HEAD.pack(MAGIC, kind[0], payload.nbytes, zlib.crc32(payload) & 0xFFFFFFFF)
         try:
+            start = os.lseek(self._fd, 0, os.SEEK_END)
             _write_all(self._fd, head + bytes(payload) if payload.nbytes < 65536 else head)
             if payload.nbytes >= 65536:
                 _write_all(self._fd, payload)
         except OSError as exc:
+            try:  # drop the partial record, so records appended after the failure stay readable
+                os.ftruncate(self._fd, start)
+            except (OSError, UnboundLocalError):
+                pass
             raise write_failure(self.path, exc, "append to the journal") from exc
 
     def write_json(self, kind: bytes, obj) -> None:

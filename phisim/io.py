@@ -59,7 +59,7 @@ import numpy as np
 import torch
 
 from ._h5util import PathLike, check_output_path, open_for_read, to_json
-from ._journal import Journal, journal_path, write_failure
+from ._journal import Journal, check_space, journal_path, write_failure
 from ._recovery import load_journal, recover_file, sim_from_journal
 from ._well import _boundary_from_well, _condition_from_json, _conditionto_json, well_bc_type
 from .boundary import (
@@ -450,6 +450,8 @@ class SimulationWriter:
         frames = {name: (arr.astype(self.dtype, copy=False),
                          None if stag is None else tuple(c.astype(self.dtype, copy=False) for c in stag))
                   for name, (arr, stag) in frames.items()}
+        raw = sum(a.nbytes + sum(c.nbytes for c in (st or ())) for a, st in frames.values())
+        check_space(self.path, raw * (2 if self._journal is not None else 1))
         if self._journal is not None:  # the commit record: complete in the journal before the HDF5 write
             keys, arrays = [], []
             for name, (arr, stag) in frames.items():

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ._h5util import PathLike, check_output_path, open_for_read, to_json
-from ._journal import Journal, journal_path, write_failure
+from ._journal import Journal, check_space, journal_path, write_failure
 from .errors import FileFormatError, ParameterError
 
 __all__ = ["TrainingLog", "read_training"]
@@ -149,6 +149,7 @@ class TrainingLog:
                 nums[name] = float(v)
             except (TypeError, ValueError) as exc:
                 raise ParameterError(f"curve {name!r}: {v!r} is not a number") from exc
+        check_space(self.group.file.filename, 4096)
         if self._journal is not None:  # the commit record, complete before the HDF5 write
             self._journal.write_json(b"R", {"method": self.method, "iteration": int(iteration), "values": nums})
         try:
