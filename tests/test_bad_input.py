@@ -113,6 +113,8 @@ CASES = [
      "different grids"),
     ("field-add-centered-staggered", lambda: S + V, GridMismatchError, "resample"),
     ("field-add-other-boundary", lambda: V + VP, GridMismatchError, "with_boundary"),
+    ("field-add-other-device", lambda: S + ps.CenteredGrid.zeros(G, W.for_scalar(), 2, device="meta"),
+     GridMismatchError, "different devices"),
     ("field-mul-wrong-batch", lambda: V * torch.ones(3, 1, 1), ShapeError, "broadcast"),
     # ---- differential operators ----
     ("laplace-tensor", lambda: ps.laplace(R), ShapeError, "stencil_laplacian"),
@@ -405,3 +407,13 @@ def test_cli_unexpected_error_is_one_line(capsys, monkeypatch):
     assert cli_main(["info", "x.h5"]) == 1
     err = capsys.readouterr().err
     assert "Traceback" not in err and "boom" in err and "PHISIM_DEBUG" in err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_asked_for_without_cuda(capsys):
+    with pytest.raises(ParameterError, match="CUDA is not available"):
+        ps.check_device("cuda")
+    with pytest.raises(ParameterError, match="CUDA is not available"):
+        train("sine", "adam", iterations=1, device="cuda")
+    assert cli_main(["train", "sine", "adam", "--iterations", "1", "--device", "cuda"]) == 2
+    assert "CUDA is not available" in capsys.readouterr().err
