@@ -122,8 +122,7 @@ def _rebuild_simulation(content: JournalContent, tmp: Path) -> None:
 
     data = sim_from_journal(content, tmp, False, None)
     h = content.header
-    kinds = dict(h["kinds"])
-    with SimulationWriter(tmp, data.grid, data.boundary, dataset_name=data.dataset_name, fields=kinds,
+    with SimulationWriter(tmp, data.grid, data.boundary, dataset_name=data.dataset_name, fields=dict(data.kinds),
                           parameters=data.parameters, batch_size=int(h["batch_size"]), config=data.config,
                           dtype=np.dtype(h["dtype"]), journal=False) as w:
         for i, t in enumerate(data.times):
