@@ -27,14 +27,17 @@ Engines:
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
 
-Planner effort and reproducibility: the default is ``FFTW_ESTIMATE``. FFTW's ``FFTW_MEASURE`` picks
-among candidate algorithms by timing them, so two processes can pick different plans whose round-off
-differs (a 64x96 plume differed from frame 3-5 on, 7e-7 growing to 1e-4); an estimated plan is chosen by
-a fixed cost model and gives bit-identical results in every fresh process. The price (measured by
-``benchmarks/bench_planner.py``, see ``docs/BENCHMARKS.md``) is a slower transform for some sizes and no
-planning delay. ``FFTW_MEASURE`` is opt-in, for runs that need speed more than cross-process
-reproducibility: ``set_fft_settings(planner_effort='FFTW_MEASURE')`` or the environment variable
-``PHISIM_FFT_PLANNER=FFTW_MEASURE`` read at import.
+Planner effort and reproducibility: plans are measured (``FFTW_MEASURE``, the fastest plans), and the
+measured choice is shared by every process on the machine through a wisdom file (see
+:mod:`phisim._fftw_wisdom`): the first process that needs a transform times the candidates once and saves
+its wisdom, every later or concurrent process rebuilds exactly that plan. So same seed and settings give
+bit-identical results in two fresh processes, which a per-process measurement does not (a 64x96 plume
+differed from frame 3-5 on, 7e-7 growing to 1e-4). Costs (``benchmarks/bench_reliability.py``, in
+``docs/BENCHMARKS.md``): one measurement per transform size per machine (10 ms to a few s), a locked file
+read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effort='FFTW_ESTIMATE')`` or
+``PHISIM_FFT_PLANNER=estimate``) needs no file and is deterministic too, but chooses slow real-to-real
+algorithms (up to 10x slower at 512^2). ``PHISIM_FFTW_WISDOM=off`` measures in every process: fast
+planning without the file, at the price of cross-process reproducibility.
 
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
@@ -55,6 +58,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from . import _fftw_wisdom
 from .errors import ParameterError, ShapeError
 
 try:  # pragma: no cover - exercised implicitly
@@ -115,7 +119,7 @@ class FFTSettings:
 
     engine: str = "auto"
     threads: int = 1
-    planner_effort: str = "FFTW_ESTIMATE"
+    planner_effort: str = "FFTW_MEASURE"
 
     def __post_init__(self) -> None:
         if self.engine not in _ENGINES:
@@ -134,7 +138,7 @@ def _settings_from_environment() -> FFTSettings:
         effort = "FFTW_" + effort
     if effort not in _EFFORTS:
         warnings.warn(f"PHISIM_FFT_PLANNER={os.environ['PHISIM_FFT_PLANNER']!r} is not one of {_EFFORTS}; "
-                      "using FFTW_ESTIMATE", stacklevel=2)
+                      "using FFTW_MEASURE", stacklevel=2)
         return FFTSettings()
     return FFTSettings(planner_effort=effort)
 
@@ -383,18 +387,16 @@ def _get_plan(
             return plan
         real = np.dtype(dtype)
         cplx = np.result_type(real, np.complex64)
-        flags = (s.planner_effort, "FFTW_DESTROY_INPUT")
         if op == "r2r":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             b = _pyfftw.empty_aligned(shape, dtype=real)
             direction = [_FFTW_KIND[k] for k in kinds]
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction=direction, flags=flags, threads=s.threads)
         elif op == "rfft":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             oshape = list(shape)
             oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_FORWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_FORWARD"
         elif op == "irfft":
             # shape is the complex input shape; out_n the real output sizes along axes
             oshape = list(shape)
@@ -402,9 +404,12 @@ def _get_plan(
                 oshape[ax] = n
             a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_BACKWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_BACKWARD"
         else:  # pragma: no cover - internal
             raise AssertionError(op)
+        fftw = _fftw_wisdom.plan(_pyfftw, lambda effort: _pyfftw.FFTW(
+            a, b, axes=axes, direction=direction, flags=(effort, "FFTW_DESTROY_INPUT"), threads=s.threads),
+            s.planner_effort)
         plan = _Plan(fftw, a, b)
         _PLANS[key] = plan
         return plan
@@ -502,11 +507,12 @@ class _MultiplierPlan:
         self.inp = _pyfftw.empty_aligned(shape, dtype=real)
         self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=cplx)
         self.out = _pyfftw.empty_aligned(shape, dtype=real)
-        flags = (effort, "FFTW_DESTROY_INPUT")
-        self.fwd = _pyfftw.FFTW(self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=flags,
-                                threads=threads)
-        self.inv = _pyfftw.FFTW(self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=flags,
-                                threads=threads)
+        self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
+        self.inv = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
         self.lock = threading.Lock()
 
     def __call__(self, a: np.ndarray, mult: np.ndarray) -> np.ndarray:
