@@ -65,15 +65,27 @@ def kill_once(path: Path, mode: str = "simulation", *, journal: bool = True, max
         finally:
             os._exit(0)
     os.close(w)
+    data = b""
     try:
         first = os.read(r, 1)
         if first != b"R":
             raise RuntimeError("the writer did not start")
-        time.sleep(rng.uniform(0.0, max_delay))
+        # Let a random number of iterations complete, then kill at a random moment within the next one or
+        # two (scaled by the measured iteration time, so the kills land mid-loop on a busy machine too).
+        t0 = time.perf_counter()
+        target = rng.randint(0, 4)
+        done = 0
+        while done < target:
+            chunk = os.read(r, 5)
+            if not chunk:
+                break
+            data += chunk
+            done += chunk[:1] == b"L"
+        per_iteration = (time.perf_counter() - t0) / done if done else max_delay
+        time.sleep(rng.uniform(0.0, 1.5 * per_iteration))
         os.kill(pid, signal.SIGKILL)
     finally:
         os.waitpid(pid, 0)
-    data = b""
     while chunk := os.read(r, 65536):
         data += chunk
     os.close(r)
