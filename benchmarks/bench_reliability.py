@@ -224,7 +224,7 @@ def main(argv=None) -> dict:
     if args.planner_child:
         print(json.dumps(_planner_child(args.planner_child)))
         return {}
-    out = {}
+    out = json.loads(args.out.read_text()) if args.out.exists() else {}  # parts not re-run are kept
     for part in args.parts:
         out[part] = {"planner": bench_planner, "float32": bench_float32, "journal": bench_journal,
                      "kills": lambda: bench_kills(args.kills)}[part]()
