@@ -15,7 +15,7 @@ still being written), and the readers then take the content from the journal.
 Record layout (little endian): ``b"PHJ1"``, a type byte, 3 zero bytes, the payload length (uint64),
 the CRC-32 of the payload (uint32), the payload. Types: ``S`` simulation header (JSON), ``F`` frame
 (uint32 JSON length, JSON head, raw array bytes), ``L`` training-log snapshot of one method (JSON),
-``R`` training record (JSON).
+``R`` training record (JSON), ``C`` constant fields (as a frame).
 """
 
 from __future__ import annotations
@@ -122,11 +122,12 @@ class Journal:
         """Append a record whose payload is JSON."""
         self.write(kind, json.dumps(obj, sort_keys=True, allow_nan=True).encode("utf-8"))
 
-    def write_frame(self, head: dict, arrays: list[np.ndarray]) -> None:
-        """Append a frame record: a JSON head (array keys, shapes, dtypes) and the raw array bytes."""
+    def write_frame(self, head: dict, arrays: list[np.ndarray], kind: bytes = b"F") -> None:
+        """Append a frame record (or, ``kind=b"C"``, the constant fields): a JSON head (array keys, shapes,
+        dtypes in ``head['arrays']``) and the raw array bytes."""
         hb = json.dumps(head, sort_keys=True).encode("utf-8")
         parts = [_U32.pack(len(hb)), hb] + [np.ascontiguousarray(a).tobytes() for a in arrays]
-        self.write(b"F", b"".join(parts))
+        self.write(kind, b"".join(parts))
 
     def close(self, *, delete: bool) -> None:
         """Close the journal; ``delete`` removes it (the HDF5 file was closed cleanly)."""
@@ -155,6 +156,7 @@ class JournalContent:
     header: dict | None = None
     frames: list[tuple[dict, dict[str, np.ndarray]]] = field(default_factory=list)
     training: dict[str, dict] = field(default_factory=dict)
+    constants: dict[str, np.ndarray] = field(default_factory=dict)
     torn_bytes: int = 0
     records: int = 0
 
@@ -209,7 +211,7 @@ def _apply(out: JournalContent, kind: bytes, payload: memoryview) -> None:
     if kind == b"S":
         out.header = json.loads(bytes(payload))
         out.frames = []
-    elif kind == b"F":
+    elif kind in (b"F", b"C"):
         (n,) = _U32.unpack_from(payload, 0)
         head = json.loads(bytes(payload[4:4 + n]))
         arrays = {}
@@ -221,7 +223,10 @@ def _apply(out: JournalContent, kind: bytes, payload: memoryview) -> None:
             pos += size
         if pos != len(payload):
             raise ValueError("frame record length does not match its arrays")
-        out.frames.append((head, arrays))
+        if kind == b"C":
+            out.constants = arrays
+        else:
+            out.frames.append((head, arrays))
     elif kind == b"L":
         rec = json.loads(bytes(payload))
         out.training[rec["method"]] = {"attrs": rec.get("attrs", {}), "iteration": list(rec["iteration"]),

@@ -71,8 +71,12 @@ def sim_from_journal(content: JournalContent, p: Path, as_torch: bool, device):
     if as_torch:
         fields = {n: torch.as_tensor(v, device=device) for n, v in fields.items()}
         staggered = {n: tuple(torch.as_tensor(c, device=device) for c in v) for n, v in staggered.items()}
+    parameters = dict(h["parameters"])
+    if "dt" not in parameters and T >= 2:  # an interval taken from the first two frames
+        parameters["dt"] = float(times[1] - times[0])
+    constants = {n: np.array(a) for n, a in content.constants.items()}
     return SimulationData(p, h["dataset_name"], grid, boundary, times, fields, staggered, kinds,
-                          dict(h["parameters"]), config, content.training_curves())
+                          parameters, config, content.training_curves(), constants)
 
 
 def recover_file(path) -> bool:
@@ -122,9 +126,15 @@ def _rebuild_simulation(content: JournalContent, tmp: Path) -> None:
 
     data = sim_from_journal(content, tmp, False, None)
     h = content.header
-    with SimulationWriter(tmp, data.grid, data.boundary, dataset_name=data.dataset_name, fields=dict(data.kinds),
-                          parameters=data.parameters, batch_size=int(h["batch_size"]), config=data.config,
-                          dtype=np.dtype(h["dtype"]), journal=False) as w:
+    params = {k: v for k, v in h["parameters"].items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # uneven frame times were accepted (with a warning) when written
+        w = SimulationWriter(tmp, data.grid, data.boundary, dataset_name=data.dataset_name, fields=dict(data.kinds),
+                             parameters=params, batch_size=int(h["batch_size"]), config=data.config,
+                             dtype=np.dtype(h["dtype"]), journal=False, uneven_intervals="warn",
+                             constant_fields=data.constant_fields or None)
+    with w, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
         for i, t in enumerate(data.times):
             values = {}
             for name, kind in data.kinds.items():

@@ -22,17 +22,22 @@ Neumann(f)        flux f                flux f                    flux f
 NoSlipWall(w)     zero flux             0                         wall velocity w (moving lid)
 FreeSlipWall()    zero flux             0                         zero flux
 Open()            zero flux             zero flux                 zero flux
+Inflow(u)         value 0               u(x, t)                   u(x, t)
 ================  ====================  ========================  ==========================
 
-The pressure of an incompressible flow takes zero flux at walls, value 0 at open sides and stays
-periodic: :meth:`Boundary.for_pressure` derives it.
+The pressure of an incompressible flow takes zero flux wherever the normal velocity is prescribed (walls,
+Dirichlet and Inflow sides), value 0 at open sides, and stays periodic: :meth:`Boundary.for_pressure`
+derives it. An :class:`Open` side is the outflow: its velocity ghosts have zero normal derivative, so the
+boundary faces are carried out of the domain by the advection step (a convective outflow with the local
+velocity) and corrected by the projection against pressure 0.
 """
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -48,6 +53,7 @@ __all__ = [
     "NoSlipWall",
     "FreeSlipWall",
     "Open",
+    "Inflow",
     "Boundary",
     "pad",
     "pad_staggered_component",
@@ -224,6 +230,173 @@ class Open(BoundaryCondition):
         return ("even", 0.0)
 
 
+class BoundaryProfile:
+    """Boundary values that vary along a side: one tensor per sample layout, picked by the array's shape.
+
+    A MAC component is sampled on faces along its own axis and at cell centres along the others, so the
+    same physical profile needs a differently shaped tensor for a face-centred and a cell-centred array.
+    :func:`pad` and :func:`set_boundary_faces` pick the tensor that broadcasts against the boundary slab.
+
+    Args:
+        candidates: Tensors of shape ``(1, *slab)`` with length 1 along the side's normal axis.
+    """
+
+    def __init__(self, *candidates: torch.Tensor):
+        self.candidates = candidates
+
+    def match(self, like: torch.Tensor) -> torch.Tensor:
+        """The candidate broadcastable to ``like`` (same length on every axis but the normal one)."""
+        for c in self.candidates:
+            if c.ndim == like.ndim and all(a == 1 or a == b for a, b in zip(c.shape[1:], like.shape[1:])):
+                return c.to(dtype=like.dtype, device=like.device)
+        raise BoundaryError(
+            f"a boundary profile resolved for slabs {[tuple(c.shape) for c in self.candidates]} does not fit an "
+            f"array slab of shape {tuple(like.shape)}; resolve the boundary on this grid (Boundary.at)"
+        )
+
+
+def _match(value, like: torch.Tensor):
+    return value.match(like) if isinstance(value, BoundaryProfile) else value
+
+
+@dataclass(frozen=True)
+class Inflow(BoundaryCondition):
+    """Prescribed velocity on a side (an inflow), constant or varying in space and time.
+
+    The normal component sets the flux through the side; the projection leaves it as given (the pressure
+    has zero flux there, see :meth:`Boundary.for_pressure`). The tangential components are imposed on the
+    face too (no-slip with respect to the given velocity). Scalars (a marker) enter with value 0.
+
+    Args:
+        velocity: A number (the velocity component along the side's axis, signed: ``Inflow(1.0)`` on the
+            lower x side blows towards +x), a vector (one float per axis), a float tensor of either form
+            (e.g. one that requires grad: gradients then flow to it), or a callable ``f(x)`` or
+            ``f(x, t)`` mapping boundary points ``(..., d)`` (and the time) to velocities ``(..., d)``,
+            e.g. a parabolic channel profile. Callables are evaluated on the grid by :meth:`Boundary.at`
+            (fields do that when they are created; the fluid step at each new time).
+        time: The time at which a callable was evaluated (set by :meth:`Boundary.at`).
+
+    Raises:
+        BoundaryError: For a non-finite or malformed velocity.
+    """
+
+    velocity: object = 0.0
+    time: float = 0.0
+    profile: object = field(default=None, compare=False, repr=False)
+    name = "inflow"
+
+    def __post_init__(self):
+        v = self.velocity
+        if callable(v):
+            return
+        if isinstance(v, torch.Tensor):  # a tensor (e.g. one that requires grad): a number or a vector
+            if v.ndim > 1 or not v.is_floating_point() or not bool(torch.isfinite(v.detach()).all()):
+                raise BoundaryError(f"Inflow velocity tensor must be finite, scalar or 1-D, got {v!r}")
+            if v.ndim == 1:
+                object.__setattr__(self, "velocity", tuple(v.unbind(0)))
+            return
+        if isinstance(v, (tuple, list)):
+            try:
+                vals = tuple(float(x) for x in v)
+            except (TypeError, ValueError) as exc:
+                raise BoundaryError(f"Inflow velocity {v!r} must hold numbers") from exc
+            if not all(math.isfinite(x) for x in vals):
+                raise BoundaryError(f"Inflow velocity {v!r} must be finite")
+            object.__setattr__(self, "velocity", vals if not any(isinstance(x, torch.Tensor) for x in v) else tuple(v))
+            return
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            raise BoundaryError(
+                f"Inflow velocity must be a finite number, a vector or a callable f(x[, t]), got {v!r}"
+            )
+        object.__setattr__(self, "velocity", float(v))
+
+    @property
+    def varying(self) -> bool:
+        """Whether the velocity is a callable (needs :meth:`Boundary.at` to be evaluated)."""
+        return callable(self.velocity)
+
+    def rule(self, role, component):
+        """See :meth:`BoundaryCondition.rule`."""
+        if role == SCALAR:
+            return ("odd", 0.0)
+        v = self.velocity
+        if callable(v):
+            if self.profile is None:
+                raise BoundaryError(
+                    "this Inflow's velocity is a function; evaluate it on the grid with Boundary.at(grid, t) "
+                    "(fields created with it do so automatically)"
+                )
+            return ("odd", self.profile[component])
+        if isinstance(v, tuple):
+            return ("odd", v[component] if isinstance(v[component], torch.Tensor) else _component_value(v, component))
+        return ("odd", v if role == NORMAL else 0.0)
+
+    def normal_velocity(self, axis: int):
+        """The constant normal velocity component (None for a callable velocity)."""
+        v = self.velocity
+        if callable(v):
+            return None
+        return v[axis] if isinstance(v, tuple) else v
+
+    def resolved(self, grid, axis: int, side: int, time: float, dtype=None, device=None) -> Inflow:
+        """This inflow evaluated on ``grid`` at ``time`` (a copy holding the boundary profiles).
+
+        Args:
+            grid: The :class:`~phisim.grid.Grid`.
+            axis: The axis whose side this is.
+            side: 0 (lower) or 1 (upper).
+            time: Simulation time passed to ``f(x, t)``.
+            dtype, device: Of the profile tensors (default float64 / CPU).
+
+        Raises:
+            BoundaryError: If the function returns the wrong shape or non-finite values.
+        """
+        if not callable(self.velocity):
+            return self
+        dtype = dtype or torch.float64
+        fn = self.velocity
+        try:
+            nargs = len([p for p in inspect.signature(fn).parameters.values()
+                         if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)])
+        except (TypeError, ValueError):
+            nargs = 1
+        bound = grid.bounds[axis][side]
+        per_comp = []
+        for c in range(grid.rank):
+            cands = []
+            for staggered in (True, False):
+                coords = []
+                for a in range(grid.rank):
+                    if a == axis:
+                        coords.append(torch.tensor([bound], dtype=torch.float64))
+                    elif staggered and a == c:
+                        coords.append(grid.face_coords(a, torch.float64))
+                    else:
+                        coords.append(grid.center_coords(a, torch.float64))
+                pts = torch.stack(torch.meshgrid(*coords, indexing="ij"), -1)
+                val = fn(pts, time) if nargs >= 2 else fn(pts)
+                val = torch.as_tensor(val, dtype=torch.float64)
+                if val.shape != pts.shape:
+                    raise BoundaryError(
+                        f"the Inflow function must return velocities of shape (..., {grid.rank}) for points "
+                        f"(..., {grid.rank}); got {tuple(val.shape)} for {tuple(pts.shape)}"
+                    )
+                if not bool(torch.isfinite(val).all()):
+                    raise BoundaryError(f"the Inflow function returned NaN/Inf at t={time}")
+                cands.append(val[..., c].unsqueeze(0).to(dtype=dtype, device=device))
+            per_comp.append(BoundaryProfile(*cands))
+        return Inflow(self.velocity, float(time), tuple(per_comp))
+
+    def flux(self, grid, axis: int, side: int, time: float | None = None) -> float:
+        """Volume flux into the domain through this side (area-weighted normal velocity), as a float."""
+        inflow = self.resolved(grid, axis, side, self.time if time is None else time)
+        slab = torch.zeros((1, *[1 if a == axis else n for a, n in enumerate(grid.resolution)]), dtype=torch.float64)
+        un = slab + _match(inflow.rule(NORMAL, axis)[1], slab)
+        area = math.prod(d for a, d in enumerate(grid.dx) if a != axis)
+        sign = 1.0 if side == 0 else -1.0
+        return sign * float(un.sum()) * area
+
+
 _NAMES = {
     "periodic": Periodic,
     "dirichlet": Dirichlet,
@@ -237,6 +410,7 @@ _NAMES = {
     "slip": FreeSlipWall,
     "open": Open,
     "outflow": Open,
+    "inflow": Inflow,
 }
 
 
@@ -351,16 +525,54 @@ class Boundary:
         """Per axis, whether it is periodic."""
         return tuple(self.is_periodic(a) for a in range(self.rank))
 
+    def at(self, grid, time: float = 0.0, dtype=None, device=None) -> Boundary:
+        """This boundary with every :class:`Inflow` function evaluated on ``grid`` at ``time``.
+
+        Args:
+            grid: The grid the boundary is used on.
+            time: Simulation time.
+            dtype, device: Of the evaluated profiles.
+
+        Returns:
+            ``self`` when nothing varies, else a boundary whose inflows hold their profiles.
+        """
+        if not any(isinstance(c, Inflow) and c.varying for pair in self.sides for c in pair):
+            return self
+        sides = []
+        for a, pair in enumerate(self.sides):
+            sides.append(tuple(c.resolved(grid, a, s, time, dtype, device) if isinstance(c, Inflow) else c
+                               for s, c in enumerate(pair)))
+        return Boundary(tuple(sides))
+
+    def on(self, grid) -> Boundary:
+        """This boundary with every not yet evaluated :class:`Inflow` function evaluated on ``grid`` at its
+        own ``time`` (fields call this when they are created)."""
+        if not any(isinstance(c, Inflow) and c.varying and c.profile is None for pair in self.sides for c in pair):
+            return self
+        sides = []
+        for a, pair in enumerate(self.sides):
+            sides.append(tuple(c.resolved(grid, a, s, c.time) if isinstance(c, Inflow) and c.profile is None
+                               else c for s, c in enumerate(pair)))
+        return Boundary(tuple(sides))
+
+    @property
+    def has_open_side(self) -> bool:
+        """Whether some side is :class:`Open` (the pressure is then fixed there, no compatibility needed)."""
+        return any(isinstance(c, Open) for pair in self.sides for c in pair)
+
     def for_pressure(self) -> Boundary:
         """Boundary of the pressure of a flow with this velocity boundary.
 
-        Walls and Neumann sides give zero flux, open and Dirichlet sides give pressure 0, periodic stays.
+        Open sides give pressure 0 (the projection corrects the normal velocity there); every side whose
+        normal velocity is prescribed (walls, :class:`Dirichlet` and :class:`Inflow` velocities, Neumann
+        sides) gives zero pressure flux, so the projection leaves the prescribed boundary faces as they are
+        and the cells beside them become divergence-free; periodic stays periodic.
         """
 
         def conv(c: BoundaryCondition) -> BoundaryCondition:
             if isinstance(c, Periodic):
                 return c
-            if isinstance(c, (Open, Dirichlet)):
+            if isinstance(c, Open):
                 return Dirichlet(0.0)
             return Neumann(0.0)
 
@@ -369,10 +581,13 @@ class Boundary:
     def for_scalar(self) -> Boundary:
         """Boundary for a scalar quantity (e.g. a marker) transported in a flow with this boundary.
 
-        Walls and open sides give zero flux; Dirichlet/Neumann/periodic are kept.
+        Walls and open sides give zero flux, inflows bring clean fluid (value 0); Dirichlet/Neumann/periodic
+        are kept.
         """
 
         def conv(c: BoundaryCondition) -> BoundaryCondition:
+            if isinstance(c, Inflow):
+                return Dirichlet(0.0)
             return Neumann(0.0) if isinstance(c, (NoSlipWall, FreeSlipWall, Open)) else c
 
         return Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides))
@@ -391,7 +606,7 @@ def _ghosts(inside: torch.Tensor, rule: tuple, dim: int, spacing: torch.Tensor |
     """Ghosts g_1..g_w (ordered outward) from mirror samples u_1..u_w (ordered inward) along ``dim``."""
     kind = rule[0]
     if kind == "odd":
-        v = rule[1]
+        v = _match(rule[1], inside)
         return 2 * v - inside if not (isinstance(v, (int, float)) and v == 0) else -inside
     f = rule[1]
     if isinstance(f, (int, float)) and f == 0:
@@ -557,6 +772,6 @@ def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary)
         face = values.narrow(dim, pos, 1)
         r = cond.rule(NORMAL, component)
         if r[0] == "odd":
-            face = torch.zeros_like(face) + r[1]
+            face = torch.zeros_like(face) + _match(r[1], face)
         parts[0 if idx == 0 else 2] = face
     return torch.cat(parts, dim=dim)

@@ -237,7 +237,7 @@ class CenteredGrid(Field):
             )
         object.__setattr__(self, "values", v)
         object.__setattr__(self, "grid", grid)
-        object.__setattr__(self, "boundary", Boundary.create(boundary, rank))
+        object.__setattr__(self, "boundary", Boundary.create(boundary, rank).on(grid))
 
     # constructors
     @classmethod
@@ -418,7 +418,7 @@ class StaggeredGrid(Field):
                 raise ShapeError("all StaggeredGrid components must share dtype and device")
         object.__setattr__(self, "values", comps)
         object.__setattr__(self, "grid", grid)
-        object.__setattr__(self, "boundary", Boundary.create(boundary, grid.rank))
+        object.__setattr__(self, "boundary", Boundary.create(boundary, grid.rank).on(grid))
 
     @classmethod
     def zeros(cls, grid: Grid, boundary, batch_size: int = 1, dtype: torch.dtype | None = None,

@@ -59,12 +59,11 @@ import numpy as np
 import torch
 
 from ._h5util import PathLike, check_output_path, open_for_read, to_json
+from ._io_extras import IntervalCheck, constant_arrays, read_constant_fields, write_constant_fields
 from ._journal import Journal, check_space, journal_path, write_failure
 from ._recovery import load_journal, recover_file, sim_from_journal
 from ._well import _boundary_from_well, _condition_from_json, _conditionto_json, well_bc_type
-from .boundary import (
-    Boundary,
-)
+from .boundary import Boundary
 from .errors import FileFormatError, IncompleteFileWarning, ParameterError, ShapeError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import AXIS_NAMES, Grid
@@ -171,11 +170,22 @@ class SimulationWriter:
         dtype: Storage dtype of fields and coordinates (default float32, as in The Well). Use
             ``torch.float64`` for an exact double-precision round trip; other input is cast to it.
         compression_level: gzip level 0-9.
+        output_interval: The constant time between frames (The Well's files are sampled at one interval).
+            Stored as the scalar ``dt`` (``/scalars/dt`` and a root attribute listed in
+            ``simulation_parameters``). None: taken from the first two frames. A parameter named ``dt``
+            is this interval.
+        uneven_intervals: What an appended time off the interval (relative tolerance 1e-6) gets:
+            ``'error'`` (default) raises :class:`ParameterError`, ``'warn'`` writes it with a ``UserWarning``.
+        constant_fields: Scalar fields that do not change in time (e.g. an obstacle mask): name ->
+            ``(*res)`` values shared by all trajectories or ``(B, *res)`` values. Stored in ``/t0_fields``
+            with ``time_varying=False`` (as The Well stores constant fields) and read back into
+            :attr:`SimulationData.constant_fields`.
         journal: Keep the crash-safety journal ``<path>.journal`` while writing (see the module docstring).
 
     Raises:
         ParameterError: For unknown field kinds, bad names, non-numeric parameters, a non-positive
-            batch size or a non-serialisable config.
+            batch size, a non-serialisable config, a non-positive interval or a ``dt`` parameter that
+            contradicts it.
 
     Example:
         >>> with SimulationWriter("run.h5", grid, "periodic", dataset_name="plume",
@@ -198,6 +208,9 @@ class SimulationWriter:
         config: Any = None,
         dtype=None,
         compression_level: int = 4,
+        output_interval: float | None = None,
+        uneven_intervals: str = "error",
+        constant_fields: Mapping[str, Any] | None = None,
         journal: bool = True,
     ):
         if not isinstance(grid, Grid):
@@ -235,6 +248,14 @@ class SimulationWriter:
                 )
             params[name] = value
         self.parameters = params
+        if "dt" in params and output_interval is not None and float(params["dt"]) != float(output_interval):
+            raise ParameterError(f"parameter dt={params['dt']} contradicts output_interval={output_interval}")
+        if output_interval is None and "dt" in params:
+            output_interval = params["dt"]
+        self._interval = IntervalCheck(output_interval, uneven_intervals, Path(path))
+        if self._interval.interval is not None:
+            self.parameters["dt"] = self._interval.interval
+        constants = constant_arrays(constant_fields, grid.resolution, self.batch_size, self.kinds)
         config_json = to_json(config, "config")
         self._level = int(compression_level)
         self.path = Path(path)
@@ -251,6 +272,7 @@ class SimulationWriter:
         self._last_time = -math.inf
         try:
             self._write_header(dataset_name, config_json)
+            write_constant_fields(self._file, constants, self.batch_size, self.dtype, grid.rank)
             self._file.flush()
             if journal:
                 self._journal = Journal(jpath, fresh=True)
@@ -261,6 +283,9 @@ class SimulationWriter:
                     "kinds": self.kinds, "parameters": self.parameters, "config": config_json,
                     "batch_size": self.batch_size, "dtype": self.dtype.str,
                 })
+                if constants:
+                    keys = [[n, list(a.shape), a.dtype.str] for n, a in constants.items()]
+                    self._journal.write_frame({"arrays": keys}, list(constants.values()), kind=b"C")
         except BaseException as exc:
             self._abort()
             if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, FileFormatError):
@@ -446,6 +471,7 @@ class SimulationWriter:
             raise ParameterError(f"time must be a number, got {time!r}") from exc
         if not math.isfinite(t) or t <= self._last_time:
             raise ParameterError(f"time must be finite and increasing: got {t} after {self._last_time}")
+        self._interval.check(t, self._last_time, self._file)
         frames = {name: self._frame_arrays(name, value) for name, value in fields.items()}
         frames = {name: (arr.astype(self.dtype, copy=False),
                          None if stag is None else tuple(c.astype(self.dtype, copy=False) for c in stag))
@@ -550,6 +576,8 @@ class SimulationData:
         parameters: Simulation parameters from the root attributes.
         config: The run configuration (parsed JSON) or ``None``.
         training: Method -> curve name -> 1-D array (``/training``).
+        constant_fields: Name -> constant-in-time scalar field (e.g. an obstacle mask), ``(*res)`` when shared
+            by all trajectories or ``(B, *res)``; numpy arrays.
     """
 
     path: Path
@@ -563,6 +591,14 @@ class SimulationData:
     parameters: dict[str, Any]
     config: Any = None
     training: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    constant_fields: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float | None:
+        """The constant output interval (the stored scalar ``dt``; else the spacing of two frames; else None)."""
+        if "dt" in self.parameters:
+            return float(self.parameters["dt"])
+        return float(self.times[1] - self.times[0]) if len(self.times) > 1 else None
 
     @property
     def n_frames(self) -> int:
@@ -770,6 +806,7 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
     if as_torch:
         fields = {n: torch.as_tensor(v, device=device) for n, v in fields.items()}
         staggered = {n: tuple(torch.as_tensor(c, device=device) for c in v) for n, v in staggered.items()}
+    constants = read_constant_fields(f, grid.resolution, p)
     return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters,
                           config,
-                          training)
+                          training, constants)

@@ -1,0 +1,135 @@
+"""Flow past a circular cylinder in a channel: the DFG benchmark of Schäfer & Turek (1996).
+
+Schäfer, M. & Turek, S. (1996), "Benchmark computations of laminar flow around a cylinder", in: Flow
+Simulation with High-Performance Computers II, Notes on Numerical Fluid Mechanics 52, Vieweg, 547-566.
+
+Channel ``[0, 2.2] x [0, 0.41]``, cylinder of diameter ``D = 0.1`` centred at ``(0.2, 0.2)``, kinematic
+viscosity ``1e-3``, density 1; parabolic inflow ``U(y) = 4 U_m y (H - y) / H^2`` on the left, no-slip walls
+above and below, an outflow on the right. ``Re = U_mean D / nu`` with ``U_mean = 2 U_m / 3``.
+
+* case ``'2D-1'`` (steady, ``U_m = 0.3``, Re = 20): drag and lift coefficients and the pressure difference
+  between the front and back points ``(0.15, 0.2)`` and ``(0.25, 0.2)``;
+* case ``'2D-2'`` (periodic, ``U_m = 1.5``, Re = 100): maximum drag and lift coefficients and the Strouhal
+  number ``St = D f / U_mean``.
+
+Run ``python examples/cylinder_benchmark.py 2D-1 --ny 41 82`` (or ``2D-2``); results are printed as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time as _time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from phisim import Grid, Open, StaggeredGrid  # noqa: E402
+from phisim.boundary import Inflow  # noqa: E402
+from phisim.fluid import Body, FluidState, Sphere, body_forces, probe_pressure, step  # noqa: E402
+
+H, L, D, CENTER, NU = 0.41, 2.2, 0.1, (0.2, 0.2), 1e-3
+#: Reference values (Schäfer & Turek 1996, Table 3/4; the refined 2D-1 values of John & Matthies 2001).
+REFERENCE = {
+    "2D-1": {"cd": 5.57953523384, "cl": 0.010618948146, "dp": 0.11752016697,
+             "ranges": {"cd": (5.57, 5.59), "cl": (0.0104, 0.0110), "dp": (0.1172, 0.1176)}},
+    "2D-2": {"cd_max": 3.23, "cl_max": 1.00, "st": 0.300,
+             "ranges": {"cd_max": (3.22, 3.24), "cl_max": (0.99, 1.01), "st": (0.295, 0.305)}},
+}
+
+
+def setup(case: str, ny: int, dtype=torch.float64):
+    """Grid, boundary, body and initial state of a case with ``ny`` cells across the channel."""
+    um = 0.3 if case == "2D-1" else 1.5
+    dx = H / ny
+    nx = int(round(L / dx))
+    grid = Grid((nx, ny), bounds=[(0.0, nx * dx), (0.0, H)])
+
+    def profile(x):
+        y = x[..., 1]
+        return torch.stack([4 * um * y * (H - y) / H**2, torch.zeros_like(y)], -1)
+
+    boundary = {"x": (Inflow(profile), Open()), "y": "wall"}
+    body = Body(Sphere(CENTER, D / 2), name="cylinder")
+    v = StaggeredGrid.from_function(profile, grid, boundary, dtype=dtype)
+    return grid, body, FluidState(v), um
+
+
+def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
+        record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None):
+    """Simulate a case; returns the force history and the final state."""
+    grid, body, state, um = setup(case, ny, dtype)
+    umean = 2 * um / 3
+    dx = grid.dx[0]
+    if dt is None:
+        dt = cfl * dx / (1.5 * um)
+        if viscosity_scheme == "explicit":
+            dt = min(dt, 0.45 * dx**2 / (4 * NU))
+    n = int(math.ceil(t_end / dt))
+    dt = t_end / n
+    hist = []
+    t0 = _time.perf_counter()
+    front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype)
+    for _ in range(n):
+        state = step(state, dt, viscosity=NU, advection=advection, obstacles=body, viscosity_scheme=viscosity_scheme)
+        if state.time >= record_from - 1e-12:
+            f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time)
+            c = f.coefficients(umean, D)[0]
+            pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body)[0]
+            cp = 2 * f.pressure[0] / (umean**2 * D)
+            hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1])))
+    wall = _time.perf_counter() - t0
+    return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny}
+
+
+def summarize(case: str, hist: np.ndarray) -> dict:
+    """Benchmark quantities from a force history (columns t, cd, cl, dp, cd_p, cl_p)."""
+    if case == "2D-1":
+        t, cd, cl, dp = hist[-1, :4]
+        return {"cd": float(cd), "cl": float(cl), "dp": float(dp), "cd_pressure": float(hist[-1, 4]),
+                "drift_cd_last_unit": float(abs(hist[-1, 1] - hist[0, 1]))}
+    t, cd, cl = hist[:, 0], hist[:, 1], hist[:, 2]
+    # Strouhal number from the zero up-crossings of the lift
+    s = np.sign(cl - cl.mean())
+    up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
+    tc = [t[i] + (t[i + 1] - t[i]) * (-(cl[i] - cl.mean())) / (cl[i + 1] - cl[i]) for i in up]
+    period = float(np.mean(np.diff(tc))) if len(tc) >= 2 else float("nan")
+    return {"cd_max": float(cd.max()), "cl_max": float(cl.max()), "st": D / period / 1.0 if period == period else None,
+            "periods": len(tc) - 1}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("case", choices=["2D-1", "2D-2"])
+    ap.add_argument("--ny", type=int, nargs="+", default=[41])
+    ap.add_argument("--t-end", type=float, default=None)
+    ap.add_argument("--record-from", type=float, default=None)
+    ap.add_argument("--out", default=None, help="JSON file for the results")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on small grids)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    t_end = args.t_end or (6.0 if args.case == "2D-1" else 8.0)
+    rec = args.record_from if args.record_from is not None else (t_end - 1.0 if args.case == "2D-1" else t_end - 4.0)
+    results = []
+    for ny in args.ny:
+        hist, state, meta = run(args.case, ny, t_end, record_from=rec)
+        if args.out:
+            np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
+                       header="t,cd,cl,dp,cd_pressure,cl_pressure")
+        tail = hist[hist[:, 0] >= t_end - (1.0 if args.case == "2D-1" else 2.0)]
+        res = {**meta, **summarize(args.case, tail)}
+        print(json.dumps(res), flush=True)
+        results.append(res)
+    if args.out:
+        Path(args.out).write_text(json.dumps({"case": args.case, "reference": REFERENCE[args.case], "runs": results},
+                                             indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

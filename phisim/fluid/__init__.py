@@ -1,0 +1,34 @@
+"""Incompressible flow on MAC grids: bodies, pressure projection, viscosity, forces, time steps.
+
+Modules:
+
+* :mod:`~phisim.fluid.geometry` -- body shapes as signed distance functions (box, sphere, rotated box,
+  union, your own function);
+* :mod:`~phisim.fluid.bodies` -- :class:`Obstacle` (resting staircase cells) and :class:`Body` (a geometry
+  with a prescribed motion, no-slip or free-slip, rasterised to fractional face weights);
+* :mod:`~phisim.fluid.projection` -- :func:`make_incompressible` with walls, inflows, outflows, periodic
+  sides and bodies;
+* :mod:`~phisim.fluid.viscosity` -- :func:`diffuse_velocity`;
+* :mod:`~phisim.fluid.forces` -- drag and lift on bodies, pressure at probe points;
+* :mod:`~phisim.fluid.step` -- :func:`navier_stokes_step`, :func:`step` and :class:`FluidState`;
+* :mod:`~phisim.fluid.integrators` -- second-/third-order time integrators (:func:`navier_stokes_rk_step`:
+  ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
+"""
+
+from .bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
+from .forces import BodyForces, body_forces, probe_pressure
+from .geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
+from .integrators import INTEGRATORS, convection, navier_stokes_rk_step
+from .projection import PRESSURE_SOLVE, impose_solids, make_incompressible, net_boundary_flux, relative_divergence
+from .step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
+from .viscosity import VISCOSITY_SCHEMES, diffuse_velocity
+
+__all__ = [
+    "Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction",
+    "Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks",
+    "make_incompressible", "relative_divergence", "impose_solids", "net_boundary_flux", "PRESSURE_SOLVE",
+    "diffuse_velocity", "VISCOSITY_SCHEMES",
+    "INTEGRATORS", "convection", "navier_stokes_rk_step",
+    "BodyForces", "body_forces", "probe_pressure",
+    "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
+]

@@ -1,0 +1,241 @@
+"""Forces on bodies (drag and lift, pressure and viscous parts) and the pressure at probe points.
+
+Call these after a step, with the velocity and the pressure potential it returned and the step's ``dt``.
+The physical pressure is ``p_phys = density * p / dt`` (the projection's potential ``p`` carries ``dt``).
+
+**Pressure force** ``F_p = -oint p n dS`` (``n`` the body's outward normal). With the fractional face weights
+``theta`` of the body (:mod:`phisim.fluid.bodies`) the surface piece inside cell ``c`` has the area vector
+``(int n dS)_c = sum_i (theta_{i, c+1/2} - theta_{i, c-1/2}) A_i e_i`` (divergence theorem on the fluid part of
+the cell, ``A_i`` the area of a face normal to ``i``), so
+
+    ``F_p = -sum_c p_phys,c sum_i (theta_{i, c+1/2} - theta_{i, c-1/2}) A_i e_i``,
+
+the same weights the pressure solve uses; a constant pressure gives exactly zero force.
+
+**Viscous force** ``F_v = oint tau n dS`` with ``tau = mu (grad u + grad u^T)``. On a rigid no-slip surface
+``u - u_s`` vanishes, its tangential derivatives vanish and incompressibility removes its normal-normal
+part, so ``tau n = mu d(u - u_s)/dn``. It is evaluated at one surface point per cut cell
+(``x_s = x_c - phi n``, weight ``|(int n dS)_c|``) by the second-order one-sided difference
+``(4 w(delta) - w(2 delta)) / (2 delta)`` of ``w = u - u_s`` sampled along the normal at ``delta = 1.5 dx``
+and ``3 dx``, outside the band of blended faces. Free-slip bodies have no viscous force.
+
+Coefficients: ``c = 2 F / (density U^2 L)`` with a reference speed ``U`` and length ``L`` (2-D; in 3-D
+``L`` is a reference area), see :meth:`BodyForces.coefficients`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import torch
+
+from ..checks import check_positive
+from ..errors import ParameterError, ShapeError
+from ..field import CenteredGrid, StaggeredGrid
+from .bodies import Body, Obstacle, _body_fraction, _normal_l1
+from .geometry import Geometry
+from .projection import _check_velocity
+
+__all__ = ["BodyForces", "body_forces", "probe_pressure"]
+
+
+@dataclass(frozen=True)
+class BodyForces:
+    """Hydrodynamic force on one body, per sample.
+
+    Attributes:
+        pressure: Pressure part ``(B, d)``.
+        viscous: Viscous part ``(B, d)``.
+    """
+
+    pressure: torch.Tensor
+    viscous: torch.Tensor
+
+    @property
+    def total(self) -> torch.Tensor:
+        """Pressure plus viscous force ``(B, d)``."""
+        return self.pressure + self.viscous
+
+    def coefficients(self, speed: float, length: float, density: float = 1.0) -> torch.Tensor:
+        """Force coefficients ``2 F / (density speed^2 length)`` of the total force ``(B, d)``.
+
+        Args:
+            speed: Reference speed (e.g. the mean inflow velocity).
+            length: Reference length (2-D, e.g. the diameter) or area (3-D).
+            density: Fluid density.
+        """
+        return 2.0 * self.total / (density * speed**2 * length)
+
+
+def _as_body(body) -> Body:
+    if isinstance(body, Geometry):
+        return Body(body)
+    if isinstance(body, Obstacle):
+        raise ParameterError("forces need a Body (a geometry with a surface), not a staircase Obstacle; build "
+                             "the shape with phisim.fluid.Box / Sphere / SDF and wrap it in Body(...)")
+    if not isinstance(body, Body):
+        raise ParameterError(f"body must be a Body or a Geometry, got {type(body).__name__}")
+    return body
+
+
+def _pressure_values(pressure, velocity: StaggeredGrid) -> torch.Tensor:
+    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
+        raise ParameterError("pressure must be the scalar CenteredGrid returned by the step / projection")
+    if pressure.grid != velocity.grid:
+        raise ShapeError(f"pressure grid {pressure.grid} differs from the velocity grid {velocity.grid}")
+    return pressure.values
+
+
+_SURFACES: OrderedDict = OrderedDict()
+
+
+def _surface(body: Body, grid, t: float, like: torch.Tensor):
+    """Area vectors ``int n dS`` of the surface piece in each cell, ``(*res, d)`` (cached for static bodies)."""
+    key = None
+    if body.static:
+        key = (id(body), grid, like.dtype, str(like.device))
+        hit = _SURFACES.get(key)
+        if hit is not None and hit[0] is body and hit[1] is not None:
+            return hit[1]
+    vec = _surface_vectors(body, grid, t, like)
+    if key is not None:  # never reuse vectors that depend on shape parameters requiring grad
+        _SURFACES[key] = (body, None if vec.requires_grad else vec)
+        while len(_SURFACES) > 16:
+            _SURFACES.popitem(last=False)
+    return vec
+
+
+def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
+    h = min(grid.dx)
+    work = like.dtype
+    area = []
+    for i in range(grid.rank):
+        th = _body_fraction(body, grid.face_centers(i, work, like.device), t, h)
+        n = grid.resolution[i]
+        a_i = math.prod(d for k, d in enumerate(grid.dx) if k != i)
+        area.append((th.narrow(i, 1, n) - th.narrow(i, 0, n)) * a_i)
+    vec = torch.stack(area, -1)  # (*res, d): int n dS over the surface piece in each cell
+    return vec
+
+
+def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: float, viscosity: float,
+                density: float = 1.0, time: float = 0.0, probe_distance: float = 1.5) -> BodyForces:
+    """Drag/lift on ``body`` from a step's velocity and pressure (formulas in the module docstring).
+
+    Args:
+        velocity: MAC velocity after the step.
+        pressure: The step's pressure potential (CenteredGrid).
+        body: A :class:`~phisim.fluid.bodies.Body` (or a Geometry: a resting no-slip body).
+        dt: The step's time step (converts the potential to a pressure).
+        viscosity: Kinematic viscosity (``mu = density * viscosity``).
+        density: Fluid density.
+        time: Time of the velocity (position of a moving body).
+        probe_distance: Normal distance of the first viscous probe in cells.
+
+    Returns:
+        :class:`BodyForces` with ``(B, d)`` tensors; differentiable.
+
+    Raises:
+        ParameterError: For a staircase Obstacle, non-positive dt or density, or mismatched fields.
+    """
+    _check_velocity(velocity)
+    body = _as_body(body)
+    dt = check_positive(dt, "dt")
+    density = check_positive(density, "density")
+    p = _pressure_values(pressure, velocity) * (density / dt)
+    grid = velocity.grid
+    vec = _surface(body, grid, float(time), p)
+    fp = -(p.unsqueeze(-1) * vec.unsqueeze(0)).flatten(1, -2).sum(1)
+    fv = torch.zeros_like(fp)
+    if body.no_slip and float(viscosity) != 0:
+        fv = _viscous(velocity, body, vec, float(time), probe_distance) * (density * float(viscosity))
+    return BodyForces(fp, fv)
+
+
+def _viscous(velocity: StaggeredGrid, body: Body, vec: torch.Tensor, t: float, probe: float) -> torch.Tensor:
+    grid = velocity.grid
+    h = min(grid.dx)
+    mag = vec.norm(dim=-1)
+    cut = mag > 1e-9 * mag.max().clamp_min(torch.finfo(mag.dtype).tiny)
+    xc = grid.cell_centers(vec.dtype, vec.device)[cut]  # (S, d)
+    weight = mag[cut]
+    phi = body.sdf(xc, t)
+    grad = []
+    for k in range(grid.rank):
+        e = torch.zeros(grid.rank, dtype=xc.dtype, device=xc.device)
+        e[k] = 1e-3 * h
+        grad.append((body.sdf(xc + e, t) - body.sdf(xc - e, t)) / (2e-3 * h))
+    n = torch.stack(grad, -1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    xs = xc - phi.unsqueeze(-1) * n
+    d1 = probe * h
+    pts = torch.cat([xs + d1 * n, xs + 2 * d1 * n], 0)
+    u = velocity.sample(pts.to(velocity.dtype))  # (B, d, 2S)
+    us = body.velocity_at(pts, t).to(velocity.dtype).T.unsqueeze(0) if not body.static else 0.0
+    w = u - us
+    s = xs.shape[0]
+    dwdn = (4 * w[..., :s] - w[..., s:]) / (2 * d1)  # (B, d, S)
+    return (dwdn * weight.to(velocity.dtype)).sum(-1)
+
+
+def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float = 1.0, bodies=None,
+                   time: float = 0.0) -> torch.Tensor:
+    """Physical pressure ``density * p / dt`` at points, extrapolated to body surfaces where needed.
+
+    Points farther than 1.5 cells from every body are interpolated multilinearly. Points closer (e.g.
+    on a body's surface) take the linear extrapolation along the body's normal from two points in the
+    fluid, 1.5 and 2.5 cells beyond the surface, so that cells inside the body (pressure 0) never enter.
+
+    Args:
+        pressure: The pressure potential (CenteredGrid ``(B, *res)``).
+        points: ``(P, d)`` physical coordinates.
+        dt: The step's time step.
+        density: Fluid density.
+        bodies: Optional Body/Geometry or a sequence of them.
+        time: Time of the pressure (positions of moving bodies).
+
+    Returns:
+        ``(B, P)`` pressures.
+    """
+    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
+        raise ParameterError("pressure must be a scalar CenteredGrid")
+    dt = check_positive(dt, "dt")
+    density = check_positive(density, "density")
+    grid = pressure.grid
+    x = torch.as_tensor(points, dtype=pressure.dtype, device=pressure.device)
+    if x.ndim != 2 or x.shape[1] != grid.rank:
+        raise ShapeError(f"points must have shape (P, {grid.rank}), got {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ParameterError("probe points contain NaN or Inf")
+    h = min(grid.dx)
+    if bodies is not None:
+        blist = [bodies] if isinstance(bodies, (Body, Geometry)) else list(bodies)
+        blist = [_as_body(b) for b in blist]
+        phis = torch.stack([b.sdf(x, time) for b in blist], 0)
+        near = phis.min(0)
+        idx = near.indices
+        phi = near.values
+        n = torch.zeros_like(x)
+        for k, b in enumerate(blist):
+            sel = idx == k
+            if bool(sel.any()):
+                g = []
+                for a in range(grid.rank):
+                    e = torch.zeros(grid.rank, dtype=x.dtype, device=x.device)
+                    e[a] = 1e-3 * h
+                    g.append((b.sdf(x[sel] + e, time) - b.sdf(x[sel] - e, time)) / (2e-3 * h))
+                gg = torch.stack(g, -1)
+                n[sel] = gg / gg.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        shift = (1.5 * h - phi).clamp_min(0.0)
+        close = shift > 0
+        q1 = x + shift.unsqueeze(-1) * n
+        q2 = q1 + h * n
+        v1, v2 = pressure.sample(q1), pressure.sample(q2)
+        val = torch.where(close, v1 + (v1 - v2) * shift / h, v1)
+        return val * (density / dt)
+    return pressure.sample(x) * (density / dt)
+
+
+_ = _normal_l1

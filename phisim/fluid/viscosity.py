@@ -1,0 +1,69 @@
+"""Viscous diffusion of MAC velocities: explicit, implicit (backward Euler), Crank-Nicolson, exact.
+
+Wall and inflow velocities enter through the ghost samples of the velocity boundary; bodies enter through
+:func:`phisim.fluid.projection.impose_solids`, applied before this step, which puts each body's velocity on
+the faces it covers, so the viscous stencil sees it at the body's surface. The work is done by
+:func:`phisim.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one DST/DCT/FFT pair per
+component (about the cost of an explicit step at small sizes; see ``docs/BENCHMARKS.md``).
+"""
+
+from __future__ import annotations
+
+from ..checks import check_dt, check_nonnegative
+from ..diffusion import diffuse_staggered
+from ..errors import ParameterError
+from ..field import StaggeredGrid
+from ..linalg import Solve
+from .projection import _check_velocity
+
+__all__ = ["diffuse_velocity", "VISCOSITY_SCHEMES"]
+
+#: Schemes of :func:`diffuse_velocity` (the methods of :func:`phisim.diffusion.diffuse_staggered`).
+VISCOSITY_SCHEMES = ("explicit", "implicit", "crank_nicolson", "spectral")
+
+
+def diffuse_velocity(
+    velocity: StaggeredGrid, dt, *, viscosity: float, scheme: str = "explicit", solve: Solve | None = None,
+    fixed=None,
+) -> StaggeredGrid:
+    """Viscous diffusion ``du/dt = viscosity * lap(u)`` of a MAC velocity over one step ``dt``.
+
+    Wall velocities enter through the ghost cells of :meth:`StaggeredGrid.padded_component`: a moving
+    lid (``NoSlipWall(velocity=(1, 0))``) drags the tangential velocity next to it.
+
+    Args:
+        velocity: MAC velocity.
+        dt: Time step ``>= 0``.
+        viscosity: Kinematic viscosity ``>= 0``.
+        scheme: ``'explicit'`` (forward Euler, first order in time, stable for
+            ``viscosity * dt * sum(2 / dx_i^2) <= 1``), ``'implicit'`` (backward Euler, first order,
+            unconditionally stable), ``'crank_nicolson'`` (second order, unconditionally stable) or
+            ``'spectral'`` (exact in time; no ``fixed`` faces). Implicit schemes are exact box solves by
+            DST/DCT/FFT (:func:`phisim.diffusion.diffuse_staggered`).
+        solve: CG settings of the solve with ``fixed`` faces (unused otherwise).
+        fixed: Optional per-component face masks held at their current value (bodies), see
+            :func:`phisim.diffusion.diffuse_staggered`.
+
+    Returns:
+        The diffused velocity with boundary faces re-imposed.
+
+    Raises:
+        ParameterError: For negative dt/viscosity, an unknown scheme, or an explicit step beyond its
+            stability limit.
+        SolveError: If a solve with ``fixed`` faces does not converge.
+    """
+    _check_velocity(velocity)
+    dt = check_dt(dt)
+    viscosity = check_nonnegative(viscosity, "viscosity")
+    if scheme not in VISCOSITY_SCHEMES:
+        raise ParameterError(f"viscosity scheme must be one of {VISCOSITY_SCHEMES}, got {scheme!r}")
+    if float(viscosity) == 0 or float(dt) == 0:
+        return velocity
+    if scheme == "explicit":
+        number = float(dt * viscosity) * sum(2.0 / d**2 for d in velocity.grid.dx)
+        if number > 1.0:
+            raise ParameterError(
+                f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt or "
+                "use scheme='implicit' or 'crank_nicolson'"
+            )
+    return diffuse_staggered(velocity, dt, viscosity=viscosity, method=scheme, fixed=fixed, solve=solve)
