@@ -3,8 +3,8 @@
 ``FFTW_MEASURE`` picks among candidate algorithms by timing them, so two processes planning the same
 transform can pick different algorithms whose round-off differs: a simulation then diverges between two
 runs with the same seed (a 64x96 plume differed from frame 3-5 on, 7e-7 growing to 1e-4).
-``FFTW_ESTIMATE`` is deterministic but chooses poorly for real-to-real transforms (measured up to 10x
-slower for a 512^2 DCT-II, see ``docs/BENCHMARKS.md``).
+``FFTW_ESTIMATE`` is deterministic but chooses poorly for real-to-real transforms (the Poisson solves ran
+2x to 14x slower, see ``docs/BENCHMARKS.md``).
 
 The fix keeps measured plans and makes their choice a property of the machine, not of the process: every
 plan is made under an exclusive lock on a wisdom file, after importing the wisdom already in it; a
