@@ -36,8 +36,8 @@ differed from frame 3-5 on, 7e-7 growing to 1e-4). Costs (``benchmarks/bench_rel
 ``docs/BENCHMARKS.md``): one measurement per transform size per machine (10 ms to a few s), a locked file
 read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effort='FFTW_ESTIMATE')`` or
 ``PHISIM_FFT_PLANNER=estimate``) needs no file and is deterministic too, but chooses slow real-to-real
-algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in every process: fast
-planning without the file, at the price of cross-process reproducibility.
+algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in
+every process: no file, at the price of cross-process reproducibility.
 
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
