@@ -121,8 +121,11 @@ def plan(pyfftw, build: Callable[[str], object], effort: str):
                 wisdom = tuple(pyfftw.export_wisdom())
                 if wisdom != stored:
                     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-                    tmp.write_bytes(_encode(wisdom))
-                    os.replace(tmp, path)
+                    try:
+                        tmp.write_bytes(_encode(wisdom))
+                        os.replace(tmp, path)
+                    finally:
+                        tmp.unlink(missing_ok=True)
                 _STATE["saved"] = wisdom
                 return fftw
         except (OSError, ImportError) as exc:
