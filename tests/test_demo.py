@@ -58,6 +58,6 @@ def test_demo_tiny(tmp_path):
         for m in ("adam", "pg"):
             g = f[f"training/{m}"]
             assert g["metric"].shape == (2,) and np.isfinite(g["metric"][()]).all()
-            assert np.isfinite(g["eval_metric"][()]).all()  # 2 iterations: evaluated after each
+            assert np.isfinite(g["eval_metric"][()]).tolist() == [False, True]  # the final model
             assert "sum over cells" in g.attrs["metric_name"] and g.attrs["heldout_size"] == 4
     assert summary["training"]["adam"]["heldout_metric"] > 0
