@@ -6,6 +6,14 @@ Examples::
     phisim train poisson pg --iterations 200 --batch-size 16 --resolution 32 32 --out out/poisson.h5
     phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
     phisim info out/poisson.h5
+    phisim train examples/burgers_inverse.py:burgers_problem adam --setting resolution=16 --out out/b.h5
+    phisim train well pg --setting data_dir=data/heat --out out/well.h5
+    phisim simulate smoke --trajectories 16 --workers 2 --out data/smoke
+    phisim plot data/smoke/data/train/smoke_00000.h5 --field vorticity
+    phisim predict out/poisson.h5.pg.model.pt inputs.h5 --key inputs --out predictions.h5
+
+``problem`` is a registered name (``phisim list``) or a factory of your own, ``module:function`` or
+``file.py:function`` (see :mod:`inverse.custom`).
 
 Data-parallel training: start the same command under ``torchrun``; the process group is initialised from
 its environment (gloo on CPU, NCCL with ``--device cuda``, one GPU per process), process 0 writes the files
@@ -48,6 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
         sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
                         help="network and data precision (default: the problem's)")
+        sp.add_argument("--setting", action="append", metavar="KEY=VALUE", default=[],
+                        help="a problem setting (repeatable), e.g. --setting lr=0.01")
+        sp.add_argument("--tensorboard", type=Path, default=None, help="TensorBoard folder (if installed)")
+        sp.add_argument("--csv", type=Path, default=None, help="folder for CSV copies of the curves")
 
     t = sub.add_parser("train", help="train one method")
     common(t)
@@ -58,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", type=Path, default=None, help="PNG of the learning curves")
     i = sub.add_parser("info", help="summarise an HDF5 file written by phisim")
     i.add_argument("path", type=Path)
+    from .cli_workflows import add_workflow_parsers
+
+    add_workflow_parsers(sub)
     return p
 
 
@@ -94,9 +109,10 @@ def describe_file(path: Path) -> str:
 
 
 def _problem(args):
+    from .cli_workflows import parse_settings
     from .problems import get_problem
 
-    settings = {}
+    settings = parse_settings(args.setting)
     if args.resolution is not None:
         settings["resolution"] = tuple(args.resolution)
     if args.heldout_size is not None:
@@ -114,7 +130,11 @@ def _train(args, problem, method):
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet, eval_every=args.eval_every)
+              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard)
+    if args.csv is not None and args.out is not None and is_main_process():
+        from .export import export_csv
+
+        export_csv(args.out, args.csv)
     if is_main_process():
         print(json.dumps({
             "problem": problem.name, "method": method, "iterations": r.iterations,
@@ -136,11 +156,18 @@ def main(argv: list[str] | None = None) -> int:
             from .problems import PROBLEMS
 
             for name, cls in PROBLEMS.items():
-                print(f"{name}: {', '.join(cls().methods)}")
+                try:
+                    print(f"{name}: {', '.join(cls().methods)}")
+                except (TypeError, PhisimError):  # needs settings, e.g. the dataset of `well`
+                    print(f"{name}: supervised (needs --setting data_dir=DIR --setting field=NAME)")
             return 0
         if args.command == "info":
             print(describe_file(args.path))
             return 0
+        from .cli_workflows import WORKFLOW_COMMANDS, run_workflow
+
+        if args.command in WORKFLOW_COMMANDS:
+            return run_workflow(args)
         from .distributed import is_main_process
 
         started = _start_process_group(args.device)

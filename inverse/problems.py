@@ -54,6 +54,8 @@ class Method:
         grad_clip: Clamp the per-sample gradient w.r.t. the network output ``x`` (for physical gradients:
             the update ``x̃ − x``) to ``[-c, c]`` before it reaches the network (E2).
         rcond: HIG truncation.
+        loss: Per-sample y-space loss ``(y, y*) -> (B,)`` that HIG differentiates instead of the problem's
+            :meth:`Problem.loss` (None: the problem's). E2's ``hig_squared`` uses ``½ (y − y*)²``.
     """
 
     name: str
@@ -65,6 +67,7 @@ class Method:
     local_solver: LocalSolver | None = None
     grad_clip: float | None = None
     rcond: float = 1e-5
+    loss: Callable | None = None
 
 
 @dataclass
@@ -172,6 +175,10 @@ class Problem:
 # ---- E2 -------------------------------------------------------------------------------------------------
 
 
+def _half_squared(y: torch.Tensor, y_target: torch.Tensor) -> torch.Tensor:
+    return 0.5 * ((y - y_target) ** 2).reshape(y.shape[0], -1).sum(dim=1)
+
+
 @dataclass
 class SineProblem(Problem):
     """E2: find ``x`` with ``sin(a/x) = −1`` for ``a ∈ [0.1, 10.1)``; network ``a -> x`` (MLP, 461 parameters).
@@ -202,6 +209,9 @@ class SineProblem(Problem):
                                           local_solver=InverseGradientSolver()),
             "pg_analytic": Method("pg_analytic", "physgrad", lr=lr),
             "hig": Method("hig", "hig", optimizer="hig", lr=lr, rcond=1e-5),
+            # HIG as it is normally run: a squared y-space loss and SGD with lr 1
+            "hig_squared": Method("hig_squared", "hig", optimizer="hig", lr=1.0, rcond=1e-5,
+                                  loss=_half_squared),
         }
         self.hig_physics = lambda out, a: torch.sin(a / out)
 
@@ -290,29 +300,51 @@ class PoissonProblem(_UNetGridProblem):
     16 filters (37,697 parameters), input ``y*``, output ``x``. Methods: Adam through the CG solve
     (``adam``), SGD with momentum (``sgd``), Adam + physical gradients with the analytic Laplacian
     (``pg``) or L-BFGS-B (``pg_lbfgsb``, 10 iterations: each evaluation is a CG solve).
+
+    ``solver`` selects the training path's forward solve: ``'cg'`` (plain CG to ``rtol``, the experiment's
+    specification, default) or ``'spectral'`` (CG preconditioned by the exact spectral solver: one
+    iteration). ``data_solver`` selects how ``y*`` is generated: ``'spectral'`` (the exact DST solve,
+    default: ~100x faster than CG at 64²) or ``'cg'``.
     """
 
     name: str = "poisson"
     rtol: float = 1e-5
     sgd_lr: float = 1e-9
     lbfgsb_iterations: int = 10
+    solver: str = "cg"
+    data_solver: str = "spectral"
+
+    def __post_init__(self):
+        super().__post_init__()
+        for attr in ("solver", "data_solver"):
+            if getattr(self, attr) not in ("cg", "spectral"):
+                raise ParameterError(f"{attr} must be 'cg' or 'spectral', got {getattr(self, attr)!r}")
 
     def _make_operator(self) -> PhysicsOperator:
         from phisim.linalg import Solve
 
         from .operators import Poisson
 
-        return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol))
+        pre = "spectral" if self.solver == "spectral" else None
+        return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol), preconditioner=pre)
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
-        """``x*`` spectral noise, ``y* = P(x*)``."""
+        """``x*`` spectral noise, ``y* = P(x*)``.
+
+        With ``data_solver='spectral'`` (default) ``y*`` is the exact discrete solution (DST, float64,
+        round-off accurate); ``'cg'`` solves it with the training operator's CG instead (to ``rtol``).
+        """
         from phisim.noise import spectral_noise
+        from phisim.poisson import spectral_poisson_solve
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
                            dtype=torch.float64).values.to(device=device, dtype=self.dtype)
         op = self.operator()
         with torch.no_grad():
-            y = op.forward(x)
+            if self.data_solver == "spectral":
+                y = spectral_poisson_solve(x.to(torch.float64), 1.0, "dirichlet").to(x.dtype)
+            else:
+                y = op.forward(x)
         return Batch(y.unsqueeze(1), y, x, op)
 
 
@@ -371,16 +403,41 @@ def _fluid_problem(**settings) -> Problem:
 PROBLEMS["fluid"] = _fluid_problem
 
 
+def _well_problem(**settings) -> Problem:
+    """Offline supervised training from a Well-layout dataset (:func:`inverse.offline.dataset_problem`)."""
+    from .offline import dataset_problem
+
+    return dataset_problem(**settings)
+
+
+PROBLEMS["well"] = _well_problem
+
+
 def get_problem(name: str, **settings) -> Problem:
     """Instantiate a registered problem, e.g. ``get_problem('poisson', resolution=(32, 32), batch_size=8)``.
 
+    A name ``module:function`` or ``path/to/file.py:function`` calls a factory of your own
+    (:func:`inverse.custom.load_problem`). The problem records ``spec = {'factory': name, 'settings': ...}``
+    (what :func:`inverse.load_model` uses to rebuild its network).
+
     Raises:
-        ParameterError: For an unknown name or setting.
+        ParameterError: For an unknown name or setting (the closest registered name is suggested).
     """
+    if ":" in str(name):
+        from .custom import load_problem
+
+        return load_problem(name, **settings)
     if name not in PROBLEMS:
-        raise ParameterError(f"unknown problem {name!r}; choose from {sorted(PROBLEMS)}")
+        import difflib
+
+        close = difflib.get_close_matches(str(name), list(PROBLEMS), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ParameterError(f"unknown problem {name!r}{hint} (choose from {sorted(PROBLEMS)}, or give a "
+                             "factory as module:function)")
     try:
-        return PROBLEMS[name](**settings)
+        problem = PROBLEMS[name](**settings)
     except TypeError as exc:
         raise ParameterError(f"bad settings for problem {name!r}: {exc}") from exc
+    problem.spec = {"factory": name, "settings": dict(settings)}
+    return problem
 

@@ -131,7 +131,8 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
         objective value.
     """
     if method.kind == "hig":
-        info = opt.step(batch.inputs, batch.y_target, loss_fn=problem.loss, physics_args=batch.physics_args)
+        loss_fn = problem.loss if method.loss is None else method.loss
+        info = opt.step(batch.inputs, batch.y_target, loss_fn=loss_fn, physics_args=batch.physics_args)
         with torch.no_grad():
             x = problem.predict(model, batch)
             loss = problem.loss(batch.operator(x), batch.y_target).sum()
@@ -161,7 +162,10 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
         per = 0.5 * ((x - batch.labels) ** 2).reshape(x.shape[0], -1).sum(dim=1)
         objective = weight * per.sum()
         with torch.no_grad():
-            loss_sum = problem.loss(batch.operator(x.detach()), batch.y_target).sum()
+            if getattr(problem, "has_physics", True):
+                loss_sum = problem.loss(batch.operator(x.detach()), batch.y_target).sum()
+            else:  # offline data without a forward physics: no y-space loss
+                loss_sum = torch.tensor(float("nan"), device=x.device)
     else:
         raise ParameterError(f"unknown method kind {method.kind!r}")
     if not torch.isfinite(objective):
@@ -232,6 +236,21 @@ def _read_log(h5path: Path, method: str) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in grp.items() if isinstance(v, h5py.Dataset)}
 
 
+def _write_model(out_path: Path, net: nn.Module, problem: Problem, method: Method, seed: int, iterations: int,
+                 input_shape, batch_size: int, device) -> Path:
+    """The end-of-run model file beside ``out_path`` (:func:`inverse.models.model_path`), named in the log."""
+    from .models import model_path, save_model
+
+    if input_shape is None:  # nothing trained in this session (a resumed, finished run): draw one sample
+        input_shape = tuple(problem.sample(1, batch_generator(seed, 0), device=device).inputs.shape[1:])
+    path = save_model(model_path(out_path, method.name), net, problem, method=method.name, seed=seed,
+                      iterations=iterations, input_shape=input_shape)
+    with h5py.File(out_path, "a") as f:
+        grp = f.require_group(f"training/{method.name}")
+        grp.attrs["model_file"] = path.name
+    return path
+
+
 def train(
     problem: Problem | str,
     method: Method | str,
@@ -247,6 +266,7 @@ def train(
     callback: Callable[[int, dict], None] | None = None,
     distributed: bool | None = None,
     eval_every: int | None = None,
+    tensorboard: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Train the problem's network with one method.
 
@@ -258,7 +278,9 @@ def train(
         seed: Seeds the network initialisation and the data stream.
         device: Torch device. Under data parallelism a CUDA device without an index becomes
             ``cuda:LOCAL_RANK`` (one GPU per process).
-        out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints).
+        out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints). At the
+            end of the run the trained network is written to ``<out>.<method>.model.pt``
+            (:func:`inverse.models.load_model` rebuilds it; the log's attribute ``model_file`` names it).
         checkpoint_every: Iterations between checkpoints (0: none).
         resume: Continue from the checkpoint next to ``out`` when there is one.
         progress: Show a tqdm progress bar.
@@ -274,6 +296,8 @@ def train(
         eval_every: Iterations between held-out evaluations (``None``: ``iterations // 20``, about 20 per
             run, and only the final one for runs under 20 iterations; 0: only after the last iteration).
             The final model is always evaluated.
+        tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
+            the ``tensorboard`` package is not installed.
 
     Returns:
         The :class:`TrainResult`.
@@ -368,11 +392,19 @@ def train(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=iterations, initial=start, desc=f"{problem.name}/{method.name}")
+    tb = None
+    if tensorboard is not None and rank == 0:
+        from .export import TensorBoardLogger
+
+        tb = TensorBoardLogger(tensorboard, method.name)
     t0 = time.perf_counter()
+    input_shape = None
     model.train()
     try:
         for it in range(start, iterations):
             batch = problem.sample(batch_size, batch_generator(seed, it), device=device)
+            if input_shape is None:
+                input_shape = tuple(batch.inputs.shape[1:])
             if distributed:
                 batch = _slice_batch(batch, slice(rank, None, world))
             sums, objective = _step(problem, method, model, opt, batch, weight)
@@ -395,6 +427,8 @@ def train(
                 log.append(it, **record)
             if callback is not None:
                 callback(it, record)
+            if tb is not None:
+                tb.log(it, record)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}",
@@ -409,7 +443,11 @@ def train(
             bar.close()
         if log is not None:
             log.close()
+        if tb is not None:
+            tb.close()
     seconds = time.perf_counter() - t0
+    if out_path is not None and rank == 0:  # before the barrier: no process reads the log while it is written
+        _write_model(out_path, net, problem, method, seed, iterations, input_shape, batch_size, device)
     if distributed:
         dist.barrier()
     if out_path is not None:

@@ -62,6 +62,7 @@ from .boundary import (
     BoundaryCondition,
     Dirichlet,
     FreeSlipWall,
+    Inflow,
     Neumann,
     NoSlipWall,
     Open,
@@ -156,7 +157,7 @@ def well_bc_type(condition: BoundaryCondition) -> str:
     """
     if isinstance(condition, Periodic):
         return "PERIODIC"
-    if isinstance(condition, Open):
+    if isinstance(condition, (Open, Inflow)):
         return "OPEN"
     if isinstance(condition, (NoSlipWall, FreeSlipWall, Dirichlet, Neumann)):
         return "WALL"
@@ -164,6 +165,10 @@ def well_bc_type(condition: BoundaryCondition) -> str:
 
 
 def _conditionto_json(c: BoundaryCondition) -> dict:
+    if isinstance(c, Inflow):  # a function itself is not stored: its name is, and the side reads back as open
+        if c.varying:
+            return {"type": "inflow", "function": getattr(c.velocity, "__qualname__", repr(c.velocity))}
+        return {"type": "inflow", "velocity": _valueto_json(c.velocity)}
     if isinstance(c, Periodic):
         return {"type": "periodic"}
     if isinstance(c, Open):
@@ -204,6 +209,8 @@ def _condition_from_json(d: dict) -> BoundaryCondition:
         return Periodic()
     if kind == "open":
         return Open()
+    if kind == "inflow":
+        return Inflow(_value_from_json(d["velocity"])) if "velocity" in d else Open()
     if kind == "free_slip":
         return FreeSlipWall()
     if kind == "no_slip":

@@ -437,28 +437,24 @@ def solid_layout(obstacles, grid: Grid, boundary: Boundary, time: float = 0.0, d
     if not solids:
         return None
     static = all(isinstance(s, Obstacle) or s.static for s in solids)
-    grad = any(isinstance(s, Body) and _requires_grad(s) for s in solids)
     key = None
-    if static and not grad:
-        key = (tuple(id(s) for s in solids), grid, boundary, dtype, str(device))
+    if static:
+        shape = tuple(tuple(type(c).__name__ for c in pair) for pair in boundary.sides)  # not the values: an
+        key = (tuple(id(s) for s in solids), grid, shape, dtype, str(device))  # inflow changes with time
         hit = _CACHE.get(key)
         if hit is not None:
             _CACHE.move_to_end(key)
-            return hit[1]
+            if hit[1] is not None:
+                return hit[1]
     layout = _rasterise(solids, grid, boundary, float(time), dtype, device)
     if key is not None:
-        _CACHE[key] = (solids, layout)  # keep the solids alive so their ids stay unique
+        # a layout that depends on tensors requiring grad (shape parameters, also ones captured by an SDF
+        # function) is never reused: the key is marked so that it is rasterised anew each time
+        keep = None if any(t.requires_grad for t in layout.theta) else layout
+        _CACHE[key] = (solids, keep)  # keep the solids alive so their ids stay unique
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
     return layout
-
-
-def _requires_grad(body: Body) -> bool:
-    g = body.geometry
-    vals = list(vars(g).values()) + [body.velocity, body.angular_velocity]
-    if hasattr(g, "parts"):
-        vals += [v for p in g.parts for v in vars(p).values()]
-    return any(isinstance(v, torch.Tensor) and v.requires_grad for v in vals)
 
 
 def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:

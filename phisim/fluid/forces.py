@@ -26,6 +26,7 @@ Coefficients: ``c = 2 F / (density U^2 L)`` with a reference speed ``U`` and len
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -87,8 +88,26 @@ def _pressure_values(pressure, velocity: StaggeredGrid) -> torch.Tensor:
     return pressure.values
 
 
+_SURFACES: OrderedDict = OrderedDict()
+
+
 def _surface(body: Body, grid, t: float, like: torch.Tensor):
-    """Area vectors per cell ``(*res, d)`` and per-cell surface points / normals of cut cells."""
+    """Area vectors ``int n dS`` of the surface piece in each cell, ``(*res, d)`` (cached for static bodies)."""
+    key = None
+    if body.static:
+        key = (id(body), grid, like.dtype, str(like.device))
+        hit = _SURFACES.get(key)
+        if hit is not None and hit[0] is body and hit[1] is not None:
+            return hit[1]
+    vec = _surface_vectors(body, grid, t, like)
+    if key is not None:  # never reuse vectors that depend on shape parameters requiring grad
+        _SURFACES[key] = (body, None if vec.requires_grad else vec)
+        while len(_SURFACES) > 16:
+            _SURFACES.popitem(last=False)
+    return vec
+
+
+def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
     h = min(grid.dx)
     work = like.dtype
     area = []

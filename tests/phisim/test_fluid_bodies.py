@@ -284,3 +284,17 @@ def test_gradcheck_forces_wrt_inflow_and_body_velocity():
     speed = torch.tensor(0.8, dtype=F64, requires_grad=True)
     bvel = torch.tensor([0.1, -0.05], dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(drag, (speed, bvel), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_user_sdf_with_captured_parameter_gets_gradients_every_call():
+    """Layouts that depend on tensors requiring grad are never served from the cache."""
+    grid = Grid((10, 10), bounds=[(0, 1), (0, 1)])
+    v = StaggeredGrid.uniform((1.0, 0.0), grid, "periodic", dtype=F64)
+    r = torch.tensor(0.2, dtype=F64, requires_grad=True)
+    body = Body(SDF(lambda x: (x - 0.5).norm(dim=-1) - r, center=(0.5, 0.5), bounds=((0.2, 0.2), (0.8, 0.8))))
+    grads = []
+    for _ in range(2):
+        out, _ = make_incompressible(v, body, solve=TIGHT)
+        (g,) = torch.autograd.grad(out.values[0].sum(), r)
+        grads.append(float(g))
+    assert grads[0] != 0 and grads[0] == pytest.approx(grads[1], rel=1e-12)

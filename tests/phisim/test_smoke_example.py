@@ -41,6 +41,8 @@ def test_smoke_plume_tiny(tmp_path, dim, resolution):
     )
     assert res["steps"] == 3 and res["time"] > 0
     assert res["max_relative_divergence"] < 1e-4  # float32 default
+    # conservative smoke transport (the default): the box holds exactly what the inflow put in (float32)
+    np.testing.assert_allclose(res["smoke"], res["injected"], rtol=1e-5)
     for key in ("gif", "png"):
         assert Path(res[key]).exists() and Path(res[key]).stat().st_size > 1000
     shape = (resolution, int(1.5 * resolution)) + ((resolution,) if dim == 3 else ())
