@@ -194,7 +194,8 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
         chunk_size: Samples per forward pass.
 
     Returns:
-        ``{'loss': float, 'metric': float}``, means over the samples.
+        ``{'loss': float, 'metric': float}``, means over the samples (``loss`` is NaN for a problem without
+        forward physics, ``has_physics = False``).
     """
     batch = problem.heldout(device) if batch is None else batch
     n = int(batch.inputs.shape[0])
@@ -207,7 +208,10 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
             for start in range(0, n, chunk):
                 part = batch if chunk >= n else _slice_batch(batch, slice(start, start + chunk))
                 x = problem.predict(model, part)
-                loss_sum += float(problem.loss(part.operator(x), part.y_target).double().sum())
+                if getattr(problem, "has_physics", True):
+                    loss_sum += float(problem.loss(part.operator(x), part.y_target).double().sum())
+                else:  # offline data without a forward physics: no y-space loss
+                    loss_sum = math.nan
                 metric_sum += float(problem.metric(x, part).double().sum())
     finally:
         model.train(was_training)
