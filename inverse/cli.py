@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
         sp.add_argument("--eval-every", type=int, default=None,
-                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end)")
+                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end only)")
         sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
         sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
                         help="network and data precision (default: the problem's)")

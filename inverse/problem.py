@@ -167,7 +167,7 @@ class Problem:
         return 0.5 * ((y - y_target) ** 2).reshape(y.shape[0], -1).sum(dim=1)
 
     def metric(self, x: torch.Tensor, batch: Batch) -> torch.Tensor:
-        """Per-sample x MAE ``Σ_cells |x − x*|``, shape ``(B,)``."""
+        """Per-sample x L1 error ``Σ_cells |x − x*|`` (a sum over cells), shape ``(B,)``."""
         return (x - batch.x_true.to(x.dtype)).abs().reshape(x.shape[0], -1).sum(dim=1)
 
     hig_physics: Callable | None = None

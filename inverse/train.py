@@ -197,7 +197,8 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
         chunk_size: Samples per forward pass.
 
     Returns:
-        ``{'loss': float, 'metric': float}``, means over the samples.
+        ``{'loss': float, 'metric': float}``, means over the samples (``loss`` is NaN for a problem without
+        forward physics, ``has_physics = False``).
     """
     batch = problem.heldout(device) if batch is None else batch
     n = int(batch.inputs.shape[0])
@@ -315,8 +316,9 @@ def train(
             Under ``torchrun`` the group is initialised from its environment (NCCL for CUDA, gloo
             otherwise). ``None``: on when a group is initialised or the process was started by torchrun.
             Not for HIG.
-        eval_every: Iterations between held-out evaluations (``None``: about 20 per run; 0: only after
-            the last iteration). The final model is always evaluated.
+        eval_every: Iterations between held-out evaluations (``None``: ``iterations // 20``, about 20 per
+            run, and only the final one for runs under 20 iterations; 0: only after the last iteration).
+            The final model is always evaluated.
         tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
             the ``tensorboard`` package is not installed.
 
@@ -343,7 +345,7 @@ def train(
         raise ParameterError(f"batch_size must be an int >= 1, got {batch_size!r}")
     batch_size = int(batch_size)
     if eval_every is None:
-        eval_every = max(1, iterations // 20)
+        eval_every = iterations // 20  # about 20 evaluations; a run under 20 iterations: only at the end
     if isinstance(eval_every, bool) or not isinstance(eval_every, int) or eval_every < 0:
         raise ParameterError(f"eval_every must be an int >= 0, got {eval_every!r}")
     device = check_device(device)

@@ -15,7 +15,9 @@ A file written by :class:`SimulationWriter` holds ``B`` trajectories (the batch)
         mask      (n_axis,)    bool, True at the boundary cells (index 0 and/or -1) with this type
     /scalars                   attrs: field_names=[parameter names]
         <param>   ()           attrs: sample_varying=False, time_varying=False
-    /t0_fields                 attrs: field_names; scalar fields (B, T, *res)
+        dt        ()           the constant output interval (also a root attribute and simulation parameter)
+    /t0_fields                 attrs: field_names; scalar fields (B, T, *res); constant fields such as an
+                               obstacle mask (*res) or (B, *res) with time_varying=False
     /t1_fields                 attrs: field_names; vector fields (B, T, *res, d) at cell centres, channel LAST
     /t2_fields                 attrs: field_names=[] (no tensor fields are written)
         every field: attrs sample_varying=True, time_varying=True, dim_varying=[True] * d
@@ -29,6 +31,10 @@ Boundary types are derived from :class:`~phisim.boundary.Boundary` side by side:
 ``NoSlipWall``, ``FreeSlipWall``, ``Dirichlet`` and ``Neumann`` give WALL (a closed side with a prescribed
 value or flux); ``Open`` gives OPEN. The exact conditions (values, fluxes, wall velocities) are kept in
 ``/extras`` so :func:`read_simulation` rebuilds the same ``Boundary``.
+
+Frames are equally spaced in time, as The Well's loader assumes: the writer checks every appended time
+against the output interval (given, or taken from the first two frames) and refuses (or, by a setting,
+warns about) a frame off it.
 
 Frames are written one at a time into resizable datasets (chunks of one sample and one frame, gzip with
 the shuffle filter) and the file is flushed after every frame.
