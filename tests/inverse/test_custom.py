@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from inverse import load_model, make_problem, model_path, predict_file, train
+from inverse import load_model, make_problem, model_path, train
 from inverse.custom import load_problem
 from inverse.nets import MLP
 from phisim.errors import FileFormatError, ParameterError
