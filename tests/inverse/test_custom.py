@@ -116,6 +116,18 @@ def test_burgers_tutorial_trains_through_the_cli(tmp_path):
     assert net(y).shape == (3, 8)
 
 
+def test_model_of_a_python_built_problem_needs_the_network(tmp_path):
+    p = _linear_problem()
+    out = tmp_path / "l.h5"
+    r = train(p, "adam", iterations=2, batch_size=2, out=out)
+    with pytest.raises(ParameterError, match="network="):
+        load_model(model_path(out, "adam"))
+    net = load_model(model_path(out, "adam"), network=MLP([2, 16, 2]))
+    x = torch.randn(4, 2, dtype=torch.float64)
+    with torch.no_grad():
+        assert torch.equal(net(x), r.model.eval()(x))
+
+
 def test_model_file_round_trip_predict_and_mismatch(tmp_path, capsys):
     from inverse import get_problem
     from inverse.nets import UNet
