@@ -95,6 +95,15 @@ class MaskedPoisson:
         self.null = self._null_space()
         self._inv = _inverse_eigs(res, self.dx, self.kinds, active.device)
         self._scale2 = tuple(1.0 / d**2 for d in self.dx)
+        self._cast: dict = {}  # per dtype: (active, 1 - active, null space) in that dtype
+
+    def _in(self, dtype: torch.dtype) -> tuple:
+        """``(active, 1 - active, null)`` as ``dtype`` tensors (cast once per dtype, not once per iteration)."""
+        hit = self._cast.get(dtype)
+        if hit is None:
+            act = self.active.to(dtype)
+            hit = self._cast[dtype] = (act, 1 - act, None if self.null is None else self.null.to(dtype))
+        return hit
 
     # ---- structure ---------------------------------------------------------------------------------------
 
@@ -153,7 +162,7 @@ class MaskedPoisson:
         """Remove each closed region's mean from ``t`` ``(B, *res)`` (identity without null space)."""
         if self.null is None:
             return t
-        z = self.null.to(t.dtype)
+        z = self._in(t.dtype)[2]
         dims = tuple(range(2, z.ndim))
         coef = (z * t.unsqueeze(1)).sum(dim=dims, keepdim=True)
         return t - (coef * z).sum(1)
@@ -198,20 +207,21 @@ class MaskedPoisson:
         return out
 
     def _apply(self, p: torch.Tensor, *weights: torch.Tensor) -> torch.Tensor:
-        act = self.active.to(p.dtype)
+        act, inact, _ = self._in(p.dtype)
         g = self.gradient(p)
         lap = self.divergence(tuple(w.to(p.dtype) * gi for w, gi in zip(weights, g)))
-        return -lap * act + (1 - act) * p
+        return inact * p - lap * act
 
     def apply(self, p: torch.Tensor) -> torch.Tensor:
         """``-div(w grad p)`` on active cells, ``p`` on inactive ones (the SPD system :meth:`solve` inverts)."""
         return self._apply(p, *self.weights)
 
     def _precondition(self, r: torch.Tensor) -> torch.Tensor:
-        act = self.active.to(r.dtype)
-        r = self.project(r)
-        y = -_apply_multiplier(r * act, self.kinds, self._inv, self.engine)
-        return self.project(y * act + (1 - act) * r)
+        # ``r`` is a CG residual, already projected onto the range (cg applies ``project`` to every residual
+        # before the preconditioner), so only the output is projected.
+        act, inact, _ = self._in(r.dtype)
+        y = _apply_multiplier(r * act, self.kinds, self._inv, self.engine)
+        return self.project(inact * r - y * act)
 
     def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, SolveInfo]:
@@ -230,7 +240,7 @@ class MaskedPoisson:
         """
         if tuple(rhs.shape[1:]) != self.resolution:
             raise ShapeError(f"rhs must have shape (B, *{self.resolution}), got {tuple(rhs.shape)}")
-        act = self.active.to(rhs.dtype)
+        act = self._in(rhs.dtype)[0]
         b = self.project(rhs * act)
         if x0 is not None:
             x0 = self.project(x0.detach().to(rhs.dtype) * act)
@@ -244,6 +254,8 @@ class MaskedPoisson:
         else:
             def operator(x):
                 return self._apply(x, *self.weights)
-        x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition, return_info=True,
-                     operator_params=params, project=self.project if self.null is not None else None)
+        # Nothing to differentiate: skip autograd and cg's probe for captured grad-requiring tensors.
+        with torch.set_grad_enabled(torch.is_grad_enabled() and (rhs.requires_grad or bool(params))):
+            x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition, return_info=True,
+                         operator_params=params, project=self.project if self.null is not None else None)
         return x * act, info
