@@ -23,8 +23,11 @@ measures ``rtol`` against the residual of the warm start (``phiml.backend._linal
 against ``||b||``.
 
 Every measurement runs in a fresh child process: ``warm`` untimed steps (flow development, caches,
-compilation), then ``steps`` individually timed steps; its median is one sample. Sides are interleaved in
-each round (order rotated) and the best sample over ``rounds`` is reported, with the load average.
+compilation), then ``steps`` individually timed steps, run ``repeat`` times from the same state (the lowest
+time per step is kept); the median over the steps is one sample. Sides are interleaved in each round (order
+rotated) and the best sample over ``rounds`` is reported, with the load average. Both the wall time and the
+CPU time of the process (``time.process_time``) are recorded: with one thread, the CPU time leaves out the
+time spent waiting for a core on a loaded machine.
 
 Run (PhiFlow in ``benchmarks/.phiflow-venv``, see ``benchmarks/setup_phiflow.sh``)::
 
@@ -73,12 +76,30 @@ def scene(name: str, n: int) -> dict:
     return p
 
 
+def _time_steps(step, state, steps: int, repeat: int):
+    """Time ``steps`` consecutive steps from ``state``, ``repeat`` times from the same start.
+
+    Returns the state after the steps and, per step, the lowest wall and CPU (process) time over the passes.
+    """
+    wall = [float("inf")] * steps
+    cpu = [float("inf")] * steps
+    start = state
+    for _ in range(repeat):
+        state = start
+        for k in range(steps):
+            c0, t0 = time.process_time(), time.perf_counter()
+            state = step(state)
+            wall[k] = min(wall[k], time.perf_counter() - t0)
+            cpu[k] = min(cpu[k], time.process_time() - c0)
+    return state, wall, cpu
+
+
 # ------------------------------------------------------------------------------------------------------------
 # phisim side (phisim's venv)
 # ------------------------------------------------------------------------------------------------------------
 
 
-def _run_phisim(name: str, n: int, warm: int, steps: int, staircase: bool) -> dict:
+def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase: bool) -> dict:
     import torch
 
     sys.path.insert(0, ROOT)
@@ -142,13 +163,8 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, staircase: bool) -> di
     for _ in range(warm):
         state = step(state)
     infos.clear()
-    times, cpu = [], []
-    for _ in range(steps):
-        c0, t0 = time.process_time(), time.perf_counter()
-        state = step(state)
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    its = [int(i.iterations.max()) for i in infos]
+    state, times, cpu = _time_steps(step, state, steps, repeat)
+    its = [int(i.iterations.max()) for i in infos[:steps]]
     vel = state[1]
     div = divergence(vel).values
     stats = {"max_u": max(float(c.abs().max()) for c in vel.values),
@@ -163,7 +179,7 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, staircase: bool) -> di
 # ------------------------------------------------------------------------------------------------------------
 
 
-def _run_phiflow(name: str, n: int, warm: int, steps: int, jit: bool) -> dict:
+def _run_phiflow(name: str, n: int, warm: int, steps: int, repeat: int, jit: bool) -> dict:
     sys.path.insert(0, HERE)
     import inputs
     import numpy as np
@@ -239,20 +255,19 @@ def _run_phiflow(name: str, n: int, warm: int, steps: int, jit: bool) -> dict:
         state = run(*state)
         if k == 0:
             compile_s = time.perf_counter() - t0
-    times, cpu, its = [], [], []
-    for _ in range(steps):
+    its: list[int] = []
+    tapes = []
+
+    def once(st):
         if jit:
-            c0, t0 = time.process_time(), time.perf_counter()
-            state = run(*state)
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        else:
-            with math.SolveTape(record_trajectories=False) as tape:
-                c0, t0 = time.process_time(), time.perf_counter()
-                state = run(*state)
-                times.append(time.perf_counter() - t0)
-                cpu.append(time.process_time() - c0)
-            its.append(int(math.max(tape[0].iterations)))
+            return run(*st)
+        with math.SolveTape(record_trajectories=False) as tape:
+            out = run(*st)
+        tapes.append(tape[0].iterations)
+        return out
+
+    state, times, cpu = _time_steps(once, state, steps, repeat)
+    its = [int(math.max(t)) for t in tapes[:steps]]
     vel = state[1]
     div = field.divergence(vel).values.numpy("b,x,y")
     stats = {"max_u": float(math.max(abs(vel.values))),
@@ -277,25 +292,25 @@ def _load() -> str:
         return "?"
 
 
-def child(side: str, name: str, n: int, warm: int, steps: int) -> dict:
+def child(side: str, name: str, n: int, warm: int, steps: int, repeat: int) -> dict:
     """One measurement in this process (the child); returns the JSON-able result."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
     if side.startswith("phisim"):
-        res = _run_phisim(name, n, warm, steps, staircase=side == "phisim_obstacle")
+        res = _run_phisim(name, n, warm, steps, repeat, staircase=side == "phisim_obstacle")
     else:
         import warnings
 
         warnings.filterwarnings("ignore")
-        res = _run_phiflow(name, n, warm, steps, jit=side == "phiflow_jit")
+        res = _run_phiflow(name, n, warm, steps, repeat, jit=side == "phiflow_jit")
     t = res["times_s"]
     res.update(median_s=statistics.median(t), min_s=min(t), median_cpu_s=statistics.median(res["cpu_s"]))
     return res
 
 
-def drive(side: str, name: str, n: int, warm: int, steps: int, timeout: float) -> dict:
+def drive(side: str, name: str, n: int, warm: int, steps: int, repeat: int, timeout: float) -> dict:
     """Run one measurement in a child process (phisim: this interpreter; PhiFlow: its venv)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     py = sys.executable
@@ -306,7 +321,7 @@ def drive(side: str, name: str, n: int, warm: int, steps: int, timeout: float) -
     else:
         env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [py, os.path.abspath(__file__), "--child", side, "--scene", name, "--size", str(n),
-           "--warm", str(warm), "--steps", str(steps)]
+           "--warm", str(warm), "--steps", str(steps), "--repeat", str(repeat)]
     base = {"side": side, "scene": name, "n": n, "load_before": _load()}
     t0 = time.perf_counter()
     try:
@@ -418,7 +433,8 @@ def section(data: dict) -> str:
     ] + table(data, "median_s") + [
         "",
         f"- made by `{data['command']}` ({data['date']}, {data['machine']}); {data['rounds']} rounds, sides "
-        f"interleaved in each round, {data['warm']} untimed + {data['steps']} timed steps per sample, each in a "
+        f"interleaved in each round, {data['warm']} untimed + {data['steps']} timed steps per sample, the timed "
+        f"steps run {data.get('repeat', 1)} times from the same state (lowest time per step), each sample in a "
         "fresh process.",
         f"- machine load (1-min load average, 2 cores) during the run: {min(loads):.1f} to {max(loads):.1f}"
         if loads else "- machine load: not recorded",
@@ -457,6 +473,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--warm", type=int, default=6)
     ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=3, help="passes over the timed steps, from the same state")
     ap.add_argument("--timeout", type=float, default=1200.0)
     ap.add_argument("--doc", action="store_true", help="write the section into docs/BENCHMARKS.md")
     ap.add_argument("--doc-only", action="store_true", help="rebuild the section from the saved results")
@@ -467,7 +484,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int)
     a = ap.parse_args(argv)
     if a.child:
-        print(json.dumps(child(a.child, a.scene, a.size, a.warm, a.steps)), flush=True)
+        print(json.dumps(child(a.child, a.scene, a.size, a.warm, a.steps, a.repeat)), flush=True)
         return 0
     if a.doc_only:
         write_doc(json.load(open(a.out)))
@@ -477,12 +494,12 @@ def main(argv=None) -> int:
     data = {"command": "python benchmarks/" + " ".join([os.path.basename(__file__)] + (argv or sys.argv[1:])),
             "date": _dt.datetime.now().isoformat(timespec="seconds"),
             "machine": f"{platform.machine()} {os.cpu_count()} cores, {platform.system()}",
-            "sizes": a.sizes, "rounds": a.rounds, "warm": a.warm, "steps": a.steps, "tol": TOL,
+            "sizes": a.sizes, "rounds": a.rounds, "warm": a.warm, "steps": a.steps, "repeat": a.repeat, "tol": TOL,
             "uptime_before": _uptime(), "results": []}
     if a.append and os.path.exists(a.out):
         old = json.load(open(a.out))
-        if (old["warm"], old["steps"], old["tol"]) != (a.warm, a.steps, TOL):
-            raise SystemExit("--append needs the saved run's --warm, --steps and tolerance")
+        if (old["warm"], old["steps"], old.get("repeat"), old["tol"]) != (a.warm, a.steps, a.repeat, TOL):
+            raise SystemExit("--append needs the saved run's --warm, --steps, --repeat and tolerance")
         data.update(results=old["results"], rounds=old["rounds"] + a.rounds, uptime_before=old["uptime_before"],
                     command=old["command"] + "`, then `" + data["command"],
                     sizes=sorted(set(old["sizes"]) | set(a.sizes)))
@@ -491,7 +508,7 @@ def main(argv=None) -> int:
             for n in a.sizes:
                 order = a.sides[k % len(a.sides):] + a.sides[: k % len(a.sides)]
                 for side in order:
-                    r = drive(side, name, n, a.warm, a.steps, a.timeout)
+                    r = drive(side, name, n, a.warm, a.steps, a.repeat, a.timeout)
                     data["results"].append(r)
                     msg = r.get("error") or (f"median {_ms(r['median_s'])}, cpu {_ms(r['median_cpu_s'])}, iterations "
                                              f"{r.get('iterations')}")
