@@ -817,11 +817,16 @@ def write_doc(base: str, path: str) -> None:
     fd = _fft_decision(base)
     if fd:
         parts += ["## FFT engines on this machine (decides phisim's default)", ""] + fd + [""]
+    visc = os.path.join(HERE, "results", "viscosity.md")
+    if os.path.exists(visc):  # written by benchmarks/bench_viscosity.py --write
+        with open(visc) as fh:
+            parts += ["## Viscosity step (MAC velocity): explicit vs spectral implicit", "", fh.read().strip(), ""]
     for sec in kept:
         parts += [sec, ""]
     others = [
         f
-        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_bodies.py", "bench_flow_bodies.py")
+        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_viscosity.py", "bench_bodies.py",
+                  "bench_flow_bodies.py")
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:

@@ -6,6 +6,20 @@ Examples::
     phisim train poisson pg --iterations 200 --batch-size 16 --resolution 32 32 --out out/poisson.h5
     phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
     phisim info out/poisson.h5
+    phisim train examples/burgers_inverse.py:burgers_problem adam --setting resolution=16 --out out/b.h5
+    phisim train well pg --setting data_dir=data/heat --out out/well.h5
+    phisim simulate smoke --trajectories 16 --workers 2 --out data/smoke
+    phisim plot data/smoke/data/train/smoke_00000.h5 --field vorticity
+    phisim predict out/poisson.h5.pg.model.pt inputs.h5 --key inputs --out predictions.h5
+
+``problem`` is a registered name (``phisim list``) or a factory of your own, ``module:function`` or
+``file.py:function`` (see :mod:`inverse.custom`).
+
+Data-parallel training: start the same command under ``torchrun``; the process group is initialised from
+its environment (gloo on CPU, NCCL with ``--device cuda``, one GPU per process), process 0 writes the files
+and prints, and N processes follow the one-process run::
+
+    torchrun --standalone --nproc_per_node 2 -m inverse.cli train poisson adam --iterations 100 --out out/p.h5
 """
 
 from __future__ import annotations
@@ -37,6 +51,15 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--checkpoint-every", type=int, default=0)
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        sp.add_argument("--eval-every", type=int, default=None,
+                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end)")
+        sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
+        sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                        help="network and data precision (default: the problem's)")
+        sp.add_argument("--setting", action="append", metavar="KEY=VALUE", default=[],
+                        help="a problem setting (repeatable), e.g. --setting lr=0.01")
+        sp.add_argument("--tensorboard", type=Path, default=None, help="TensorBoard folder (if installed)")
+        sp.add_argument("--csv", type=Path, default=None, help="folder for CSV copies of the curves")
 
     t = sub.add_parser("train", help="train one method")
     common(t)
@@ -47,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", type=Path, default=None, help="PNG of the learning curves")
     i = sub.add_parser("info", help="summarise an HDF5 file written by phisim")
     i.add_argument("path", type=Path)
+    from .cli_workflows import add_workflow_parsers
+
+    add_workflow_parsers(sub)
     return p
 
 
@@ -83,54 +109,99 @@ def describe_file(path: Path) -> str:
 
 
 def _problem(args):
+    from .cli_workflows import parse_settings
     from .problems import get_problem
 
-    settings = {}
+    settings = parse_settings(args.setting)
     if args.resolution is not None:
         settings["resolution"] = tuple(args.resolution)
+    if args.heldout_size is not None:
+        settings["heldout_size"] = args.heldout_size
+    if args.dtype is not None:
+        import torch
+
+        settings["dtype"] = getattr(torch, args.dtype)
     return get_problem(args.problem, **settings)
 
 
 def _train(args, problem, method):
+    from .distributed import is_main_process
     from .train import train
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet)
-    print(json.dumps({"problem": problem.name, "method": method, "iterations": r.iterations,
-                      "final_loss": r.final("loss"), "final_metric": r.final("metric"),
-                      "seconds": round(r.seconds, 3)}))
+              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard)
+    if args.csv is not None and args.out is not None and is_main_process():
+        from .export import export_csv
+
+        export_csv(args.out, args.csv)
+    if is_main_process():
+        print(json.dumps({
+            "problem": problem.name, "method": method, "iterations": r.iterations,
+            "loss_name": problem.loss_name, "metric_name": problem.metric_name,
+            "final_loss": r.final("loss"), "final_metric": r.final("metric"),
+            "final_measured_on": "training batches, mean of the last 10 iterations",
+            "heldout_loss": r.final_eval("loss"), "heldout_metric": r.final_eval("metric"),
+            "heldout_measured_on": f"final model, eval mode, {problem.heldout_size} held-out samples",
+            "seconds": round(r.seconds, 3)}, ensure_ascii=False))
     return r
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ``phisim`` command; returns the exit status (2 for user errors, with a one-line message)."""
     args = build_parser().parse_args(argv)
+    started = False
     try:
         if args.command == "list":
             from .problems import PROBLEMS
 
             for name, cls in PROBLEMS.items():
-                print(f"{name}: {', '.join(cls().methods)}")
+                try:
+                    print(f"{name}: {', '.join(cls().methods)}")
+                except (TypeError, PhisimError):  # needs settings, e.g. the dataset of `well`
+                    print(f"{name}: supervised (needs --setting data_dir=DIR --setting field=NAME)")
             return 0
         if args.command == "info":
             print(describe_file(args.path))
             return 0
+        from .cli_workflows import WORKFLOW_COMMANDS, run_workflow
+
+        if args.command in WORKFLOW_COMMANDS:
+            return run_workflow(args)
+        from .distributed import is_main_process
+
+        started = _start_process_group(args.device)
         problem = _problem(args)
         if args.command == "train":
             _train(args, problem, args.method)
             return 0
         results = {m: _train(args, problem, m) for m in args.methods}
-        if args.plot is not None:
-            from phisim.plot import plot_curves, save_figure
+        if args.plot is not None and is_main_process():
+            from phisim.plot import plot_training_curves, save_figure
 
-            ax = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
-                             logy=True, title=f"{problem.name}: metric", ylabel="metric")
+            ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
+                                      title=f"{problem.name}: {problem.metric_name}")
             save_figure(ax.figure, args.plot)
         return 0
     except PhisimError as exc:
         print(f"phisim: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if started:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _start_process_group(device: str) -> bool:
+    """Under torchrun, initialise the process group from its environment; True when this call did."""
+    import torch.distributed as dist
+
+    from .distributed import init_from_env, launched_by_torchrun
+
+    if not launched_by_torchrun() or (dist.is_available() and dist.is_initialized()):
+        return False
+    return init_from_env(device)
 
 
 if __name__ == "__main__":  # pragma: no cover

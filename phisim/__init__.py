@@ -1,11 +1,12 @@
 """phisim: differentiable PDE simulation on PyTorch (grids, fields, operators, solvers, fluids, I/O)."""
 
-from .advection import advect, maccormack, semi_lagrangian
+from .advection import advect, conservative, maccormack, semi_lagrangian
 from .boundary import (
     Boundary,
     BoundaryCondition,
     Dirichlet,
     FreeSlipWall,
+    Inflow,
     Neumann,
     NoSlipWall,
     Open,
@@ -16,7 +17,14 @@ from .boundary import (
 )
 from .checks import all_finite, check_dt, check_finite, check_nonnegative, check_positive
 from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
-from .diffusion import diffuse, diffuse_values, explicit_stability_limit, fourier_heat, heat_decay_factors
+from .diffusion import (
+    diffuse,
+    diffuse_staggered,
+    diffuse_values,
+    explicit_stability_limit,
+    fourier_heat,
+    heat_decay_factors,
+)
 from .errors import (
     BoundaryError,
     FileFormatError,
@@ -37,6 +45,7 @@ from .fluid import (
     diffuse_velocity,
     kinetic_energy,
     make_incompressible,
+    navier_stokes_rk_step,
     navier_stokes_step,
     normalize_energy,
     obstacle_mask,
@@ -55,20 +64,20 @@ __all__ = [
     "NonFiniteError", "SolveError", "FileFormatError",
     "Grid",
     "Solve", "SolveInfo", "cg", "remove_mean",
-    "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open",
+    "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open", "Inflow",
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
     "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite",
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
-    "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
+    "diffuse", "diffuse_staggered", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
     "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
-    "advect", "semi_lagrangian", "maccormack",
+    "advect", "semi_lagrangian", "maccormack", "conservative",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
     "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
-    "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
+    "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "navier_stokes_rk_step", "FluidState", "step",
     "e5_simulation",
 ]
 

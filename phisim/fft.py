@@ -74,7 +74,7 @@ __all__ = [
 ]
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
-R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4")
+R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4", "dct1", "dst1")
 _FFTW_KIND = {
     "dct2": "FFTW_REDFT10",
     "dct3": "FFTW_REDFT01",
@@ -82,6 +82,8 @@ _FFTW_KIND = {
     "dst3": "FFTW_RODFT01",
     "dct4": "FFTW_REDFT11",
     "dst4": "FFTW_RODFT11",
+    "dct1": "FFTW_REDFT00",
+    "dst1": "FFTW_RODFT00",
 }
 _ENGINES = ("auto", "torch", "pyfftw")
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
@@ -293,6 +295,13 @@ def _type4_matrix(n: int, kind: str, dtype: torch.dtype, device: torch.device) -
 
 def _torch_r2r_last(x: torch.Tensor, kind: str) -> torch.Tensor:
     n = x.shape[-1]
+    if kind == "dst1":  # odd extension [0, x, 0, -x reversed] of length 2(n+1): y_k = -Im FFT_{k+1}
+        z = torch.zeros_like(x[..., :1])
+        ext = torch.cat([z, x, z, -x.flip(-1)], dim=-1)
+        return -torch.fft.rfft(ext, dim=-1).imag[..., 1 : n + 1]
+    if kind == "dct1":  # even extension [x, x_{n-2} .. x_1] of length 2(n-1): y_k = Re FFT_k
+        ext = torch.cat([x, x[..., 1 : n - 1].flip(-1)], dim=-1)
+        return torch.fft.rfft(ext, dim=-1).real
     if kind in ("dct4", "dst4"):
         # Type-4 transforms (mixed Dirichlet/Neumann axes) as a dense symmetric matrix: O(n^2) per line.
         return x @ _type4_matrix(n, kind, x.dtype, x.device)
@@ -389,13 +398,22 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
-_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4"}
+_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4",
+            "dct1": "dct1", "dst1": "dst1"}
 
 
 def _edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
     """Vector of ones with ``value`` at index 0 (DCT kinds) or at index n-1 (DST kinds)."""
     w = torch.ones(n, dtype=dtype, device=device)
     w[0 if kind.startswith("dct") else n - 1] = value
+    return w
+
+
+def _dct1_edges(n: int, value: float, dtype, device) -> torch.Tensor:
+    """Vector of ones with ``value`` at both ends."""
+    w = torch.ones(n, dtype=dtype, device=device)
+    w[0] = value
+    w[n - 1] = value
     return w
 
 
@@ -414,12 +432,16 @@ class _PyfftwR2R(torch.autograd.Function):
         for kind, ax in zip(kinds, axes):
             if kind in ("dct2", "dst2"):
                 g = g * _axis_vector(_edge_weight(g.shape[ax], kind, 2.0, g.dtype, g.device), g.ndim, ax)
+            elif kind == "dct1":  # DCT-I = C diag(1, 2, .., 2, 1) with C symmetric
+                g = g * _axis_vector(_dct1_edges(g.shape[ax], 2.0, g.dtype, g.device), g.ndim, ax)
         out = _PyfftwR2R.apply(g, tuple(_ADJOINT[k] for k in kinds), axes)
         for kind, ax in zip(kinds, axes):
             if kind in ("dct3", "dst3"):
                 out = out * _axis_vector(
                     _edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device), out.ndim, ax
                 )
+            elif kind == "dct1":
+                out = out * _axis_vector(_dct1_edges(out.shape[ax], 0.5, out.dtype, out.device), out.ndim, ax)
         return out, None, None
 
 
@@ -582,8 +604,15 @@ def r2rn(
     * ``'dct4'``: ``y_k = 2 Σ_n x_n cos(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dct4(dct4(x)) = 2N x``)
     * ``'dst4'``: ``y_k = 2 Σ_n x_n sin(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dst4(dst4(x)) = 2N x``)
 
+    * ``'dct1'``: ``y_k = x_0 + (-1)^k x_{N-1} + 2 Σ_{0<n<N-1} x_n cos(π n k / (N-1))`` (``N >= 2``;
+      ``dct1(dct1(x)) = 2(N-1) x``)
+    * ``'dst1'``: ``y_k = 2 Σ_n x_n sin(π (n+1)(k+1) / (N+1))`` (symmetric; ``dst1(dst1(x)) = 2(N+1) x``)
+
     Type 4 diagonalises the cell-centred Laplacian with a Dirichlet face on one side and a Neumann
     face on the other; the torch engine computes it as a dense matrix product (O(N²) per line).
+    Types 1 diagonalise the vertex-centred Laplacian (samples on the boundary: Neumann ``dct1``,
+    Dirichlet values outside the transformed samples ``dst1``), e.g. a MAC velocity component along its
+    own axis.
 
     Args:
         x: Real tensor (float32/float64), any shape; batch axes are the axes not transformed.
@@ -605,9 +634,11 @@ def r2rn(
     kinds = tuple(kinds)
     if len(kinds) != len(axes):
         raise ParameterError(f"r2rn needs one kind per axis: got kinds={kinds} for axes={axes}")
-    for k in kinds:
+    for k, ax in zip(kinds, axes):
         if k not in R2R_KINDS:
             raise ParameterError(f"unknown real-to-real kind {k!r}; expected one of {R2R_KINDS}")
+        if k == "dct1" and x.shape[ax] < 2:
+            raise ShapeError(f"dct1 needs at least 2 samples along axis {ax}, got {x.shape[ax]}")
     if not axes:
         return x
     if resolve_engine(x, engine) == "pyfftw":

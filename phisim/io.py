@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from ._h5util import PathLike, open_for_read, to_json
+from ._io_extras import IntervalCheck, constant_arrays, read_constant_fields, write_constant_fields
 from .boundary import (
     Boundary,
     BoundaryCondition,
@@ -254,10 +255,21 @@ class SimulationWriter:
         dtype: Storage dtype of fields and coordinates (default float32, as in The Well). Use
             ``torch.float64`` for an exact double-precision round trip; other input is cast to it.
         compression_level: gzip level 0-9.
+        output_interval: The constant time between frames (The Well's files are sampled at one interval).
+            Stored as the scalar ``dt`` (``/scalars/dt`` and a root attribute listed in
+            ``simulation_parameters``). None: taken from the first two frames. A parameter named ``dt``
+            is this interval.
+        uneven_intervals: What an appended time off the interval (relative tolerance 1e-6) gets:
+            ``'error'`` (default) raises :class:`ParameterError`, ``'warn'`` writes it with a ``UserWarning``.
+        constant_fields: Scalar fields that do not change in time (e.g. an obstacle mask): name ->
+            ``(*res)`` values shared by all trajectories or ``(B, *res)`` values. Stored in ``/t0_fields``
+            with ``time_varying=False`` (as The Well stores constant fields) and read back into
+            :attr:`SimulationData.constant_fields`.
 
     Raises:
         ParameterError: For unknown field kinds, bad names, non-numeric parameters, a non-positive
-            batch size or a non-serialisable config.
+            batch size, a non-serialisable config, a non-positive interval or a ``dt`` parameter that
+            contradicts it.
 
     Example:
         >>> with SimulationWriter("run.h5", grid, "periodic", dataset_name="plume",
@@ -280,6 +292,9 @@ class SimulationWriter:
         config: Any = None,
         dtype=None,
         compression_level: int = 4,
+        output_interval: float | None = None,
+        uneven_intervals: str = "error",
+        constant_fields: Mapping[str, Any] | None = None,
     ):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim Grid, got {type(grid).__name__}")
@@ -316,6 +331,14 @@ class SimulationWriter:
                 )
             params[name] = value
         self.parameters = params
+        if "dt" in params and output_interval is not None and float(params["dt"]) != float(output_interval):
+            raise ParameterError(f"parameter dt={params['dt']} contradicts output_interval={output_interval}")
+        if output_interval is None and "dt" in params:
+            output_interval = params["dt"]
+        self._interval = IntervalCheck(output_interval, uneven_intervals, Path(path))
+        if self._interval.interval is not None:
+            self.parameters["dt"] = self._interval.interval
+        constants = constant_arrays(constant_fields, grid.resolution, self.batch_size, self.kinds)
         config_json = to_json(config, "config")
         self._level = int(compression_level)
         self.path = Path(path)
@@ -328,6 +351,7 @@ class SimulationWriter:
         self._last_time = -math.inf
         try:
             self._write_header(dataset_name, config_json)
+            write_constant_fields(self._file, constants, self.batch_size, self.dtype, grid.rank)
             self._file.flush()
         except BaseException:
             self._file.close()
@@ -512,6 +536,7 @@ class SimulationWriter:
             raise ParameterError(f"time must be a number, got {time!r}") from exc
         if not math.isfinite(t) or t <= self._last_time:
             raise ParameterError(f"time must be finite and increasing: got {t} after {self._last_time}")
+        self._interval.check(t, self._last_time, self._file)
         frames = {name: self._frame_arrays(name, value) for name, value in fields.items()}
         f, n = self._file, self._n
         for name, (arr, stag) in frames.items():
@@ -572,6 +597,8 @@ class SimulationData:
         parameters: Simulation parameters from the root attributes.
         config: The run configuration (parsed JSON) or ``None``.
         training: Method -> curve name -> 1-D array (``/training``).
+        constant_fields: Name -> constant-in-time scalar field (e.g. an obstacle mask), ``(*res)`` when shared
+            by all trajectories or ``(B, *res)``; numpy arrays.
     """
 
     path: Path
@@ -585,6 +612,14 @@ class SimulationData:
     parameters: dict[str, Any]
     config: Any = None
     training: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    constant_fields: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def dt(self) -> float | None:
+        """The constant output interval (the stored scalar ``dt``; else the spacing of two frames; else None)."""
+        if "dt" in self.parameters:
+            return float(self.parameters["dt"])
+        return float(self.times[1] - self.times[0]) if len(self.times) > 1 else None
 
     @property
     def n_frames(self) -> int:
@@ -766,9 +801,10 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
     if as_torch:
         fields = {n: torch.as_tensor(v, device=device) for n, v in fields.items()}
         staggered = {n: tuple(torch.as_tensor(c, device=device) for c in v) for n, v in staggered.items()}
+    constants = read_constant_fields(f, grid.resolution, p)
     return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters,
                           config,
-                          training)
+                          training, constants)
 
 
 def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:

@@ -94,3 +94,16 @@ def test_hig_toy_rejects_bad_options(bad, tmp_path):
     toy = _load("hig_toy")
     with pytest.raises(SystemExit):
         toy.main(bad + ["--out", str(tmp_path)])
+
+
+def test_cached_step_operators_equal_the_rk4_stages():
+    osc = _load("hig_oscillators")
+    gen = torch.Generator().manual_seed(3)
+    u = torch.randn(5, osc.N_STEPS, generator=gen, dtype=torch.float64)
+    s0 = torch.rand(5, 4, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(osc.simulate(u, s0), osc.simulate_stages(u, s0), rtol=1e-13, atol=1e-13)
+    # float32 operators are the float64 ones rounded once: agreement at float32 precision
+    torch.testing.assert_close(osc.simulate(u.float(), s0.float()), osc.simulate_stages(u, s0).float(),
+                               rtol=2e-5, atol=2e-5)
+    a = osc.rk4_step_operators(2, torch.float64)
+    assert osc.rk4_step_operators(2, torch.float64) is a  # built once, then reused
