@@ -181,7 +181,7 @@ class MaskedPoisson:
         """Remove each closed region's mean from ``t`` ``(B, *res)`` (identity without null space)."""
         if self.null is None:
             return t
-        z = self.null.to(t.dtype)
+        z = self._cast("null", self.null, t.dtype)
         dims = tuple(range(2, z.ndim))
         coef = (z * t.unsqueeze(1)).sum(dim=dims, keepdim=True)
         return t - (coef * z).sum(1)
@@ -247,8 +247,9 @@ class MaskedPoisson:
         return self._apply(p, *self.weights)
 
     def _precondition(self, r: torch.Tensor) -> torch.Tensor:
+        # ``r`` is a CG residual, already projected onto the range (cg applies ``project`` to every residual
+        # before the preconditioner), so only the output is projected.
         act = self._cast("active", self.active, r.dtype)
-        r = self.project(r)
         y = -_apply_multiplier(r * act, self.kinds, self._inv, self.engine)
         # additive Jacobi on the cut cells (whose diagonal the unweighted box operator overestimates):
         # 58 -> 19 iterations at 128^2 with a disc and two boxes, and still symmetric positive definite
@@ -272,7 +273,7 @@ class MaskedPoisson:
         """
         if tuple(rhs.shape[1:]) != self.resolution:
             raise ShapeError(f"rhs must have shape (B, *{self.resolution}), got {tuple(rhs.shape)}")
-        act = self.active.to(rhs.dtype)
+        act = self._cast("active", self.active, rhs.dtype)
         b = self.project(rhs * act)
         if x0 is not None:
             x0 = self.project(x0.detach().to(rhs.dtype) * act)
@@ -286,6 +287,8 @@ class MaskedPoisson:
         else:
             def operator(x):
                 return self._apply(x, *self.weights)
-        x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition, return_info=True,
-                     operator_params=params, project=self.project if self.null is not None else None)
+        # Nothing to differentiate: skip autograd and cg's probe for captured grad-requiring tensors.
+        with torch.set_grad_enabled(torch.is_grad_enabled() and (rhs.requires_grad or bool(params))):
+            x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition, return_info=True,
+                         operator_params=params, project=self.project if self.null is not None else None)
         return x * act, info
