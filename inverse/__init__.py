@@ -44,3 +44,14 @@ __all__ += [  # problems and the training loop
 from .fluid_inverse import FluidMarkerOperator, FluidProblem, frequency_loss  # noqa: E402
 
 __all__ += ["FluidMarkerOperator", "FluidProblem", "frequency_loss"]  # E5 fluid pair and problem
+
+from .custom import CallableOperator, CustomProblem, load_problem, make_problem  # noqa: E402
+from .models import load_model, model_path, predict_file, save_model  # noqa: E402
+
+__all__ += ["CallableOperator", "CustomProblem", "make_problem", "load_problem"]  # your own physics
+__all__ += ["load_model", "save_model", "model_path", "predict_file"]  # trained models
+
+from .export import TensorBoardLogger, export_csv  # noqa: E402
+from .offline import DatasetSampler, FieldNet, dataset_problem  # noqa: E402
+
+__all__ += ["export_csv", "TensorBoardLogger", "DatasetSampler", "FieldNet", "dataset_problem"]  # offline, CSV

@@ -69,7 +69,7 @@ from phisim.scenarios import E5_DT, E5_STEPS, e5_grid, e5_step
 
 from .nets import UNet
 from .operators import PhysicsOperator
-from .problems import Batch, Method, Problem
+from .problem import Batch, Method, Problem
 
 __all__ = [
     "FluidMarkerOperator",

@@ -132,7 +132,9 @@ def test_torchrun_cli_two_processes_reproduce_one(tmp_path):
     assert len(lines) == 1  # rank 0 prints, rank 1 does not
     rep2, rep1 = json.loads(lines[0]), json.loads(one.stdout.strip().splitlines()[-1])
     assert rep2["metric_name"] == rep1["metric_name"] and "sum over cells" in rep1["metric_name"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.h5", "two.h5"]
+    # only rank 0 writes: one log and one model file per run
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.h5", "one.h5.adam.model.pt", "two.h5",
+                                                          "two.h5.adam.model.pt"]
     with h5py.File(tmp_path / "one.h5") as f1, h5py.File(tmp_path / "two.h5") as f2:
         for curve, rtol in (("loss", 1e-10), ("metric", 1e-10), ("eval_metric", 1e-5)):
             # eval mode sees the drift of the gauge biases (see the test above)
@@ -166,4 +168,19 @@ def test_torchrun_script_calling_train_initialises_the_group(tmp_path):
     single = train(ToyProblem(), "adam_pg", iterations=4, batch_size=7, seed=3)
     np.testing.assert_allclose(results[0], single.curves["metric"], rtol=1e-10)
     assert proc.stderr.count("toy/adam_pg") >= 1  # rank 0's progress bar
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["job.py", "toy.h5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["job.py", "toy.h5", "toy.h5.adam_pg.model.pt"]
+
+
+def test_rank_devices_and_environment(monkeypatch):
+    from inverse.distributed import init_from_env, is_main_process, launched_by_torchrun, rank_device
+    from phisim.errors import ParameterError
+
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    assert not launched_by_torchrun() and not init_from_env("cpu") and is_main_process()
+    monkeypatch.setenv("LOCAL_RANK", "3")
+    assert rank_device("cuda") == torch.device("cuda", 3)  # one GPU per local process
+    assert rank_device("cuda:1") == torch.device("cuda", 1)  # an explicit index is kept
+    assert rank_device("cpu") == torch.device("cpu")
+    with pytest.raises(ParameterError, match="process group"):
+        train(ToyProblem(), "adam_pg", iterations=1, distributed=True)

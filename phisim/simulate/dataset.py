@@ -1,0 +1,484 @@
+"""Datasets of simulations in The Well's layout, generated in parallel and resumable (``phisim simulate``).
+
+A run resolves a configuration (:func:`resolve_config`: scenario defaults, a YAML/JSON file, flags), plans
+``ceil(trajectories / trajectories_per_file)`` files and writes::
+
+    OUT/config.json                 the resolved configuration (also in every file's /extras/config)
+    OUT/stats.yaml                  normalisation statistics of the training split (The Well's loader reads it)
+    OUT/data/train/<scenario>_00000.h5 ...   one file per chunk of trajectories
+    OUT/data/valid/...  OUT/data/test/...
+
+File ``i`` is simulated from a generator seeded with ``(seed, i)``: its parameters (the scenario's ranged
+parameters, drawn once per file, stored as the file's scalars) and its trajectories' initial states depend
+only on the seed and ``i``, so the files do not depend on the number of workers or ranks. Each file is
+written under a temporary name and renamed when complete; rerunning the same command skips complete files
+(a killed run continues where it stopped). ``workers`` runs files in parallel processes; under
+``torchrun`` (``WORLD_SIZE`` > 1) rank ``r`` simulates the files ``i ≡ r (mod world_size)`` and rank 0
+writes the statistics once all ranks are done.
+"""
+
+from __future__ import annotations
+
+import difflib
+import inspect
+import json
+import math
+import os
+import shutil
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import FileFormatError, ParameterError
+from .scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
+
+__all__ = ["ChunkPlan", "get_scenario", "resolve_config", "load_config_file", "plan_chunks", "simulate_chunk",
+           "simulate_dataset", "check_dataset_dir", "SPLITS"]
+
+SPLITS = ("train", "valid", "test")
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+_RUN_ONLY = ("device",)  # settings that may differ when a run is continued
+
+
+def _suggest(name: str, valid) -> str:
+    close = difflib.get_close_matches(str(name), list(valid), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def get_scenario(name: str) -> Scenario:
+    """The scenario called ``name``.
+
+    Raises:
+        ParameterError: Unknown name (the closest is suggested).
+    """
+    if name not in SCENARIOS:
+        raise ParameterError(f"unknown scenario {name!r}{_suggest(name, SCENARIOS)} (choose from "
+                             f"{', '.join(SCENARIOS)})")
+    return SCENARIOS[name]
+
+
+def load_config_file(path: str | os.PathLike) -> dict:
+    """Read a configuration file: JSON (``.json``) or YAML (``.yaml``/``.yml``, needs PyYAML).
+
+    Raises:
+        FileFormatError: Missing or unparsable file, or not a mapping at the top level.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"config file {path} does not exist")
+    text = path.read_text(encoding="utf-8")
+    try:
+        if path.suffix.lower() in (".yaml", ".yml"):
+            try:
+                import yaml
+            except ImportError as exc:
+                raise FileFormatError(f"{path}: reading YAML needs PyYAML (pip install pyyaml); "
+                                      "or write the config as JSON") from exc
+            data = yaml.safe_load(text)
+        else:
+            data = json.loads(text)
+    except (ValueError, Exception) as exc:  # noqa: BLE001 - yaml/json parse errors
+        if isinstance(exc, FileFormatError):
+            raise
+        raise FileFormatError(f"cannot parse config file {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise FileFormatError(f"config file {path} must hold a mapping of settings, got {type(data).__name__}")
+    return data
+
+
+def _check_int(cfg: dict, key: str, low: int) -> None:
+    v = cfg[key]
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ParameterError(f"{key} must be an integer >= {low}, got {v!r}")
+    cfg[key] = int(v)
+
+
+def resolve_config(scenario: str, config: Mapping[str, Any] | None = None, **overrides) -> dict:
+    """The complete configuration of a run: scenario defaults, then ``config``, then ``overrides``.
+
+    Keys are the :data:`~phisim.simulate.scenarios.COMMON_PARAMETERS` and the scenario's parameters. A
+    ranged scenario parameter left unset stays ``None`` (drawn per file when ``randomize`` is on).
+
+    Args:
+        scenario: Scenario name (a ``scenario`` key in ``config`` must agree).
+        config: Settings, e.g. from :func:`load_config_file`.
+        **overrides: Settings from flags (``None`` values are ignored).
+
+    Returns:
+        The configuration (a plain JSON-serialisable dict, ``scenario`` included).
+
+    Raises:
+        ParameterError: Unknown scenario or key (the closest valid name is suggested) or an invalid value.
+    """
+    sc = get_scenario(scenario)
+    if not sc.available:
+        sc.build({}, {}, 0, None, None, None)  # raises the scenario's own explanation
+    merged = dict(config or {})
+    if "scenario" in merged and merged.pop("scenario") != scenario:
+        raise ParameterError(f"the config file is for scenario {config['scenario']!r}, not {scenario!r}")
+    merged.update({k: v for k, v in overrides.items() if v is not None})
+    valid = {**COMMON_PARAMETERS, **sc.parameters}
+    for key in merged:
+        if key not in valid:
+            raise ParameterError(f"unknown setting {key!r} for scenario {scenario!r}{_suggest(key, valid)}")
+    cfg: dict[str, Any] = {"scenario": scenario}
+    for key, par in valid.items():
+        cfg[key] = merged.get(key, None if (par.low is not None and key in sc.parameters) else par.default)
+    cfg["dim"] = sc.dims[0] if cfg["dim"] is None else cfg["dim"]
+    if cfg["dim"] not in sc.dims:
+        raise ParameterError(f"scenario {scenario!r} runs in {' or '.join(f'{d}-D' for d in sorted(sc.dims))}, not "
+                             f"dim={cfg['dim']!r}")
+    cfg["resolution"] = sc.resolution if cfg["resolution"] is None else cfg["resolution"]
+    r = cfg["resolution"]
+    rs = [r] if isinstance(r, (int, np.integer)) and not isinstance(r, bool) else list(r) if isinstance(
+        r, (list, tuple)) else None
+    if not rs or any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 4 for v in rs):
+        raise ParameterError(f"resolution must be an integer >= 4 or a list of them, got {r!r}")
+    cfg["resolution"] = int(rs[0]) if isinstance(r, (int, np.integer)) else [int(v) for v in rs]
+    cfg["dt"] = sc.dt if cfg["dt"] is None else float(cfg["dt"])
+    cfg["steps"] = sc.steps if cfg["steps"] is None else cfg["steps"]
+    if not (math.isfinite(cfg["dt"]) and cfg["dt"] > 0):
+        raise ParameterError(f"dt must be finite and > 0, got {cfg['dt']}")
+    for key, low in (("seed", 0), ("trajectories", 1), ("trajectories_per_file", 1), ("steps", 1),
+                     ("save_every", 1)):
+        _check_int(cfg, key, low)
+    for key in ("valid_fraction", "test_fraction"):
+        v = cfg[key]
+        if not isinstance(v, (int, float)) or not 0 <= v < 1:
+            raise ParameterError(f"{key} must be in [0, 1), got {v!r}")
+    if cfg["valid_fraction"] + cfg["test_fraction"] >= 1:
+        raise ParameterError("valid_fraction + test_fraction must leave files for training (< 1)")
+    if cfg["dtype"] not in _DTYPES:
+        raise ParameterError(f"dtype must be one of {sorted(_DTYPES)}, got {cfg['dtype']!r}")
+    cfg["randomize"] = bool(cfg["randomize"])
+    for key, par in sc.parameters.items():
+        v = cfg[key]
+        if v is not None and not isinstance(v, (bool, int, float)):
+            raise ParameterError(f"{key} must be a number, got {v!r}")
+        if isinstance(par.default, bool):
+            cfg[key] = bool(v) if v is not None else None
+    return cfg
+
+
+@dataclass(frozen=True)
+class ChunkPlan:
+    """One output file.
+
+    Attributes:
+        index: File index (seeds its generator).
+        split: ``'train'``, ``'valid'`` or ``'test'``.
+        trajectories: Number of trajectories in the file.
+        path: Path relative to the dataset folder (``data/<split>/<scenario>_<index>.h5``).
+    """
+
+    index: int
+    split: str
+    trajectories: int
+    path: str
+
+
+def plan_chunks(cfg: Mapping[str, Any]) -> list[ChunkPlan]:
+    """The files of a run: sizes, splits (train first, then valid, then test) and paths.
+
+    With at least three files, a non-zero fraction gets at least one file.
+    """
+    per, total = cfg["trajectories_per_file"], cfg["trajectories"]
+    n = math.ceil(total / per)
+
+    def count(frac):
+        k = round(frac * n)
+        return max(1, k) if frac > 0 and n >= 3 else k
+
+    n_valid, n_test = count(cfg["valid_fraction"]), count(cfg["test_fraction"])
+    n_train = n - n_valid - n_test
+    if n_train < 1:
+        raise ParameterError(f"{n} file(s) leave none for training; lower valid/test_fraction or add trajectories")
+    chunks = []
+    for i in range(n):
+        split = "train" if i < n_train else "valid" if i < n_train + n_valid else "test"
+        size = min(per, total - i * per)
+        chunks.append(ChunkPlan(i, split, size, f"data/{split}/{cfg['scenario']}_{i:05d}.h5"))
+    return chunks
+
+
+def _generator(seed: int, index: int) -> torch.Generator:
+    g = torch.Generator(device="cpu")
+    g.manual_seed((int(seed) * 1_000_003 + 7919 * int(index) + 1) % (2**63 - 1))
+    return g
+
+
+def _draw_parameters(sc: Scenario, cfg: Mapping[str, Any], g: torch.Generator) -> dict:
+    params = {}
+    for key, par in sc.parameters.items():  # always draw, so fixing one parameter leaves the others' draws
+        u = float(torch.rand((), generator=g, dtype=torch.float64)) if par.low is not None else None
+        v = cfg[key]
+        if v is None:
+            v = par.low + (par.high - par.low) * u if cfg["randomize"] else par.default
+        params[key] = v
+    return params
+
+
+def _writer_supports(name: str) -> bool:
+    from ..io import SimulationWriter
+
+    return name in inspect.signature(SimulationWriter.__init__).parameters
+
+
+def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.PathLike) -> Path:
+    """Simulate one file of a dataset and write it (under a temporary name, renamed when complete).
+
+    Args:
+        cfg: Resolved configuration (:func:`resolve_config`).
+        chunk: The file (:func:`plan_chunks`).
+        root: The dataset folder.
+
+    Returns:
+        The path of the written file.
+    """
+    from ..io import SimulationWriter
+
+    sc = get_scenario(cfg["scenario"])
+    g = _generator(cfg["seed"], chunk.index)
+    params = _draw_parameters(sc, cfg, g)
+    dtype, device = _DTYPES[cfg["dtype"]], torch.device(cfg["device"])
+    sim = sc.build(cfg, params, chunk.trajectories, g, dtype, device)
+    final = Path(root) / chunk.path
+    tmp = final.with_name(final.name + ".part")
+    fields = dict(sim.fields)
+    kwargs = {}
+    constants = {k: v.detach().cpu().numpy() for k, v in sim.constant_fields.items()}
+    if constants and _writer_supports("constant_fields"):
+        kwargs["constant_fields"] = constants
+        constants = {}
+    else:  # written per frame when the writer has no constant fields
+        fields.update({k: "scalar" for k in constants})
+    interval = cfg["dt"] * cfg["save_every"]
+    if _writer_supports("output_interval"):
+        kwargs["output_interval"] = interval
+    file_cfg = {**dict(cfg), "file_index": chunk.index, "split": chunk.split, "drawn_parameters": params}
+    numeric = {k: (int(v) if isinstance(v, bool) else v) for k, v in params.items()}
+
+    def frame(state):
+        out = sim.frame(state)
+        for k, v in constants.items():
+            out[k] = np.broadcast_to(v, (chunk.trajectories, *sim.grid.resolution))
+        return out
+
+    state = sim.state
+    with SimulationWriter(tmp, sim.grid, sim.boundary, dataset_name=f"phisim_{cfg['scenario']}", fields=fields,
+                          parameters=numeric, batch_size=chunk.trajectories, config=file_cfg,
+                          dtype=dtype, **kwargs) as w:
+        w.append(0.0, **frame(state))
+        with torch.no_grad():
+            for k in range(1, cfg["steps"] + 1):
+                state = sim.step(state)
+                if k % cfg["save_every"] == 0:
+                    w.append((k // cfg["save_every"]) * interval, **frame(state))
+    os.replace(tmp, final)
+    return final
+
+
+def _job(cfg: dict, chunk: ChunkPlan, root: str, threads: int) -> int:
+    """Worker-process entry: simulate one file with ``threads`` torch threads; returns its trajectories."""
+    torch.set_num_threads(max(1, threads))
+    simulate_chunk(cfg, chunk, root)
+    return chunk.trajectories
+
+
+def _rank_world() -> tuple[int, int, bool]:
+    """(rank, world size, whether this call initialised the process group)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size(), False
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and dist.is_available() and "MASTER_ADDR" in os.environ:
+        dist.init_process_group("gloo")
+        return dist.get_rank(), dist.get_world_size(), True
+    return int(os.environ.get("RANK", "0")), world, False
+
+
+def _prepare_root(root: Path, cfg: dict, overwrite: bool, rank: int) -> None:
+    if root.exists() and not root.is_dir():
+        raise FileFormatError(f"{root} exists and is not a folder")
+    saved = root / "config.json"
+    if saved.exists():
+        try:
+            old = json.loads(saved.read_text(encoding="utf-8"))
+        except ValueError as exc:
+            raise FileFormatError(f"{saved} is not valid JSON: {exc}") from exc
+        same = {k: v for k, v in old.items() if k not in _RUN_ONLY} == {
+            k: v for k, v in cfg.items() if k not in _RUN_ONLY}
+        if not same and not overwrite:
+            diff = sorted(k for k in set(old) | set(cfg) if k not in _RUN_ONLY and old.get(k) != cfg.get(k))
+            raise ParameterError(f"{root} holds a dataset with other settings ({', '.join(diff)}); continue it "
+                                 "with the same settings, choose another output folder or pass --overwrite")
+        if not same and overwrite and rank == 0:
+            shutil.rmtree(root / "data", ignore_errors=True)
+            (root / "stats.yaml").unlink(missing_ok=True)
+    elif root.is_dir() and (root / "data").exists() and rank == 0:
+        if not overwrite:
+            raise ParameterError(f"{root}/data exists but {saved.name} does not: not a phisim dataset folder; "
+                                 "choose another output folder or pass --overwrite")
+        shutil.rmtree(root / "data")
+    if rank == 0:
+        for split in SPLITS:
+            (root / "data" / split).mkdir(parents=True, exist_ok=True)
+        tmp = saved.with_name("config.json.tmp")
+        tmp.write_text(json.dumps(cfg, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        os.replace(tmp, saved)
+
+
+def _write_statistics(root: Path) -> Path:
+    """The loader's ``stats.yaml`` over the training split (:mod:`phisim.wellstats` where present)."""
+    try:
+        from ..wellstats import write_statistics
+    except ImportError:  # STATS-FALLBACK: a minimal local version until phisim.wellstats is available
+        return _write_statistics_fallback(root)
+    return write_statistics(root)
+
+
+def _write_statistics_fallback(root: Path) -> Path:
+    import h5py
+
+    acc: dict[str, dict[str, list]] = {}
+    for path in check_dataset_dir(root, "train"):
+        with h5py.File(path, "r") as f:
+            for group in ("t0_fields", "t1_fields"):
+                for name, ds in f[group].items():
+                    if not ds.attrs.get("time_varying", True):
+                        continue
+                    a = np.asarray(ds, dtype=np.float64)
+                    comp = a.shape[-1:] if group == "t1_fields" else ()
+                    d = np.diff(a, axis=1)
+                    e = acc.setdefault(name, {"v": [], "d": [], "c": comp})
+                    e["v"].append(a.reshape(-1, *comp))
+                    e["d"].append(d.reshape(-1, *comp))
+    stats: dict[str, dict] = {k: {} for k in ("mean", "std", "rms", "mean_delta", "std_delta", "rms_delta")}
+    for name, e in acc.items():
+        for key, arrs in (("", e["v"]), ("_delta", e["d"])):
+            a = np.concatenate(arrs)
+            for stat, val in (("mean", a.mean(0)), ("std", a.std(0)), ("rms", np.sqrt((a**2).mean(0)))):
+                stats[stat + key][name] = val.tolist() if np.ndim(val) else float(val)
+    target = root / "stats.yaml"
+    tmp = target.with_name("stats.yaml.tmp")
+    tmp.write_text(json.dumps(stats, indent=1) + "\n", encoding="utf-8")  # JSON is valid YAML
+    os.replace(tmp, target)
+    return target
+
+
+def simulate_dataset(
+    out: str | os.PathLike,
+    cfg: Mapping[str, Any],
+    *,
+    workers: int = 1,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> dict:
+    """Generate (or continue) a dataset folder for a resolved configuration.
+
+    Args:
+        out: The dataset folder.
+        cfg: Configuration from :func:`resolve_config`.
+        workers: Parallel worker processes on this machine (each gets ``cpu_count // workers`` threads).
+        progress: Show a progress bar over trajectories.
+        overwrite: Replace a dataset with other settings in ``out``.
+
+    Returns:
+        ``{'root', 'files', 'written', 'skipped', 'trajectories', 'stats'}``.
+
+    Raises:
+        ParameterError: Bad ``workers``, or ``out`` holds another dataset.
+        FileFormatError: ``out`` is not a folder.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+    cfg = dict(cfg)
+    root = Path(out)
+    rank, world, own_group = _rank_world()
+    _prepare_root(root, cfg, overwrite, rank)
+    if world > 1:
+        _barrier()
+    chunks = plan_chunks(cfg)
+    mine = [c for c in chunks if c.index % world == rank]
+    todo = [c for c in mine if not (root / c.path).exists()]
+    done_traj = sum(c.trajectories for c in mine) - sum(c.trajectories for c in todo)
+    bar = None
+    if progress and rank == 0:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=sum(c.trajectories for c in mine), initial=done_traj, unit="traj",
+                   desc=f"simulate {cfg['scenario']}")
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for c in todo:
+                simulate_chunk(cfg, c, root)
+                if bar is not None:
+                    bar.update(c.trajectories)
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+                futures = [ex.submit(_job, cfg, c, str(root), threads) for c in todo]
+                for fut in as_completed(futures):
+                    n = fut.result()
+                    if bar is not None:
+                        bar.update(n)
+    finally:
+        if bar is not None:
+            bar.close()
+    if world > 1:
+        _barrier()
+    stats = None
+    if rank == 0:
+        stats = _write_statistics(root)
+    if own_group:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    return {"root": root, "files": len(chunks), "written": len(todo), "skipped": len(mine) - len(todo),
+            "trajectories": cfg["trajectories"], "stats": stats}
+
+
+def _barrier() -> None:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+
+
+def check_dataset_dir(path: str | os.PathLike, split: str | None = None) -> list[Path]:
+    """The HDF5 files of a dataset folder in The Well's layout (``<path>/data/<split>/*.h5``).
+
+    Args:
+        path: The dataset folder.
+        split: One split, or None for all three.
+
+    Returns:
+        The files, sorted.
+
+    Raises:
+        FileFormatError: The folder or split does not exist or holds no ``.h5``/``.hdf5`` file.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise FileFormatError(f"dataset folder {root} does not exist")
+    splits = SPLITS if split is None else (split,)
+    if split is not None and split not in SPLITS:
+        raise ParameterError(f"split must be one of {SPLITS}, got {split!r}")
+    files: list[Path] = []
+    for s in splits:
+        folder = root / "data" / s
+        if folder.is_dir():
+            files += sorted([*folder.glob("*.h5"), *folder.glob("*.hdf5")])
+    if not files:
+        where = f"data/{split}" if split else "data/{train,valid,test}"
+        raise FileFormatError(f"{root} is not a dataset in The Well's layout: no .h5 files in {where}/ "
+                              "(expected <dataset>/data/<split>/*.h5, e.g. from `phisim simulate`)")
+    return files
