@@ -104,7 +104,8 @@ class ResidualMLP(nn.Module):
 
 
 def burgers_problem(resolution: int = 32, steps: int = 8, dt: float = 0.1, viscosity: float = 0.1,
-                    batch_size: int = 16, lr: float = 1e-3, solver_iterations: int = 1, hidden: int = 64):
+                    batch_size: int = 16, lr: float = 1e-3, solver_iterations: int = 1, hidden: int = 64,
+                    rcond: float = 1e-3):
     """The Burgers inverse problem as an :class:`inverse.custom.CustomProblem` (the CLI factory).
 
     Args:
@@ -116,6 +117,7 @@ def burgers_problem(resolution: int = 32, steps: int = 8, dt: float = 0.1, visco
         lr: Adam learning rate.
         solver_iterations: Inverse-gradient iterations of the generic local inverse.
         hidden: Width of the two hidden layers of the residual MLP.
+        rcond: Relative singular-value cut-off of the generic local inverses.
 
     Returns:
         The problem.
@@ -129,7 +131,7 @@ def burgers_problem(resolution: int = 32, steps: int = 8, dt: float = 0.1, visco
         dtype=torch.float64,
         lr=lr,
         solver_iterations=solver_iterations,
-        rcond=1e-3,
+        rcond=rcond,
     )
 
 
