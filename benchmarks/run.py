@@ -755,8 +755,29 @@ Regenerate: `bash benchmarks/setup_phiflow.sh` once, then `python benchmarks/run
 """
 
 
+#: Sections written by other scripts (between these markers); a rebuild keeps them as they are.
+KEPT_SECTIONS = (
+    ("<!-- flow-bodies:begin -->", "<!-- flow-bodies:end -->"),  # benchmarks/bench_flow_bodies.py
+    ("<!-- bodies-pcg:begin -->", "<!-- bodies-pcg:end -->"),  # benchmarks/bench_bodies.py
+)
+
+
+def _kept_sections(path: str) -> list[str]:
+    """The marked sections of the current document (see :data:`KEPT_SECTIONS`)."""
+    if not os.path.exists(path):
+        return []
+    with open(path) as fh:
+        text = fh.read()
+    out = []
+    for begin, end in KEPT_SECTIONS:
+        if begin in text and end in text.split(begin, 1)[1]:
+            out.append(begin + text.split(begin, 1)[1].split(end, 1)[0] + end)
+    return out
+
+
 def write_doc(base: str, path: str) -> None:
-    """Rebuild the benchmark document from every results file under ``base``."""
+    """Rebuild the benchmark document from every results file under ``base`` (marked sections are kept)."""
+    kept = _kept_sections(path)
     meta = None
     for s in SUITES:
         for side in ("phisim", "phiflow", "floors"):
@@ -796,9 +817,22 @@ def write_doc(base: str, path: str) -> None:
     fd = _fft_decision(base)
     if fd:
         parts += ["## FFT engines on this machine (decides phisim's default)", ""] + fd + [""]
+    visc = os.path.join(HERE, "results", "viscosity.md")
+    if os.path.exists(visc):  # written by benchmarks/bench_viscosity.py --write
+        with open(visc) as fh:
+            parts += ["## Viscosity step (MAC velocity): explicit vs spectral implicit", "", fh.read().strip(), ""]
+    rel = os.path.join(RESULTS, "reliability.json")
+    if os.path.exists(rel):  # written by bench_reliability.py
+        from bench_reliability import markdown
+
+        with open(rel) as fh:
+            parts += markdown(json.load(fh))
+    for sec in kept:
+        parts += [sec, ""]
     others = [
         f
-        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py")
+        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_viscosity.py", "bench_reliability.py",
+                  "bench_bodies.py", "bench_flow_bodies.py")
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:

@@ -154,9 +154,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--checkpoint-every", type=int, default=25)
     ap.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--lr", type=float, default=0.005, help="Adam learning rate of both methods (E5: 0.005)")
+    ap.add_argument("--delta-factor", type=float, default=1.0,
+                    help="factor on the local inverse's vortex-strength update (1: the reference's)")
     args = ap.parse_args(argv)
 
-    problem = FluidProblem(resolution=(args.resolution, args.resolution), batch_size=args.batch_size)
+    problem = FluidProblem(resolution=(args.resolution, args.resolution), batch_size=args.batch_size,
+                           lr=args.lr, delta_factor=args.delta_factor)
     args.out.mkdir(parents=True, exist_ok=True)
     h5 = args.out / "fluid_inverse.h5"
     results = {}
@@ -208,6 +212,9 @@ def main(argv: list[str] | None = None) -> dict:
             "batch_size": args.batch_size,
             "iterations": args.iterations,
             "seed": args.seed,
+            "lr": args.lr,
+            "delta_factor": args.delta_factor,
+            "window": args.window,
             "device": args.device,
             "torch_threads": torch.get_num_threads(),
         },

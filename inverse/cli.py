@@ -14,6 +14,12 @@ Examples::
 
 ``problem`` is a registered name (``phisim list``) or a factory of your own, ``module:function`` or
 ``file.py:function`` (see :mod:`inverse.custom`).
+
+Data-parallel training: start the same command under ``torchrun``; the process group is initialised from
+its environment (gloo on CPU, NCCL with ``--device cuda``, one GPU per process), process 0 writes the files
+and prints, and N processes follow the one-process run::
+
+    torchrun --standalone --nproc_per_node 2 -m inverse.cli train poisson adam --iterations 100 --out out/p.h5
 """
 
 from __future__ import annotations
@@ -45,6 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--checkpoint-every", type=int, default=0)
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
+        sp.add_argument("--eval-every", type=int, default=None,
+                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end only)")
+        sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
+        sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
+                        help="network and data precision (default: the problem's)")
         sp.add_argument("--setting", action="append", metavar="KEY=VALUE", default=[],
                         help="a problem setting (repeatable), e.g. --setting lr=0.01")
         sp.add_argument("--tensorboard", type=Path, default=None, help="TensorBoard folder (if installed)")
@@ -74,12 +85,9 @@ def describe_file(path: Path) -> str:
     import h5py
     import numpy as np
 
-    from phisim.errors import FileFormatError
+    from phisim._h5util import open_for_read
 
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise FileFormatError(f"{path}: not a readable HDF5 file ({exc})") from exc
+    f = open_for_read(path)  # typed errors for missing files, folders, pipes, truncated or locked files
     lines = [f"{path}"]
     with f:
         for k, v in f.attrs.items():
@@ -104,29 +112,97 @@ def _problem(args):
     settings = parse_settings(args.setting)
     if args.resolution is not None:
         settings["resolution"] = tuple(args.resolution)
+    if args.heldout_size is not None:
+        settings["heldout_size"] = args.heldout_size
+    if args.dtype is not None:
+        import torch
+
+        settings["dtype"] = getattr(torch, args.dtype)
     return get_problem(args.problem, **settings)
 
 
 def _train(args, problem, method):
+    from .distributed import is_main_process
     from .train import train
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet, tensorboard=args.tensorboard)
-    if args.csv is not None and args.out is not None:
+              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard)
+    if args.csv is not None and args.out is not None and is_main_process():
         from .export import export_csv
 
         export_csv(args.out, args.csv)
-    print(json.dumps({"problem": problem.name, "method": method, "iterations": r.iterations,
-                      "final_loss": r.final("loss"), "final_metric": r.final("metric"),
-                      "seconds": round(r.seconds, 3)}))
+    if is_main_process():
+        print(json.dumps({
+            "problem": problem.name, "method": method, "iterations": r.iterations,
+            "loss_name": problem.loss_name, "metric_name": problem.metric_name,
+            "final_loss": r.final("loss"), "final_metric": r.final("metric"),
+            "final_measured_on": "training batches, mean of the last 10 iterations",
+            "heldout_loss": r.final_eval("loss"), "heldout_metric": r.final_eval("metric"),
+            "heldout_measured_on": f"final model, eval mode, {problem.heldout_size} held-out samples",
+            "seconds": round(r.seconds, 3)}, ensure_ascii=False))
     return r
 
 
+def _check_args(args) -> None:
+    """Check output paths and the device before any work starts (a bad --out must not fail after training)."""
+    from phisim._h5util import check_output_path
+    from phisim.checks import check_device
+    from phisim.errors import ParameterError
+
+    if getattr(args, "device", None) is not None:
+        check_device(args.device)
+    if getattr(args, "out", None) is not None:
+        check_output_path(args.out, append=True)
+    plot = getattr(args, "plot", None)
+    if plot is not None:
+        if plot.is_dir():
+            raise ParameterError(f"--plot {plot} is a directory; give a file name such as {plot / 'curves.png'}")
+        try:
+            plot.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ParameterError(f"--plot {plot}: cannot create its folder ({exc.strerror or exc})") from exc
+        import os
+
+        if not os.access(plot.parent, os.W_OK):
+            raise ParameterError(f"--plot {plot}: the folder {plot.parent} is not writable")
+    for name in ("iterations", "checkpoint_every"):
+        v = getattr(args, name, None)
+        if v is not None and v < 0:
+            raise ParameterError(f"--{name.replace('_', '-')} must be >= 0, got {v}")
+    if getattr(args, "batch_size", None) is not None and args.batch_size < 1:
+        raise ParameterError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if getattr(args, "resolution", None) is not None and any(n < 1 for n in args.resolution):
+        raise ParameterError(f"--resolution entries must be >= 1, got {args.resolution}")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the ``phisim`` command; returns the exit status (2 for user errors, with a one-line message)."""
+    """Run the ``phisim`` command; returns the exit status.
+
+    User errors (bad arguments, files, devices, any :class:`~phisim.errors.PhisimError`) print one line
+    ``phisim: error: ...`` and return 2; an unexpected error prints one line and returns 1 (set
+    ``PHISIM_DEBUG=1`` for its traceback); Ctrl-C returns 130. No traceback is printed otherwise.
+    """
+    import os
+
     args = build_parser().parse_args(argv)
     try:
+        return _dispatch(args)
+    except KeyboardInterrupt:
+        print("phisim: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the command line shows one line, never a traceback
+        if os.environ.get("PHISIM_DEBUG"):
+            raise
+        print(f"phisim: error: {type(exc).__name__}: {exc} (set PHISIM_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+
+
+def _dispatch(args) -> int:
+    """Run the parsed command; user errors (PhisimError) print one line and return 2."""
+    started = False
+    try:
+        _check_args(args)
         if args.command == "list":
             from .problems import PROBLEMS
 
@@ -143,21 +219,42 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.command in WORKFLOW_COMMANDS:
             return run_workflow(args)
+        from .distributed import is_main_process
+
+        started = _start_process_group(args.device)
         problem = _problem(args)
+        for m in [args.method] if args.command == "train" else args.methods:
+            problem.method(m)  # every method known before the first one trains
         if args.command == "train":
             _train(args, problem, args.method)
             return 0
         results = {m: _train(args, problem, m) for m in args.methods}
-        if args.plot is not None:
-            from phisim.plot import plot_curves, save_figure
+        if args.plot is not None and is_main_process():
+            from phisim.plot import plot_training_curves, save_figure
 
-            ax = plot_curves({m: (r.curves["iteration"], r.curves["metric"]) for m, r in results.items()},
-                             logy=True, title=f"{problem.name}: metric", ylabel="metric")
+            ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
+                                      title=f"{problem.name}: {problem.metric_name}")
             save_figure(ax.figure, args.plot)
         return 0
     except PhisimError as exc:
         print(f"phisim: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if started:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _start_process_group(device: str) -> bool:
+    """Under torchrun, initialise the process group from its environment; True when this call did."""
+    import torch.distributed as dist
+
+    from .distributed import init_from_env, launched_by_torchrun
+
+    if not launched_by_torchrun() or (dist.is_available() and dist.is_initialized()):
+        return False
+    return init_from_env(device)
 
 
 if __name__ == "__main__":  # pragma: no cover

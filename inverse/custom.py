@@ -41,7 +41,7 @@ from phisim.errors import ParameterError, ShapeError
 
 from .local_solvers import InverseGradientSolver, LBFGSBSolver, NewtonSolver
 from .operators import PhysicsOperator
-from .problems import Batch, Method, Problem
+from .problem import Batch, Method, Problem
 
 __all__ = ["CallableOperator", "CustomProblem", "make_problem", "load_problem", "is_factory_spec"]
 

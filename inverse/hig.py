@@ -101,6 +101,27 @@ def _check_rcond_exponent(rcond: float, exponent: float) -> None:
         )
 
 
+def _thin_svd(J: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Thin SVD ``J = U diag(s) Vh``, computed on the tall orientation.
+
+    LAPACK's divide-and-conquer SVD is several times faster on a tall matrix than on the same matrix
+    transposed (``(128, 1444)``: 10 ms wide vs 4 ms tall on one CPU core). A wide ``J`` (the usual HIG case,
+    fewer output rows than parameters) is therefore factorised as ``J^T = U' diag(s) V'^T``, which gives
+    ``U = V'`` and ``Vh = U'^T`` with the same singular values.
+    """
+    wide = J.shape[0] < J.shape[1]
+    A = J.mT if wide else J
+    try:
+        U, s, Vh = torch.linalg.svd(A, full_matrices=False)
+    except RuntimeError as err:  # LAPACK/cuSOLVER non-convergence: retry once in float64 on the CPU
+        try:
+            U, s, Vh = torch.linalg.svd(A.detach().double().cpu(), full_matrices=False)
+            U, s, Vh = (t.to(J.device, J.dtype) for t in (U, s, Vh))
+        except RuntimeError:
+            raise PhisimError(f"SVD of the {tuple(J.shape)} Jacobian did not converge: {err}") from err
+    return (Vh.mT, s, U.mT) if wide else (U, s, Vh)
+
+
 def truncated_power_svd(
     J: torch.Tensor, g: torch.Tensor, *, rcond: float = 1e-10, exponent: float = 0.5
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -142,14 +163,7 @@ def truncated_power_svd(
         raise NonFiniteError("the Jacobian J contains NaN or Inf; check the network and the physics function")
     if not bool(torch.isfinite(g).all()):
         raise NonFiniteError("the loss gradient g contains NaN or Inf; check the loss function")
-    try:
-        U, s, Vh = torch.linalg.svd(J, full_matrices=False)
-    except RuntimeError as err:  # LAPACK/cuSOLVER non-convergence: retry once in float64 on the CPU
-        try:
-            U, s, Vh = torch.linalg.svd(J.detach().double().cpu(), full_matrices=False)
-            U, s, Vh = (t.to(J.device, J.dtype) for t in (U, s, Vh))
-        except RuntimeError:
-            raise PhisimError(f"SVD of the {tuple(J.shape)} Jacobian did not converge: {err}") from err
+    U, s, Vh = _thin_svd(J)
     smax = s[0] if s.numel() else s.new_zeros(())
     kept = s >= rcond * smax
     kept &= s > 0  # a zero singular value carries no direction, whatever rcond says

@@ -25,7 +25,7 @@ from torch import nn
 from phisim.errors import FileFormatError, ParameterError
 
 from .nets import MLP, UNet
-from .problems import Method
+from .problem import Method
 
 __all__ = ["DatasetSampler", "FieldNet", "dataset_problem"]
 

@@ -4,9 +4,18 @@ Every method sees the same data stream: batch ``i`` of a run with seed ``s`` is 
 seeded with ``(s, i)``, so curves of different methods compare sample by sample, and a resumed run
 continues the exact stream. The network initialisation is seeded with ``s`` too.
 
-Per iteration the loop logs the y-space loss (mean per-sample loss), the problem's metric (mean over the
-batch), the training objective actually backpropagated, and the wall time, into
-``/training/<method>/...`` of an HDF5 file (:class:`phisim.io.TrainingLog`, flushed every record).
+Per iteration the loop logs, into ``/training/<method>/...`` of an HDF5 file (:class:`phisim.io.TrainingLog`,
+flushed every record):
+
+* ``loss``, ``metric``: the problem's y-space loss and metric on the **training batch**, measured during the
+  update (network in train mode, before the optimizer step), mean per sample;
+* ``eval_loss``, ``eval_metric``: the same on the problem's fixed **held-out set** (:meth:`Problem.heldout`,
+  ``heldout_size`` samples, its own seed) with the network in eval mode after the update, every
+  ``eval_every`` iterations and after the last one (NaN in the other records);
+* ``objective`` (the value backpropagated) and ``time``.
+
+The group's attributes ``loss_name`` and ``metric_name`` say what the curves measure (e.g. "x L1 per sample
+(sum over cells of |x−x*|)").
 Checkpoints (model, optimizer, iteration) are written atomically every ``checkpoint_every`` iterations;
 a killed run loses at most that interval and ``resume=True`` continues it, truncating the log to the
 checkpoint.
@@ -26,15 +35,19 @@ import numpy as np
 import torch
 from torch import nn
 
+from phisim._h5util import check_output_path
+from phisim._journal import write_failure
+from phisim.checks import check_device
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
-from phisim.io import TrainingLog
+from phisim.io import TrainingLog, recover_file
 
+from .distributed import convert_sync_batchnorm, init_from_env, launched_by_torchrun, rank_device
 from .hig import HIG, GaussNewton
 from .local_solvers import LocalSolver, SolverOperator
 from .physgrad import physical_update
 from .problems import Batch, Method, Problem, get_problem
 
-__all__ = ["TrainResult", "train", "batch_generator", "make_optimizer"]
+__all__ = ["TrainResult", "train", "evaluate", "batch_generator", "make_optimizer"]
 
 
 @dataclass
@@ -44,8 +57,10 @@ class TrainResult:
     Attributes:
         method: The method's name.
         model: The trained network.
-        curves: ``{'iteration', 'loss', 'metric', 'objective', 'time'}`` as numpy arrays (this session's
-            iterations plus, when resumed, the earlier ones read back from the log).
+        curves: ``{'iteration', 'loss', 'metric', 'eval_loss', 'eval_metric', 'objective', 'time'}`` as numpy
+            arrays (this session's iterations plus, when resumed, the earlier ones read back from the log);
+            ``loss``/``metric`` are training-batch values, ``eval_*`` held-out values (NaN where not
+            evaluated).
         iterations: Iterations completed in total.
         seconds: Wall time of this session's training.
     """
@@ -57,9 +72,16 @@ class TrainResult:
     seconds: float = 0.0
 
     def final(self, name: str = "metric", window: int = 10) -> float:
-        """Mean of the last ``window`` entries of a curve (NaNs ignored)."""
+        """Mean of the last ``window`` entries of a curve (NaNs ignored): a training-batch average for
+        ``loss``/``metric``."""
         v = self.curves[name][-window:]
-        return float(np.nanmean(v))
+        return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+
+    def final_eval(self, name: str = "metric") -> float:
+        """The last held-out evaluation of ``name`` (``'metric'`` or ``'loss'``), i.e. of the final model."""
+        v = np.asarray(self.curves.get(f"eval_{name}", []), dtype=np.float64)
+        v = v[np.isfinite(v)]
+        return float(v[-1]) if v.size else float("nan")
 
 
 def batch_generator(seed: int, iteration: int, device=None) -> torch.Generator:
@@ -112,7 +134,8 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
         objective value.
     """
     if method.kind == "hig":
-        info = opt.step(batch.inputs, batch.y_target, loss_fn=problem.loss, physics_args=batch.physics_args)
+        loss_fn = problem.loss if method.loss is None else method.loss
+        info = opt.step(batch.inputs, batch.y_target, loss_fn=loss_fn, physics_args=batch.physics_args)
         with torch.no_grad():
             x = problem.predict(model, batch)
             loss = problem.loss(batch.operator(x), batch.y_target).sum()
@@ -158,13 +181,69 @@ def _step(problem: Problem, method: Method, model: nn.Module, opt, batch: Batch,
     return torch.stack([loss_sum.double(), metric_sum.double()]), float(objective.detach())
 
 
+def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, device=None,
+             chunk_size: int | None = None) -> dict[str, float]:
+    """Mean per-sample loss and metric of ``model`` on a batch (default: the problem's held-out set).
+
+    The network is put in eval mode (BatchNorm uses its running statistics) without gradients, and its
+    previous mode is restored. Samples are evaluated in chunks of ``chunk_size`` (default: the problem's
+    batch size); in eval mode a sample's prediction does not depend on the others.
+
+    Args:
+        problem: The problem (its ``predict``, ``loss`` and ``metric``).
+        model: The network (unwrapped, not a ``DistributedDataParallel``).
+        batch: The samples (default ``problem.heldout(device)``).
+        device: Device of the held-out set.
+        chunk_size: Samples per forward pass.
+
+    Returns:
+        ``{'loss': float, 'metric': float}``, means over the samples (``loss`` is NaN for a problem without
+        forward physics, ``has_physics = False``).
+    """
+    batch = problem.heldout(device) if batch is None else batch
+    n = int(batch.inputs.shape[0])
+    chunk = max(1, int(chunk_size or problem.batch_size))
+    was_training = model.training
+    model.eval()
+    loss_sum = metric_sum = 0.0
+    try:
+        with torch.no_grad():
+            for start in range(0, n, chunk):
+                part = batch if chunk >= n else _slice_batch(batch, slice(start, start + chunk))
+                x = problem.predict(model, part)
+                if getattr(problem, "has_physics", True):
+                    loss_sum += float(problem.loss(part.operator(x), part.y_target).double().sum())
+                else:  # offline data without a forward physics: no y-space loss, as in training
+                    loss_sum = math.nan
+                metric_sum += float(problem.metric(x, part).double().sum())
+    finally:
+        model.train(was_training)
+    return {"loss": loss_sum / n, "metric": metric_sum / n}
+
+
 def _save_checkpoint(path: Path, state: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+    except (OSError, RuntimeError) as exc:  # full disk, vanished folder: no temp file, old checkpoint kept
+        tmp.unlink(missing_ok=True)
+        raise write_failure(path, exc, "write the checkpoint") from exc
+
+
+def _run_identity(problem: Problem, batch_size: int) -> dict:
+    """The settings a checkpoint must share with the run resuming it (problem fields and batch size)."""
+    keep = {}
+    for k, v in vars(problem).items():
+        if isinstance(v, (bool, int, float, str)) or (isinstance(v, tuple) and all(
+                isinstance(e, (bool, int, float, str)) for e in v)):
+            keep[k] = list(v) if isinstance(v, tuple) else v
+    keep["batch_size"] = int(batch_size)
+    return keep
 
 
 def _truncate_log(h5path: Path, method: str, n: int) -> None:
+    recover_file(h5path)  # a log killed mid-write: rebuild the file from its journal first
     with h5py.File(h5path, "a") as f:
         grp = f.get(f"training/{method}")
         if grp is None:
@@ -209,6 +288,7 @@ def train(
     progress: bool = False,
     callback: Callable[[int, dict], None] | None = None,
     distributed: bool | None = None,
+    eval_every: int | None = None,
     tensorboard: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Train the problem's network with one method.
@@ -219,7 +299,8 @@ def train(
         iterations: Total iterations (a resumed run continues up to this number).
         batch_size: Samples per batch (default: the problem's).
         seed: Seeds the network initialisation and the data stream.
-        device: Torch device.
+        device: Torch device. Under data parallelism a CUDA device without an index becomes
+            ``cuda:LOCAL_RANK`` (one GPU per process).
         out: HDF5 file receiving ``/training/<method>`` curves (and ``<out>.<method>.ckpt`` checkpoints). At the
             end of the run the trained network is written to ``<out>.<method>.model.pt``
             (:func:`inverse.models.load_model` rebuilds it; the log's attribute ``model_file`` names it).
@@ -227,12 +308,17 @@ def train(
         resume: Continue from the checkpoint next to ``out`` when there is one.
         progress: Show a tqdm progress bar.
         callback: Called as ``callback(iteration, record)`` after every iteration.
-        distributed: Data-parallel training over the processes of an initialised ``torch.distributed``
-            group (e.g. started by ``torchrun``): every process draws the same batch and trains on its
-            share (samples ``rank::world_size``) of a ``DistributedDataParallel`` model, so N processes
-            follow the single-process trajectory up to round-off; process 0 writes the log and the
-            checkpoints. ``None``: on when a process group is initialised. Not for HIG, and networks with
-            BatchNorm see per-process batch statistics.
+        distributed: Data-parallel training over the processes of a ``torch.distributed`` group: every
+            process draws the same batch and trains on its share (samples ``rank::world_size``) of a
+            ``DistributedDataParallel`` model whose BatchNorm layers use the whole batch's statistics
+            (:class:`~inverse.distributed.SyncBatchNorm`), so N processes follow the single-process
+            trajectory up to round-off; process 0 writes the log and the checkpoints and shows progress.
+            Under ``torchrun`` the group is initialised from its environment (NCCL for CUDA, gloo
+            otherwise). ``None``: on when a group is initialised or the process was started by torchrun.
+            Not for HIG.
+        eval_every: Iterations between held-out evaluations (``None``: ``iterations // 20``, about 20 per
+            run, and only the final one for runs under 20 iterations; 0: only after the last iteration).
+            The final model is always evaluated.
         tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
             the ``tensorboard`` package is not installed.
 
@@ -254,15 +340,27 @@ def train(
         raise ParameterError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
     if (resume or checkpoint_every) and out is None:
         raise ParameterError("checkpoints and resume need an output file (out=...)")
-    batch_size = problem.batch_size if batch_size is None else int(batch_size)
-    if batch_size < 1:
-        raise ParameterError(f"batch_size must be >= 1, got {batch_size}")
-    device = torch.device(device)
+    batch_size = problem.batch_size if batch_size is None else batch_size
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ParameterError(f"batch_size must be an int >= 1, got {batch_size!r}")
+    batch_size = int(batch_size)
+    if eval_every is None:
+        eval_every = iterations // 20  # about 20 evaluations; a run under 20 iterations: only at the end
+    if isinstance(eval_every, bool) or not isinstance(eval_every, int) or eval_every < 0:
+        raise ParameterError(f"eval_every must be an int >= 0, got {eval_every!r}")
+    device = check_device(device)
+    if out is not None:
+        check_output_path(out, append=True)  # before any work: a bad --out fails now, not after training
 
     import torch.distributed as dist
 
     if distributed is None:
-        distributed = dist.is_available() and dist.is_initialized()
+        distributed = (dist.is_available() and dist.is_initialized()) or launched_by_torchrun()
+    if distributed:
+        if not init_from_env(device):
+            raise ParameterError("distributed=True needs an initialised torch.distributed process group "
+                                 "(call dist.init_process_group) or a start by torchrun")
+        device = rank_device(device)
     rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
     if distributed and method.kind == "hig":
         raise ParameterError("HIG builds the Jacobian of the whole batch; run it in a single process")
@@ -271,7 +369,11 @@ def train(
 
     torch.manual_seed(seed)
     net = problem.make_network().to(device=device, dtype=problem.dtype)
-    model = nn.parallel.DistributedDataParallel(net) if distributed else net
+    if distributed:
+        net = convert_sync_batchnorm(net)
+        model = nn.parallel.DistributedDataParallel(net, device_ids=[device] if device.type == "cuda" else None)
+    else:
+        model = net
     opt = make_optimizer(method, model, problem)
     weight = world * (1.0 / batch_size if problem.reduction == "mean" else 1.0)
     start = 0
@@ -286,6 +388,14 @@ def train(
             raise FileFormatError(
                 f"checkpoint {ckpt_path} belongs to problem={state.get('problem')} method={state.get('method')} "
                 f"seed={state.get('seed')}, not {problem.name}/{method.name}/seed {seed}"
+            )
+        saved = state.get("settings")
+        if saved is not None and saved != _run_identity(problem, batch_size):
+            now = _run_identity(problem, batch_size)
+            diff = {k: (saved.get(k), now.get(k)) for k in sorted(set(saved) | set(now)) if saved.get(k) != now.get(k)}
+            raise FileFormatError(
+                f"checkpoint {ckpt_path} was written with other settings (saved, now): {diff}; resume with the "
+                "same settings, or start afresh without resume (or delete the checkpoint)"
             )
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -303,8 +413,14 @@ def train(
             "problem": problem.name, "kind": method.kind, "optimizer": method.optimizer, "lr": method.lr,
             "eta": method.eta, "batch_size": batch_size, "seed": seed,
             "local_solver": type(method.local_solver).__name__ if method.local_solver is not None else "analytic",
+            "loss_name": problem.loss_name, "metric_name": problem.metric_name,
+            "loss_measured_on": "training batch, train mode, before the update",
+            "eval_measured_on": f"held-out set: {problem.heldout_size} samples, seed {problem.heldout_seed}, "
+                                "eval mode, after the update",
+            "heldout_size": problem.heldout_size, "heldout_seed": str(problem.heldout_seed),
         })
-    curves: dict[str, list] = {k: [] for k in ("iteration", "loss", "metric", "objective", "time")}
+    curves: dict[str, list] = {k: [] for k in ("iteration", "loss", "metric", "eval_loss", "eval_metric",
+                                               "objective", "time")}
     bar = None
     if progress and rank == 0:
         from tqdm.auto import tqdm
@@ -326,13 +442,18 @@ def train(
             if distributed:
                 batch = _slice_batch(batch, slice(rank, None, world))
             sums, objective = _step(problem, method, model, opt, batch, weight)
-            if distributed:
+            if distributed:  # collectives on the training device (NCCL needs CUDA tensors)
                 dist.all_reduce(sums)
-                t = torch.tensor([objective], dtype=torch.float64)
+                t = torch.tensor([objective], dtype=torch.float64, device=sums.device)
                 dist.all_reduce(t)
                 objective = float(t) / world
             loss, metric = (float(v) / batch_size for v in sums)
             record = {"loss": loss, "metric": metric, "objective": objective, "time": time.perf_counter() - t0}
+            if it + 1 == iterations or (eval_every and (it + 1) % eval_every == 0):
+                held = evaluate(problem, net, device=device)  # every process, no collectives: same numbers
+                record["eval_loss"], record["eval_metric"] = held["loss"], held["metric"]
+            else:
+                record["eval_loss"] = record["eval_metric"] = math.nan
             for k, v in record.items():
                 curves[k].append(v)
             curves["iteration"].append(it)
@@ -344,11 +465,14 @@ def train(
                 tb.log(it, record)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}")
+                bar.set_postfix(loss=f"{loss:.3g}", metric=f"{metric:.3g}",
+                                **({"heldout": f"{record['eval_metric']:.3g}"}
+                                   if math.isfinite(record["eval_metric"]) else {}))
             if checkpoint_every and (it + 1) % checkpoint_every == 0 and rank == 0:
                 _save_checkpoint(ckpt_path, {"iteration": it + 1, "model": net.state_dict(),
                                              "optimizer": opt.state_dict(), "problem": problem.name,
-                                             "method": method.name, "seed": seed})
+                                             "method": method.name, "seed": seed,
+                                             "settings": _run_identity(problem, batch_size)})
     finally:
         if bar is not None:
             bar.close()

@@ -1,11 +1,12 @@
 """phisim: differentiable PDE simulation on PyTorch (grids, fields, operators, solvers, fluids, I/O)."""
 
-from .advection import advect, maccormack, semi_lagrangian
+from .advection import advect, conservative, maccormack, semi_lagrangian
 from .boundary import (
     Boundary,
     BoundaryCondition,
     Dirichlet,
     FreeSlipWall,
+    Inflow,
     Neumann,
     NoSlipWall,
     Open,
@@ -14,13 +15,29 @@ from .boundary import (
     pad_staggered_component,
     set_boundary_faces,
 )
-from .checks import all_finite, check_dt, check_finite, check_nonnegative, check_positive
+from .checks import (
+    all_finite,
+    check_device,
+    check_dt,
+    check_finite,
+    check_finite_number,
+    check_nonnegative,
+    check_positive,
+)
 from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
-from .diffusion import diffuse, diffuse_values, explicit_stability_limit, fourier_heat, heat_decay_factors
+from .diffusion import (
+    diffuse,
+    diffuse_staggered,
+    diffuse_values,
+    explicit_stability_limit,
+    fourier_heat,
+    heat_decay_factors,
+)
 from .errors import (
     BoundaryError,
     FileFormatError,
     GridMismatchError,
+    IncompleteFileWarning,
     NonFiniteError,
     ParameterError,
     PhisimError,
@@ -37,6 +54,7 @@ from .fluid import (
     diffuse_velocity,
     kinetic_energy,
     make_incompressible,
+    navier_stokes_rk_step,
     navier_stokes_step,
     normalize_energy,
     obstacle_mask,
@@ -44,7 +62,15 @@ from .fluid import (
     step,
 )
 from .grid import Grid
-from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
+from .io import (
+    SimulationData,
+    SimulationWriter,
+    TrainingLog,
+    read_simulation,
+    read_training,
+    recover_file,
+    well_bc_type,
+)
 from .linalg import Solve, SolveInfo, cg, remove_mean
 from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
@@ -52,23 +78,25 @@ from .scenarios import e5_simulation
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
-    "NonFiniteError", "SolveError", "FileFormatError",
+    "NonFiniteError", "SolveError", "FileFormatError", "IncompleteFileWarning",
     "Grid",
     "Solve", "SolveInfo", "cg", "remove_mean",
-    "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open",
+    "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open", "Inflow",
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
-    "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite",
+    "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite", "check_device",
+    "check_finite_number",
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
-    "diffuse", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
+    "diffuse", "diffuse_staggered", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
     "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
-    "advect", "semi_lagrangian", "maccormack",
+    "recover_file",
+    "advect", "semi_lagrangian", "maccormack", "conservative",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
     "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
-    "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
+    "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "navier_stokes_rk_step", "FluidState", "step",
     "e5_simulation",
 ]
 

@@ -54,10 +54,15 @@ from .errors import GridMismatchError, ParameterError, ShapeError
 from .field import CenteredGrid, Field, StaggeredGrid
 from .grid import Grid
 
-__all__ = ["advect", "semi_lagrangian", "maccormack", "SCHEMES"]
+__all__ = ["advect", "semi_lagrangian", "maccormack", "conservative", "SCHEMES", "SCALAR_SCHEMES", "LIMITERS"]
 
-#: Names accepted by :func:`advect` for ``scheme``.
+#: Schemes that advect any field, staggered velocities included (``advect(v, v, dt)``).
 SCHEMES = ("semi_lagrangian", "maccormack")
+#: Schemes accepted by :func:`advect` for cell-centred fields: :data:`SCHEMES` and the finite-volume
+#: ``'conservative'`` scheme (mass-conserving, non-negative; see :func:`conservative`).
+SCALAR_SCHEMES = (*SCHEMES, "conservative")
+#: Slope limiters of the conservative scheme (``None``: unlimited central slopes).
+LIMITERS = ("van_leer", "mc", "minmod", None)
 _INTEGRATORS = ("euler", "rk2")
 _CLAMPS = ("minmax", "revert", None)
 _WIDTH = 1  # ghost layers used for interpolation
@@ -288,8 +293,13 @@ def _pad_centered(x: torch.Tensor, boundary: Boundary, dx, velocity_like: bool) 
 
 
 def _validate(field, velocity, dt, scheme, integrator, clamp):
-    if scheme not in SCHEMES:
-        raise ParameterError(f"unknown advection scheme {scheme!r}; choose one of {SCHEMES}")
+    if scheme not in SCALAR_SCHEMES:
+        raise ParameterError(f"unknown advection scheme {scheme!r}; choose one of {SCALAR_SCHEMES}")
+    if scheme == "conservative" and isinstance(field, StaggeredGrid):
+        raise ParameterError(
+            "the conservative scheme transports cell-centred fields (markers, densities); advect a "
+            f"StaggeredGrid with one of {SCHEMES}"
+        )
     if integrator not in _INTEGRATORS:
         raise ParameterError(f"unknown integrator {integrator!r}; choose one of {_INTEGRATORS}")
     if clamp not in _CLAMPS:
@@ -308,7 +318,7 @@ def _validate(field, velocity, dt, scheme, integrator, clamp):
 
 
 def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian", integrator: str = "euler",
-           clamp: str | None = "minmax") -> Field:
+           clamp: str | None = "minmax", limiter: str | None = "van_leer", cfl: float = 0.5) -> Field:
     """Advect ``field`` by ``velocity`` over one time step ``dt``.
 
     Args:
@@ -317,11 +327,15 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         velocity: A centred vector field ``(B, d, *res)`` or a ``StaggeredGrid`` on the same grid as
             ``field``; batch size equal to the field's or 1 (shared by all samples).
         dt: Time step ``>= 0`` (number or 0-d tensor; gradients w.r.t. a tensor ``dt`` are kept).
-        scheme: ``'semi_lagrangian'`` (first order) or ``'maccormack'`` (second order, clamped).
+        scheme: ``'semi_lagrangian'`` (first order), ``'maccormack'`` (second order, clamped) or, for
+            ``CenteredGrid`` fields only, ``'conservative'`` (finite-volume flux form, second order, keeps the
+            total to round-off and non-negative data non-negative; see :func:`conservative`).
         integrator: Back-trace rule: ``'euler'`` (``x - dt v(x)``) or ``'rk2'`` (midpoint).
         clamp: MacCormack limiter: ``'minmax'`` (clamp to the interpolation stencil of the forward step),
             ``'revert'`` (use the semi-Lagrangian value where the corrected one leaves that range) or
             ``None``. Ignored by the semi-Lagrangian scheme.
+        limiter: Slope limiter of the conservative scheme (see :func:`conservative`); ignored otherwise.
+        cfl: Largest outflow Courant number per sub-step of the conservative scheme; ignored otherwise.
 
     Returns:
         A field of the same type, grid, boundary, shape and dtype as ``field``.
@@ -333,6 +347,10 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         NonFiniteError: If the velocity contains NaN/Inf (checked on CPU only, where it costs no sync).
     """
     dt = _validate(field, velocity, dt, scheme, integrator, clamp)
+    if scheme == "conservative":
+        from ._fv import conservative_step
+
+        return conservative_step(field, velocity, dt, limiter=limiter, cfl=cfl)
     grid, boundary = field.grid, field.boundary
     if isinstance(field, CenteredGrid):
         vel = _broadcast_batch([v.to(field.dtype) for v in _velocity_at_centers(velocity)], field.batch_size)
@@ -409,3 +427,51 @@ def maccormack(field: Field, velocity: Field, dt, *, integrator: str = "euler",
         ParameterError, GridMismatchError, ShapeError, NonFiniteError: See :func:`advect`.
     """
     return advect(field, velocity, dt, scheme="maccormack", integrator=integrator, clamp=clamp)
+
+
+def conservative(field: CenteredGrid, velocity: Field, dt, *, limiter: str | None = "van_leer",
+                 cfl: float = 0.5) -> CenteredGrid:
+    """Conservative finite-volume transport ``∂q/∂t + ∇·(u q) = 0`` of a cell-centred field.
+
+    Each cell changes by the fluxes through its faces, ``q_i -= dt/dx (F_{i+1/2} - F_{i-1/2})`` on every
+    axis, so whatever leaves one cell enters its neighbour: the total ``Σ q dV`` is kept to round-off in
+    periodic domains and closed boxes (walls carry no flux), and changes only by the fluxes through open,
+    inflow or Dirichlet sides. The face flux is ``u_f q_f`` with the face velocity ``u_f`` (the MAC
+    velocity itself, or the average of two cell centres for a centred velocity) and the upwind value
+    ``q_f`` of a MUSCL reconstruction (piecewise-linear, slopes limited per axis by ``limiter``); time
+    integration is Heun's SSP-RK2. Second order in space and time on smooth fields (the limiter clips
+    extrema, where the scheme is locally first order; measured L1 orders in ``tests``).
+
+    Non-negativity and the maximum principle: with a TVD limiter every reconstructed face value of a
+    cell lies in ``[0, 2 q_i]`` for non-negative data, so a forward-Euler stage keeps ``q >= 0`` when the
+    outflow Courant number of every cell, ``dt Σ_axes (max(u_hi, 0) + max(-u_lo, 0)) / dx``, is at most
+    1/2; the step is split into equal sub-steps so that this holds (``cfl``), and SSP-RK2 keeps the
+    property. Cells next to a non-periodic side use zero slope; inflow through such a side carries the
+    boundary value (Dirichlet) or the ghost value (Neumann, walls, open sides).
+
+    For a divergence-free velocity this is also the advective form ``∂q/∂t + u·∇q = 0`` (constants stay
+    constant); for a divergent one it is the conservative form (a density accumulates where flow
+    converges).
+
+    Args:
+        field: Scalar ``(B, *res)`` or multi-channel ``(B, C, *res)`` CenteredGrid (a ``C == rank`` field
+            is padded as a vector with its wall roles).
+        velocity: StaggeredGrid (preferred: its face values are the fluxes' velocities) or centred vector
+            field on the same grid; batch size equal to the field's or 1.
+        dt: Time step ``>= 0`` (number or 0-d tensor).
+        limiter: ``'van_leer'`` (default; harmonic mean of the one-sided slopes), ``'mc'`` (monotonised
+            central), ``'minmod'`` (most diffusive) or ``None`` (unlimited central slopes: second order
+            everywhere, neither non-negative nor monotone).
+        cfl: Largest outflow Courant number per sub-step, ``0 < cfl``; ``<= 0.5`` guarantees
+            non-negativity with a limiter.
+
+    Returns:
+        The transported field (same grid, boundary, shape and dtype); differentiable w.r.t. the values,
+        the velocity and a tensor ``dt`` (the sub-step count is chosen from the detached velocity).
+
+    Raises:
+        ParameterError: For a negative or non-finite ``dt``, an unknown limiter, a bad ``cfl`` or a
+            StaggeredGrid ``field``.
+        GridMismatchError, ShapeError, NonFiniteError: See :func:`advect`.
+    """
+    return advect(field, velocity, dt, scheme="conservative", limiter=limiter, cfl=cfl)

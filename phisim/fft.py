@@ -27,6 +27,18 @@ Engines:
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
 
+Planner effort and reproducibility: plans are measured (``FFTW_MEASURE``, the fastest plans), and the
+measured choice is shared by every process on the machine through a wisdom file (see
+:mod:`phisim._fftw_wisdom`): the first process that needs a transform times the candidates once and saves
+its wisdom, every later or concurrent process rebuilds exactly that plan. So same seed and settings give
+bit-identical results in two fresh processes, which a per-process measurement does not (a 64x96 plume
+differed from frame 3-5 on, 7e-7 growing to 1e-4). Costs (``benchmarks/bench_reliability.py``, in
+``docs/BENCHMARKS.md``): one measurement per transform size per machine (10 ms to a few s), a locked file
+read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effort='FFTW_ESTIMATE')`` or
+``PHISIM_FFT_PLANNER=estimate``) needs no file and is deterministic too, but chooses slow real-to-real
+algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in
+every process: no file, at the price of cross-process reproducibility.
+
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
 18.3 ms vs 18.5 ms for 128³), so one thread is the default.
@@ -36,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
@@ -45,6 +58,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from . import _fftw_wisdom
 from .errors import ParameterError, ShapeError
 
 try:  # pragma: no cover - exercised implicitly
@@ -74,7 +88,7 @@ __all__ = [
 ]
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
-R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4")
+R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4", "dct1", "dst1")
 _FFTW_KIND = {
     "dct2": "FFTW_REDFT10",
     "dct3": "FFTW_REDFT01",
@@ -82,6 +96,8 @@ _FFTW_KIND = {
     "dst3": "FFTW_RODFT01",
     "dct4": "FFTW_REDFT11",
     "dst4": "FFTW_RODFT11",
+    "dct1": "FFTW_REDFT00",
+    "dst1": "FFTW_RODFT00",
 }
 _ENGINES = ("auto", "torch", "pyfftw")
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
@@ -96,9 +112,11 @@ class FFTSettings:
             or ``'pyfftw'`` (CPU tensors only).
         threads: FFTW threads per plan (pyfftw engine). Default 1: two threads measured no faster
             on the 2-core development machine.
-        planner_effort: FFTW planner flag; ``'FFTW_MEASURE'`` (default) times candidate algorithms
-            once per plan (10–500 ms, cached), ``'FFTW_ESTIMATE'`` plans instantly but runs up to
-            2–3x slower for real-to-real transforms.
+        planner_effort: FFTW planner flag. ``'FFTW_ESTIMATE'`` (default) plans instantly from a fixed
+            cost model, so every process computes bit-identical results. ``'FFTW_MEASURE'`` (opt-in,
+            also via the environment variable ``PHISIM_FFT_PLANNER``) times candidate algorithms once
+            per plan (10–500 ms, cached) and may run faster, but the chosen plan, and so the round-off,
+            can differ between processes.
     """
 
     engine: str = "auto"
@@ -114,7 +132,20 @@ class FFTSettings:
             raise ParameterError(f"planner_effort must be one of {_EFFORTS}, got {self.planner_effort!r}")
 
 
-_SETTINGS = FFTSettings()
+def _settings_from_environment() -> FFTSettings:
+    effort = os.environ.get("PHISIM_FFT_PLANNER", "").strip().upper()
+    if not effort:
+        return FFTSettings()
+    if not effort.startswith("FFTW_"):
+        effort = "FFTW_" + effort
+    if effort not in _EFFORTS:
+        warnings.warn(f"PHISIM_FFT_PLANNER={os.environ['PHISIM_FFT_PLANNER']!r} is not one of {_EFFORTS}; "
+                      "using FFTW_MEASURE", stacklevel=2)
+        return FFTSettings()
+    return FFTSettings(planner_effort=effort)
+
+
+_SETTINGS = _settings_from_environment()
 _WARNED_NO_PYFFTW = False
 
 
@@ -293,6 +324,13 @@ def _type4_matrix(n: int, kind: str, dtype: torch.dtype, device: torch.device) -
 
 def _torch_r2r_last(x: torch.Tensor, kind: str) -> torch.Tensor:
     n = x.shape[-1]
+    if kind == "dst1":  # odd extension [0, x, 0, -x reversed] of length 2(n+1): y_k = -Im FFT_{k+1}
+        z = torch.zeros_like(x[..., :1])
+        ext = torch.cat([z, x, z, -x.flip(-1)], dim=-1)
+        return -torch.fft.rfft(ext, dim=-1).imag[..., 1 : n + 1]
+    if kind == "dct1":  # even extension [x, x_{n-2} .. x_1] of length 2(n-1): y_k = Re FFT_k
+        ext = torch.cat([x, x[..., 1 : n - 1].flip(-1)], dim=-1)
+        return torch.fft.rfft(ext, dim=-1).real
     if kind in ("dct4", "dst4"):
         # Type-4 transforms (mixed Dirichlet/Neumann axes) as a dense symmetric matrix: O(n^2) per line.
         return x @ _type4_matrix(n, kind, x.dtype, x.device)
@@ -358,18 +396,16 @@ def _get_plan(
             return plan
         real = np.dtype(dtype)
         cplx = np.result_type(real, np.complex64)
-        flags = (s.planner_effort, "FFTW_DESTROY_INPUT")
         if op == "r2r":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             b = _pyfftw.empty_aligned(shape, dtype=real)
             direction = [_FFTW_KIND[k] for k in kinds]
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction=direction, flags=flags, threads=s.threads)
         elif op == "rfft":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             oshape = list(shape)
             oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_FORWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_FORWARD"
         elif op == "irfft":
             # shape is the complex input shape; out_n the real output sizes along axes
             oshape = list(shape)
@@ -377,9 +413,12 @@ def _get_plan(
                 oshape[ax] = n
             a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_BACKWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_BACKWARD"
         else:  # pragma: no cover - internal
             raise AssertionError(op)
+        fftw = _fftw_wisdom.plan(_pyfftw, lambda effort: _pyfftw.FFTW(
+            a, b, axes=axes, direction=direction, flags=(effort, "FFTW_DESTROY_INPUT"), threads=s.threads),
+            s.planner_effort)
         plan = _Plan(fftw, a, b)
         _PLANS[key] = plan
         return plan
@@ -389,13 +428,22 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
-_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4"}
+_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4",
+            "dct1": "dct1", "dst1": "dst1"}
 
 
 def _edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
     """Vector of ones with ``value`` at index 0 (DCT kinds) or at index n-1 (DST kinds)."""
     w = torch.ones(n, dtype=dtype, device=device)
     w[0 if kind.startswith("dct") else n - 1] = value
+    return w
+
+
+def _dct1_edges(n: int, value: float, dtype, device) -> torch.Tensor:
+    """Vector of ones with ``value`` at both ends."""
+    w = torch.ones(n, dtype=dtype, device=device)
+    w[0] = value
+    w[n - 1] = value
     return w
 
 
@@ -414,12 +462,16 @@ class _PyfftwR2R(torch.autograd.Function):
         for kind, ax in zip(kinds, axes):
             if kind in ("dct2", "dst2"):
                 g = g * _axis_vector(_edge_weight(g.shape[ax], kind, 2.0, g.dtype, g.device), g.ndim, ax)
+            elif kind == "dct1":  # DCT-I = C diag(1, 2, .., 2, 1) with C symmetric
+                g = g * _axis_vector(_dct1_edges(g.shape[ax], 2.0, g.dtype, g.device), g.ndim, ax)
         out = _PyfftwR2R.apply(g, tuple(_ADJOINT[k] for k in kinds), axes)
         for kind, ax in zip(kinds, axes):
             if kind in ("dct3", "dst3"):
                 out = out * _axis_vector(
                     _edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device), out.ndim, ax
                 )
+            elif kind == "dct1":
+                out = out * _axis_vector(_dct1_edges(out.shape[ax], 0.5, out.dtype, out.device), out.ndim, ax)
         return out, None, None
 
 
@@ -477,11 +529,12 @@ class _MultiplierPlan:
         self.inp = _pyfftw.empty_aligned(shape, dtype=real)
         self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=cplx)
         self.out = _pyfftw.empty_aligned(shape, dtype=real)
-        flags = (effort, "FFTW_DESTROY_INPUT")
-        self.fwd = _pyfftw.FFTW(self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=flags,
-                                threads=threads)
-        self.inv = _pyfftw.FFTW(self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=flags,
-                                threads=threads)
+        self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
+        self.inv = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
         self.lock = threading.Lock()
 
     def __call__(self, a: np.ndarray, mult: np.ndarray) -> np.ndarray:
@@ -582,8 +635,15 @@ def r2rn(
     * ``'dct4'``: ``y_k = 2 Σ_n x_n cos(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dct4(dct4(x)) = 2N x``)
     * ``'dst4'``: ``y_k = 2 Σ_n x_n sin(π (2k+1)(2n+1) / 4N)``  (symmetric; ``dst4(dst4(x)) = 2N x``)
 
+    * ``'dct1'``: ``y_k = x_0 + (-1)^k x_{N-1} + 2 Σ_{0<n<N-1} x_n cos(π n k / (N-1))`` (``N >= 2``;
+      ``dct1(dct1(x)) = 2(N-1) x``)
+    * ``'dst1'``: ``y_k = 2 Σ_n x_n sin(π (n+1)(k+1) / (N+1))`` (symmetric; ``dst1(dst1(x)) = 2(N+1) x``)
+
     Type 4 diagonalises the cell-centred Laplacian with a Dirichlet face on one side and a Neumann
     face on the other; the torch engine computes it as a dense matrix product (O(N²) per line).
+    Types 1 diagonalise the vertex-centred Laplacian (samples on the boundary: Neumann ``dct1``,
+    Dirichlet values outside the transformed samples ``dst1``), e.g. a MAC velocity component along its
+    own axis.
 
     Args:
         x: Real tensor (float32/float64), any shape; batch axes are the axes not transformed.
@@ -605,9 +665,11 @@ def r2rn(
     kinds = tuple(kinds)
     if len(kinds) != len(axes):
         raise ParameterError(f"r2rn needs one kind per axis: got kinds={kinds} for axes={axes}")
-    for k in kinds:
+    for k, ax in zip(kinds, axes):
         if k not in R2R_KINDS:
             raise ParameterError(f"unknown real-to-real kind {k!r}; expected one of {R2R_KINDS}")
+        if k == "dct1" and x.shape[ax] < 2:
+            raise ShapeError(f"dct1 needs at least 2 samples along axis {ax}, got {x.shape[ax]}")
     if not axes:
         return x
     if resolve_engine(x, engine) == "pyfftw":

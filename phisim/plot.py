@@ -21,6 +21,7 @@ import torch
 from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
 from .errors import ParameterError, ShapeError
@@ -29,7 +30,7 @@ from .grid import Grid
 
 __all__ = [
     "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
-    "ffmpeg_available",
+    "ffmpeg_available", "draw_mask", "plot_training_curves",
 ]
 
 PathLike = str | os.PathLike
@@ -112,6 +113,40 @@ def _finite_check(v: np.ndarray, what: str) -> None:
         raise ParameterError(f"{what}: every value is NaN or Inf; nothing to plot")
 
 
+def _mask_2d(mask, grid: Grid, batch: int = 0, slice_index: int | None = None) -> np.ndarray:
+    """A ``(nx, ny)`` boolean picture of a solid mask (one sample; the middle ``z`` slice in 3-D)."""
+    m = _np(mask)
+    if m.ndim == grid.rank + 1:
+        m = m[min(batch, m.shape[0] - 1)]
+    if tuple(m.shape) != grid.resolution:
+        raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
+    if grid.rank == 3:
+        m = m[:, :, grid.resolution[2] // 2 if slice_index is None else slice_index]
+    return m.astype(bool)
+
+
+def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55") -> None:
+    """Draw solid cells (``True`` in a 2-D boolean ``(nx, ny)`` mask) as opaque grey over an image.
+
+    Args:
+        ax: The axes holding the image.
+        mask: Boolean ``(nx, ny)`` array, ``True`` where the cell is solid.
+        grid: The 2-D grid of the picture (for the extent).
+        color: Matplotlib colour of the solid cells.
+
+    Raises:
+        ShapeError: For a mask that does not fit the grid.
+    """
+    m = _np(mask).astype(bool)
+    if m.shape != tuple(grid.resolution[:2]):
+        raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
+    rgba = np.zeros((*m.T.shape, 4))
+    rgba[..., :3] = to_rgb(color)
+    rgba[..., 3] = m.T.astype(float)
+    ax.imshow(rgba, origin="lower", extent=_extent(Grid(grid.resolution[:2], bounds=grid.bounds[:2])),
+              interpolation="nearest", aspect="equal")
+
+
 def plot_field(
     field,
     ax: Axes | None = None,
@@ -125,6 +160,7 @@ def plot_field(
     vmax: float | None = None,
     colorbar: bool = True,
     slice_index: int | None = None,
+    mask=None,
 ) -> Axes:
     """Draw a scalar field: an image for 2-D, a line for 1-D, the middle ``z`` slice for 3-D.
 
@@ -142,6 +178,8 @@ def plot_field(
         vmax: Upper colour limit.
         colorbar: Add a colour bar.
         slice_index: For 3-D fields, the ``z`` index of the slice (default the middle).
+        mask: Solid cells (e.g. an obstacle) drawn in grey over the image: a boolean array of the field's
+            resolution (or ``(1 or B, *res)``, sample ``batch`` is used); 2-D and 3-D fields only.
 
     Returns:
         The axes. For 2-D fields ``ax.images[-1]`` is the ``AxesImage``; its data are ``values.T``
@@ -168,10 +206,14 @@ def plot_field(
             v = v[:, :, k]
         im = ax.imshow(v.T, origin="lower", extent=_extent(g), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", aspect="equal")
+        if mask is not None:
+            draw_mask(ax, _mask_2d(mask, g, batch, slice_index), g)
         ax.set_xlabel("x")
         ax.set_ylabel("y")
         if colorbar:
             ax.figure.colorbar(im, ax=ax)
+    if mask is not None and g.rank == 1:
+        raise ParameterError("plot_field draws masks on 2-D and 3-D fields only")
     if title is not None:
         ax.set_title(title)
     return ax
@@ -306,10 +348,84 @@ def plot_curves(
         ax.plot(it, val, label=name)
     if logy:
         ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate([val for _, _, val in prepared]))
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def _readable_log_ticks(ax: Axes, values: np.ndarray) -> None:
+    """Label a log y axis at 1-2-5 per decade (every integer multiple for data within one decade, only
+    powers of ten beyond three decades), as plain numbers, so a curve spanning less than a decade still
+    gets several labelled ticks."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    v = values[np.isfinite(values) & (values > 0)]
+    if v.size == 0:
+        return
+    decades = float(np.log10(v.max() / v.min()))
+    subs = tuple(range(1, 10)) if decades < 1 else (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=subs))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def plot_training_curves(
+    runs: Mapping[str, Mapping[str, np.ndarray]],
+    metric_name: str = "metric",
+    ax: Axes | None = None,
+    *,
+    curve: str = "metric",
+    title: str | None = None,
+    logy: bool = True,
+) -> Axes:
+    """Learning curves of several runs: the training-batch curve (thin, faded) and the held-out curve
+    (``eval_<curve>``, solid with markers) of each method in one colour.
+
+    Args:
+        runs: Method -> curves as written by :func:`inverse.train.train` (``iteration``, ``metric``,
+            ``eval_metric``, ...).
+        metric_name: The y-axis label (what the curve measures, with units).
+        ax: Axes to draw into; a new figure is made when ``None``.
+        curve: ``'metric'`` or ``'loss'``.
+        title: Axes title.
+        logy: Logarithmic y axis with readable tick labels.
+
+    Returns:
+        The axes, with a legend naming "train batch" and "held-out" for each method.
+
+    Raises:
+        ParameterError: For an empty mapping or runs without ``iteration`` and ``curve``.
+    """
+    if not isinstance(runs, Mapping) or not runs:
+        raise ParameterError("runs must be a non-empty mapping method -> curves")
+    ax = _axes(ax)
+    everything = []
+    for k, (name, c) in enumerate(runs.items()):
+        if "iteration" not in c or curve not in c:
+            raise ParameterError(f"run {name!r} has no 'iteration' and {curve!r} curves")
+        color = f"C{k % 10}"
+        it = _np(c["iteration"]).astype(np.float64)
+        train = _np(c[curve]).astype(np.float64)
+        keep = np.isfinite(train) & ((train > 0) if logy else True)
+        ax.plot(it[keep], train[keep], color=color, alpha=0.35, lw=1.0, label=f"{name} (train batch)")
+        everything.append(train[keep])
+        if f"eval_{curve}" in c:
+            held = _np(c[f"eval_{curve}"]).astype(np.float64)
+            keep = np.isfinite(held) & ((held > 0) if logy else True)
+            ax.plot(it[keep], held[keep], color=color, lw=1.8, marker="o", ms=3, label=f"{name} (held-out)")
+            everything.append(held[keep])
+    if logy:
+        ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate(everything) if everything else np.zeros(0))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(metric_name)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
     if title is not None:
         ax.set_title(title)
     return ax
@@ -373,6 +489,8 @@ def animate(
     vmin: float | None = None,
     vmax: float | None = None,
     dpi: int = 80,
+    times: Sequence[float] | None = None,
+    mask=None,
 ) -> Path:
     """Write an animation of 2-D scalar frames as GIF (Pillow) or MP4 (ffmpeg).
 
@@ -382,12 +500,16 @@ def animate(
         path: Output file ending in ``.gif`` or ``.mp4``.
         fps: Frames per second.
         grid: Grid of raw arrays (for the axis extent).
-        title: Title; ``{t}`` in it is replaced by the frame index.
+        title: Title; ``{t}`` in it is replaced by the frame index and ``{time}`` by the frame's time
+            (a number, so ``{time:.2f}`` works). With ``times`` and no ``{time}`` in the title (or no
+            title), the time is appended as ``t = ...``.
         component: Component of vector frames to show.
         cmap: Colormap name.
         vmin: Lower colour limit (default: minimum over all frames, so colours are comparable).
         vmax: Upper colour limit (default: maximum over all frames).
         dpi: Resolution.
+        times: The simulated time of each frame (shown in the title of every frame).
+        mask: Solid cells drawn in grey on every frame (see :func:`plot_field`).
 
     Returns:
         The path written.
@@ -406,6 +528,13 @@ def animate(
         raise ParameterError("writing MP4 needs ffmpeg on the PATH (matplotlib's animation.ffmpeg_path); "
                              "install ffmpeg or write a .gif")
     arrays, g = _frames_to_arrays(frames, grid, component)
+    if times is not None:
+        times = [float(t) for t in times]
+        if len(times) != len(arrays):
+            raise ShapeError(f"times has {len(times)} entries for {len(arrays)} frames")
+        if title is None or "{time" not in title:
+            title = (title + ", " if title else "") + "t = {time:.3g}"
+    solid = None if mask is None else _mask_2d(mask, g)
     finite = [a[np.isfinite(a)] for a in arrays]
     lo = vmin if vmin is not None else min((float(a.min()) for a in finite if a.size), default=0.0)
     hi = vmax if vmax is not None else max((float(a.max()) for a in finite if a.size), default=1.0)
@@ -413,14 +542,20 @@ def animate(
     im = ax.imshow(arrays[0].T, origin="lower", extent=_extent(g), cmap=cmap, vmin=lo, vmax=hi,
                    interpolation="nearest")
     fig.colorbar(im, ax=ax)
+    if solid is not None:
+        draw_mask(ax, solid, g)
     ax.set_xlabel("x")
     ax.set_ylabel("y")
-    text = ax.set_title(title.format(t=0) if title else "")
+
+    def label(k: int) -> str:
+        return title.format(t=k, time=times[k] if times is not None else float(k)) if title else ""
+
+    text = ax.set_title(label(0))
 
     def update(k):
         im.set_data(arrays[k].T)
         if title:
-            text.set_text(title.format(t=k))
+            text.set_text(label(k))
         return (im, text)
 
     anim = FuncAnimation(fig, update, frames=len(arrays), blit=False)

@@ -49,11 +49,12 @@ import warnings
 from collections.abc import Sequence
 from functools import lru_cache
 
+import numpy as np
 import torch
 
 from . import fft as _fft
 from .checks import all_finite
-from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
+from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError, SolveError
 
 __all__ = [
     "AXIS_KINDS",
@@ -121,15 +122,29 @@ def normalize_kinds(kinds, rank: int) -> Kinds:
 
 
 def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
-    if isinstance(dx, (int, float)):
+    if isinstance(dx, torch.Tensor) and dx.numel() == 1:
+        dx = float(dx)
+    if isinstance(dx, (int, float, np.number)) and not isinstance(dx, bool):
         dx = (float(dx),) * rank
-    dx = tuple(float(d) for d in dx)
+    try:
+        dx = tuple(float(d) for d in dx)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"dx must be a positive number or one per axis, got {dx!r}") from exc
     if len(dx) != rank:
         raise ParameterError(f"dx has {len(dx)} entries for {rank} spatial axes")
     for d in dx:
         if not math.isfinite(d) or d <= 0:
             raise ParameterError(f"dx must be finite and > 0, got {dx}")
+        if d < _MIN_DX:
+            raise ParameterError(
+                f"dx = {d:g} is so small that 1/dx^2 overflows float32 (the stencil would give NaN); "
+                "rescale the domain, e.g. work in units where dx is near 1"
+            )
     return dx
+
+
+#: Smallest accepted cell size: ``1/dx**2`` must stay finite in float32 with room for the stencil sums.
+_MIN_DX = 1e-18
 
 
 def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
@@ -140,6 +155,8 @@ def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     if rhs.dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"{name} must be float32 or float64, got {rhs.dtype}")
     rank = rhs.ndim - 1
+    if rhs.numel() == 0 and rhs.ndim >= 1:
+        raise ShapeError(f"{name} is empty (shape {tuple(rhs.shape)}); it needs at least one sample and one cell")
     if not 1 <= rank <= 3:
         raise ShapeError(
             f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
@@ -372,7 +389,17 @@ def boundary_source(like: torch.Tensor, dx, kinds, values) -> torch.Tensor | Non
             coef = 2.0 / dx[a] ** 2 if kind == "dirichlet" else 1.0 / dx[a]
             slab_shape = list(like.shape)
             slab_shape[1 + a] = 1
-            vt = torch.as_tensor(v, dtype=like.dtype, device=like.device)
+            try:
+                vt = torch.as_tensor(v, dtype=like.dtype, device=like.device)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise BoundaryError(
+                    f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} must be a number or "
+                    f"a real tensor, got {v!r}"
+                ) from exc
+            if not all_finite(vt):
+                raise NonFiniteError(
+                    f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} contains NaN or Inf"
+                )
             try:
                 vt = torch.broadcast_to(vt, slab_shape)
             except RuntimeError as exc:
@@ -589,7 +616,10 @@ def masked_laplacian(u: torch.Tensor, mask: torch.Tensor, dx, kinds, values=None
 
 
 def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
-    m = torch.as_tensor(mask, device=like.device)
+    try:
+        m = torch.as_tensor(mask, device=like.device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"mask must be a bool or 0/1 array, got {type(mask).__name__}") from exc
     if m.ndim == like.ndim - 1:
         m = m[None]
     if (
@@ -601,7 +631,46 @@ def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
             f"mask must have shape {tuple(like.shape[1:])} or (B, *resolution) matching "
             f"{tuple(like.shape)}, got {tuple(m.shape)}"
         )
+    if m.dtype != torch.bool:
+        if m.is_complex() or not bool(((m == 0) | (m == 1)).all()):
+            raise ParameterError(
+                "mask must hold only 0/1 (False/True): a cell is fluid or not; a fractional mask would "
+                "silently scale the operator. Threshold it first, e.g. mask > 0.5"
+            )
     return m.to(like.dtype)
+
+
+def _pocket_diagnosis(f: torch.Tensor, m: torch.Tensor, kinds: Kinds, tol: float) -> str | None:
+    """A message naming a closed fluid pocket whose rhs has a non-zero mean, or None (failure diagnosis)."""
+    from scipy import ndimage
+
+    rank = f.ndim - 1
+    structure = ndimage.generate_binary_structure(rank, 1)
+    fm = (f * m).detach().double().cpu().numpy()
+    masks = m.detach().cpu().numpy() > 0.5
+    for b in range(f.shape[0]):
+        labels, n = ndimage.label(masks[min(b, len(masks) - 1)], structure=structure)
+        if n < 2:
+            continue
+        rms = math.sqrt(float((fm[b] ** 2).sum()) / max(1, int((labels > 0).sum()))) or 1.0
+        for k in range(1, n + 1):
+            cells = labels == k
+            touches_dirichlet = any(
+                kind == "dirichlet" and bool(np.take(cells, 0 if side == 0 else -1, axis=a).any())
+                for a, pair in enumerate(kinds) for side, kind in enumerate(pair)
+            )
+            periodic = any(pair[0] == "periodic" for pair in kinds)
+            if touches_dirichlet or periodic:
+                continue
+            mean = float(fm[b][cells].mean())
+            if abs(mean) > tol * rms:
+                return (
+                    f"sample {b}: the fluid region {k} of {n} ({int(cells.sum())} cells, enclosed by obstacles "
+                    f"and closed sides) has a rhs mean of {mean:.3g} (RMS {rms:.3g}); a closed pocket needs a "
+                    "zero net source of its own, which projecting out the global mean does not give. Remove "
+                    "the mean per region, open the pocket (a Dirichlet side or a gap), or fill it with obstacle"
+                )
+    return None
 
 
 def masked_poisson_solve(
@@ -713,15 +782,21 @@ def masked_poisson_solve(
         z = -_apply_multiplier(r * mm, kinds, inv, engine)  # (-∇²_box)^-1 (constant mode dropped)
         return z * mm + (1 - mm) * r
 
-    out = cg(
-        operator,
-        -f,
-        x0,
-        solve=solve,
-        preconditioner=spectral_pre if preconditioner else None,
-        return_info=return_info,
-        project=project if singular else None,
-    )
+    try:
+        out = cg(
+            operator,
+            -f,
+            x0,
+            solve=solve,
+            preconditioner=spectral_pre if preconditioner else None,
+            return_info=return_info,
+            project=project if singular else None,
+        )
+    except SolveError as exc:
+        why = _pocket_diagnosis(f, m, kinds, _compat_tol(rhs.dtype)) if singular else None
+        if why is None:
+            raise
+        raise ParameterError(f"masked_poisson_solve: incompatible rhs: {why}") from exc
     x, info = out if return_info else (out, None)
     x = x * m
     if singular:  # the gauge: zero mean over fluid cells

@@ -10,21 +10,25 @@ Modules:
   sides and bodies;
 * :mod:`~phisim.fluid.viscosity` -- :func:`diffuse_velocity`;
 * :mod:`~phisim.fluid.forces` -- drag and lift on bodies, pressure at probe points;
-* :mod:`~phisim.fluid.step` -- :func:`navier_stokes_step`, :func:`step` and :class:`FluidState`.
+* :mod:`~phisim.fluid.step` -- :func:`navier_stokes_step`, :func:`step` and :class:`FluidState`;
+* :mod:`~phisim.fluid.integrators` -- second-/third-order time integrators (:func:`navier_stokes_rk_step`:
+  ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
 """
 
 from .bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
 from .forces import BodyForces, body_forces, probe_pressure
 from .geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
+from .integrators import INTEGRATORS, convection, navier_stokes_rk_step
 from .projection import PRESSURE_SOLVE, impose_solids, make_incompressible, net_boundary_flux, relative_divergence
 from .step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
-from .viscosity import diffuse_velocity
+from .viscosity import VISCOSITY_SCHEMES, diffuse_velocity
 
 __all__ = [
     "Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction",
     "Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks",
     "make_incompressible", "relative_divergence", "impose_solids", "net_boundary_flux", "PRESSURE_SOLVE",
-    "diffuse_velocity",
+    "diffuse_velocity", "VISCOSITY_SCHEMES",
+    "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
 ]

@@ -7,6 +7,8 @@ explicit or implicit), projection (:func:`~phisim.fluid.projection.make_incompre
 rescaling to the kinetic energy the step started with (:func:`normalize_energy`). :func:`step` advances a
 :class:`FluidState` (velocity, marker, pressure, time) for smoke-like simulations and flows past bodies.
 First order in time (operator splitting); second order in space with MacCormack advection.
+``integrator='rk2'``, ``'rk3'`` or ``'imex2'`` selects the second-/third-order integrators of
+:mod:`phisim.fluid.integrators` instead (orders in time: split 1, rk2 2, rk3 3, imex2 2).
 
 References: Stam (1999), "Stable fluids", SIGGRAPH; Selle et al. (2008), J. Sci. Comput. 35 (MacCormack).
 """
@@ -19,9 +21,9 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from ..advection import SCHEMES, advect
+from ..advection import SCALAR_SCHEMES, SCHEMES, advect
 from ..boundary import Boundary, pad
-from ..checks import check_dt, check_finite
+from ..checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
 from ..errors import GridMismatchError, ParameterError, ShapeError
 from ..field import CenteredGrid, StaggeredGrid
 from ..grid import Grid
@@ -81,6 +83,7 @@ def buoyancy(
     """
     _check_velocity(velocity)
     dt = check_dt(dt)
+    strength = check_finite_number(strength, "buoyancy strength")
     grid = velocity.grid
     direction = (
         tuple(float(c) for c in direction) if direction is not None else (0.0,) * (grid.rank - 1) + (1.0,)
@@ -129,6 +132,8 @@ def normalize_energy(velocity: StaggeredGrid, energy: torch.Tensor) -> Staggered
     _check_velocity(velocity)
     e = kinetic_energy(velocity)
     target = torch.as_tensor(energy, dtype=e.dtype, device=e.device)
+    if not all_finite(target) or bool((target.detach() < 0).any()):
+        raise ParameterError(f"normalize_energy: the target energy must be finite and >= 0, got {energy!r}")
     tiny = torch.finfo(e.dtype).tiny
     factor = torch.where(e > tiny, torch.sqrt(target / e.clamp_min(tiny)), torch.ones_like(e))
     return velocity.with_values(tuple(c * factor.reshape(-1, *([1] * (c.ndim - 1))) for c in velocity.values))
@@ -151,9 +156,8 @@ def cfl_dt(velocity: StaggeredGrid, cfl: float = 0.5, *, max_dt: float = math.in
         NonFiniteError: For a velocity containing NaN/Inf.
     """
     _check_velocity(velocity)
-    if not (cfl > 0 and math.isfinite(cfl)):
-        raise ParameterError(f"cfl must be finite and > 0, got {cfl}")
-    if not max_dt > 0:
+    cfl = check_positive(cfl, "cfl")
+    if isinstance(max_dt, (str, bytes)) or not max_dt > 0:
         raise ParameterError(f"max_dt must be > 0, got {max_dt}")
     with torch.no_grad():
         rate = 0.0
@@ -177,6 +181,7 @@ def navier_stokes_step(
     pressure_guess: CenteredGrid | torch.Tensor | None = None,
     energy_normalization: bool = False,
     time: float = 0.0,
+    integrator: str = "split",
 ) -> tuple[StaggeredGrid, CenteredGrid]:
     """One incompressible Navier-Stokes step: advect, force, diffuse, project (and optionally renormalise).
 
@@ -184,20 +189,26 @@ def navier_stokes_step(
     the bodies' velocity imposed on the faces they cover (:func:`impose_solids`, so that viscosity sees
     each body's velocity at its surface), ``u** = diffuse(u*)``, ``u_new, p = make_incompressible(u**)``; with
     ``energy_normalization`` the result is rescaled to the kinetic energy of ``u`` (E5 of the paper).
-    First order in time (operator splitting); second order in space with MacCormack advection.
+    First order in time (operator splitting); second order in space with MacCormack advection. With
+    ``integrator`` other than ``'split'`` the step is :func:`~phisim.fluid.integrators.navier_stokes_rk_step`
+    (second order in time; central convection, so ``advection`` and ``viscosity_scheme`` do not apply).
 
     Args:
         velocity: MAC velocity ``(B, *face_shape(i))`` per component.
         dt: Time step ``>= 0``.
         viscosity: Kinematic viscosity ``>= 0`` (0 skips diffusion).
         advection: ``'semi_lagrangian'`` or ``'maccormack'`` self-advection.
-        viscosity_scheme: ``'explicit'`` or ``'implicit'`` (see :func:`diffuse_velocity`).
+        viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (see
+            :func:`diffuse_velocity`; the implicit ones are exact spectral solves, about as cheap as explicit).
         force: Optional body force (acceleration) as a StaggeredGrid on the same grid.
         obstacles: Obstacles (see :func:`make_incompressible`).
         solve: CG settings of the masked pressure solve and of implicit viscosity.
         pressure_guess: Previous pressure, the warm start of the CG pressure solve.
         energy_normalization: Rescale the result to ``kinetic_energy(velocity)``.
         time: Simulation time at the start of the step (moving bodies, time-dependent inflows).
+        integrator: ``'split'`` (this function's first-order step, default), ``'rk2'``, ``'rk3'`` or
+            ``'imex2'`` (see :mod:`phisim.fluid.integrators`; ``'imex2'`` treats viscosity implicitly and
+            needs the previous pressure as ``pressure_guess`` for second order at walls).
 
     Returns:
         ``(velocity, pressure)`` after the step.
@@ -211,6 +222,14 @@ def navier_stokes_step(
     dt = check_dt(dt)
     if advection not in SCHEMES:
         raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    if integrator != "split":
+        from .integrators import navier_stokes_rk_step
+
+        if force is not None:
+            _check_velocity(force, "force")
+        return navier_stokes_rk_step(velocity, dt, viscosity=viscosity, integrator=integrator, force=force,
+                                     time=time, obstacles=obstacles, solve=solve, pressure_guess=pressure_guess,
+                                     energy_normalization=energy_normalization)
     e0 = kinetic_energy(velocity) if energy_normalization else None
     v = advect(velocity, velocity, dt, scheme=advection)
     v = _to_time(v, float(time) + float(dt))
@@ -272,6 +291,8 @@ def step(
     obstacles=None,
     solve: Solve | None = None,
     energy_normalization: bool = False,
+    integrator: str = "split",
+    marker_advection: str | None = None,
 ) -> FluidState:
     """Advance a smoke simulation by ``dt``: marker transport, buoyancy, Navier-Stokes step.
 
@@ -285,12 +306,19 @@ def step(
         viscosity: Kinematic viscosity.
         buoyancy_strength: Buoyancy per unit marker (see :func:`buoyancy`); needs a marker.
         buoyancy_direction: "Up" vector (default the last axis).
-        advection: ``'semi_lagrangian'`` or ``'maccormack'`` (for the marker and the velocity).
-        viscosity_scheme: ``'explicit'`` or ``'implicit'``.
+        advection: ``'semi_lagrangian'`` or ``'maccormack'`` (for the velocity of the split step, and for
+            the marker unless ``marker_advection`` says otherwise).
+        viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (split step).
         marker_source: Marker added per unit time (an inflow), CenteredGrid or tensor ``(B or 1, *res)``.
         obstacles: Obstacles (see :func:`make_incompressible`).
         solve: CG settings.
         energy_normalization: Rescale the velocity to its energy at the start of the step.
+        integrator: ``'split'`` (first order, default), ``'rk2'``, ``'rk3'`` or ``'imex2'`` (second order in
+            time for the velocity; see :mod:`phisim.fluid.integrators`). The buoyancy of the new marker is
+            then a force held constant over the step.
+        marker_advection: Scheme of the marker transport: one of
+            :data:`phisim.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
+            in closed boxes and periodic domains and never makes it negative. Default: ``advection``.
 
     Returns:
         The new state (``time + dt``).
@@ -303,10 +331,13 @@ def step(
     _check_velocity(v0)
     if advection not in SCHEMES:
         raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    marker_advection = advection if marker_advection is None else marker_advection
+    if marker_advection not in SCALAR_SCHEMES:
+        raise ParameterError(f"unknown marker advection scheme {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
     e0 = kinetic_energy(v0) if energy_normalization else None
     marker = state.marker
     if marker is not None:
-        marker = advect(marker, v0, dt, scheme=advection)
+        marker = advect(marker, v0, dt, scheme=marker_advection)
         if marker_source is not None:
             src, _ = _scalar_values(marker_source, marker.grid)
             marker = marker + dt * src.to(dtype=marker.dtype, device=marker.device)
@@ -315,8 +346,20 @@ def step(
             marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
     elif buoyancy_strength != 0:
         raise ParameterError("buoyancy_strength needs a marker in the state")
-    v = advect(v0, v0, dt, scheme=advection)
     t_new = state.time + float(dt)
+    if integrator != "split":
+        from .integrators import navier_stokes_rk_step
+
+        force = None
+        if marker is not None and buoyancy_strength != 0:
+            force = buoyancy(StaggeredGrid.zeros(v0.grid, v0.boundary, v0.batch_size, dtype=v0.dtype,
+                                                 device=v0.device), marker, 1.0, strength=buoyancy_strength,
+                             direction=buoyancy_direction)
+        v, p = navier_stokes_rk_step(v0, dt, viscosity=viscosity, integrator=integrator, force=force,
+                                     time=state.time, obstacles=obstacles, solve=solve,
+                                     pressure_guess=state.pressure, energy_normalization=energy_normalization)
+        return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
+    v = advect(v0, v0, dt, scheme=advection)
     v = _to_time(v, t_new)
     if marker is not None and buoyancy_strength != 0:
         v = buoyancy(v, marker, dt, strength=buoyancy_strength, direction=buoyancy_direction)

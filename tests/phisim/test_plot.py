@@ -176,3 +176,43 @@ def test_animate_mp4(tmp_path):
         pytest.skip("ffmpeg not installed; MP4 output not exercised")
     path = animate(frames, tmp_path / "a.mp4", fps=4)
     assert path.stat().st_size > 0
+
+
+@pytest.mark.parametrize("lo, hi, at_least", [(600.0, 800.0, 3), (190.0, 800.0, 3), (1.0, 3e4, 4), (1e-6, 1.0, 4)])
+def test_log_axis_has_several_readable_labels(lo, hi, at_least):
+    """A log axis labels at least three ticks inside the data range, as plain numbers (not only 10^k)."""
+    it = np.arange(50)
+    ax = plot_curves({"a": (it, np.geomspace(hi, lo, 50))}, logy=True)
+    ax.figure.canvas.draw()
+    y0, y1 = ax.get_ylim()
+    labels = [t.get_text() for t in ax.get_yticklabels() if y0 <= t.get_position()[1] <= y1 and t.get_text()]
+    assert len(labels) >= at_least, labels
+    assert all("10^" not in s and "mathdefault" not in s for s in labels), labels
+    values = sorted(float(s.replace("−", "-")) for s in labels)
+    assert values[0] >= y0 * 0.999 and values[-1] <= y1 * 1.001
+
+
+def test_training_curves_and_masks(tmp_path):
+    from phisim.plot import draw_mask, plot_training_curves
+
+    curves = {"iteration": np.arange(6), "metric": np.array([800.0, 700, 650, 600, 640, 620]),
+              "eval_metric": np.array([np.nan, 720, np.nan, 630, np.nan, 610])}
+    ax = plot_training_curves({"adam": curves}, "x L1 per sample (sum over cells)")
+    lines = ax.get_lines()
+    np.testing.assert_array_equal(lines[1].get_xdata(), [1, 3, 5])  # held-out points only where evaluated
+    assert ax.get_ylabel() == "x L1 per sample (sum over cells)"
+    with pytest.raises(ParameterError):
+        plot_training_curves({}, "m")
+    g = Grid((4, 3))
+    mask = np.zeros((4, 3), dtype=bool)
+    mask[1, 2] = True
+    ax2 = plot_field(np.arange(12.0).reshape(4, 3), grid=g, mask=mask)
+    rgba = ax2.images[-1].get_array()
+    assert rgba.shape == (3, 4, 4) and rgba[2, 1, 3] == 1.0 and rgba[..., 3].sum() == 1.0  # transposed, opaque
+    with pytest.raises(ShapeError):
+        draw_mask(ax2, np.zeros((3, 3), dtype=bool), g)
+    gif = animate([np.zeros((4, 3)), np.ones((4, 3))], tmp_path / "a.gif", grid=g, times=[0.0, 0.5], mask=mask,
+                  title="rho, t = {time:.1f}")
+    assert gif.stat().st_size > 0
+    with pytest.raises(ShapeError):
+        animate([np.zeros((4, 3))], tmp_path / "b.gif", grid=g, times=[0.0, 1.0])

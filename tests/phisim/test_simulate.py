@@ -44,7 +44,9 @@ def test_taylor_green_energy_decays_at_the_analytic_rate():
     v = _run(sim, 20)
     e = sum((c**2).sum(dim=tuple(range(1, c.ndim))) for c in v.values)
     expected = math.exp(-4 * 0.05 * 1.0 * 1.0)  # |u|^2 ~ exp(-2 nu |k|^2 t), |k|^2 = 2, t = 1
-    assert torch.allclose(e / e0, torch.full_like(e, expected), rtol=0.02), (e / e0, expected)
+    # the scenario steps with imex2: what is left is the stencil's spatial error, 4 ν t dx²/12 = 6.4e-4
+    # (measured +6e-4; the first-order split step with MacCormack was off by -1.2 %)
+    assert torch.allclose(e / e0, torch.full_like(e, expected), rtol=1.5e-3), (e / e0, expected)
 
 
 def test_burgers_is_dissipative_and_heat_keeps_the_mean():

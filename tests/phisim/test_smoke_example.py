@@ -41,6 +41,8 @@ def test_smoke_plume_tiny(tmp_path, dim, resolution):
     )
     assert res["steps"] == 3 and res["time"] > 0
     assert res["max_relative_divergence"] < 1e-4  # float32 default
+    # conservative smoke transport (the default): the box holds exactly what the inflow put in (float32)
+    np.testing.assert_allclose(res["smoke"], res["injected"], rtol=1e-5)
     for key in ("gif", "png"):
         assert Path(res[key]).exists() and Path(res[key]).stat().st_size > 1000
     shape = (resolution, int(1.5 * resolution)) + ((resolution,) if dim == 3 else ())
@@ -60,3 +62,24 @@ def test_smoke_plume_tiny(tmp_path, dim, resolution):
     # the walls are closed in the stored face values
     assert float(np.abs(v.values[1].numpy()[:, :, 0]).max()) == 0
     assert float(np.abs(v.values[1].numpy()[:, :, -1]).max()) == 0
+
+
+def test_smoke_plume_frames_are_equally_spaced_for_the_well_loader(tmp_path):
+    """Adaptive CFL sub-steps inside, frames at fixed times outside: every loader window is equally spaced."""
+    from the_well.data import WellDataset
+
+    mod = _load()
+    res = mod.main(["--resolution", "12", "--steps", "5", "--interval", "2.0", "--cfl", "0.5",
+                    "--out", str(tmp_path), "--no-progress"])
+    assert res["substeps"] > res["steps"]  # the CFL step was shorter than the interval
+    data = read_simulation(res["h5"])
+    np.testing.assert_array_equal(data.times, 2.0 * np.arange(6))
+    assert data.dt == 2.0
+    assert data.constant_fields["obstacle"].sum() > 0
+    ds = WellDataset(path=str(tmp_path), n_steps_input=2, n_steps_output=2, normalize_time_grid=False)
+    assert len(ds) == 3  # 6 frames, windows of 4
+    for i in range(len(ds)):
+        s = ds[i]
+        t = np.concatenate([s["input_time_grid"].numpy(), s["output_time_grid"].numpy()]).astype(np.float64)
+        np.testing.assert_allclose(np.diff(t), 2.0, rtol=1e-6)
+        assert s["constant_fields"].shape[-1] == 1  # the obstacle mask travels with the window

@@ -1,0 +1,98 @@
+"""Cost of one masked (cut-cell) PCG iteration against its floor, and of a step with bodies.
+
+The floor of one iteration is one preconditioner transform round trip (the spectral inverse of the box)
+plus one application of the weighted stencil; an iteration also does a few vector updates and two dot
+products. Measured at 128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32.
+
+Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from phisim.boundary import Boundary  # noqa: E402
+from phisim.fluid import Body, Box, Sphere, solid_layout  # noqa: E402
+from phisim.fluid.projection import _operator, _pressure_kinds  # noqa: E402
+from phisim.grid import Grid  # noqa: E402
+from phisim.linalg import Solve  # noqa: E402
+from phisim.poisson import _apply_multiplier  # noqa: E402
+
+
+def _best(fn, repeat: int, number: int) -> float:
+    fn()
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.perf_counter()
+        for _ in range(number):
+            fn()
+        best = min(best, (time.perf_counter() - t) / number)
+    return best
+
+
+def measure(n: int, dtype, repeat: int) -> dict:
+    grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+    boundary = Boundary.create({"x": ("wall", "open"), "y": "wall"}, 2)
+    bodies = [Body(Sphere((0.3, 0.45), 0.1)), Body(Box((0.55, 0.2), (0.65, 0.35))),
+              Body(Box((0.6, 0.6), (0.75, 0.7)))]
+    layout = solid_layout(bodies, grid, boundary, 0.0, dtype)
+    op = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
+    g = torch.Generator().manual_seed(0)
+    rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(dtype) * op.active.to(dtype)
+    x = torch.randn_like(rhs)
+
+    def floor():
+        _apply_multiplier(x, op.kinds, op._inv, op.engine)
+        op.apply(x)
+
+    tol = Solve(rtol=1e-6 if dtype == torch.float64 else 1e-5, raise_on_failure=False, refine=False)
+    _, info = op.solve(rhs, solve=tol)
+    iters = int(info.iterations[0])
+    t_floor = _best(floor, repeat, 20)
+    # per iteration: the difference of two solves stopped after k1 and k2 iterations (fixed costs cancel)
+    tight = 1e-12 if dtype == torch.float64 else 2e-7
+    k1, k2 = 4, 14
+
+    def capped(k):
+        s = Solve(rtol=tight, max_iter=k, raise_on_failure=False, refine=False, stagnation_window=10**6)
+        return lambda: op.solve(rhs, solve=s)
+
+    with torch.no_grad():
+        per_iter = (_best(capped(k2), repeat, 3) - _best(capped(k1), repeat, 3)) / (k2 - k1)
+        t_solve = _best(lambda: op.solve(rhs, solve=tol), repeat, 1)
+    return {"n": n, "dtype": str(dtype).replace("torch.", ""), "floor_ms": 1e3 * t_floor,
+            "iteration_ms": 1e3 * per_iter, "ratio": per_iter / t_floor, "iterations_to_rtol": iters,
+            "solve_ms": 1e3 * t_solve}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = []
+    for n in args.sizes:
+        for dtype in (torch.float64, torch.float32):
+            r = measure(n, dtype, args.repeat)
+            rows.append(r)
+            print(f"{n:4d}^2 {r['dtype']:8s} floor {r['floor_ms']:.3f} ms  iteration {r['iteration_ms']:.3f} ms  "
+                  f"ratio {r['ratio']:.2f}  iterations to rtol {r['iterations_to_rtol']}  "
+                  f"whole solve {r['solve_ms']:.1f} ms", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

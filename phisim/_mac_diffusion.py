@@ -1,0 +1,342 @@
+"""Viscous diffusion of MAC (staggered) velocities: explicit, backward Euler, Crank-Nicolson, exact.
+
+Internal module behind :func:`phisim.diffusion.diffuse_staggered`. Component ``i`` of a MAC velocity is
+sampled on the faces normal to axis ``i`` (``n_i + 1`` samples, both boundary faces included) and is
+cell-centred along the other axes. Its (2d+1)-point Laplacian with the velocity boundary's ghost rules
+(:func:`phisim.boundary.pad_staggered_component`) separates into one 1-D operator per axis, each
+diagonalised by a real-to-real transform or an FFT:
+
+=========================  ===========================  ==================  ====================================
+axis / sides               unknowns                     transform (fwd/inv) eigenvalue times dx² (k = 0..)
+=========================  ===========================  ==================  ====================================
+periodic (any axis)        ``n`` (face n = face 0)      rFFT / irFFT        ``-4 sin²(π k / n)``
+own axis, wall / wall      faces ``1..n-1``             DST-I / DST-I       ``-4 sin²(π (k+1) / 2n)``
+own axis, open / open      faces ``0..n``               DCT-I / DCT-I       ``-4 sin²(π k / 2n)``
+own axis, wall / open      faces ``1..n``               DST-III / DST-II    ``-4 sin²(π (2k+1) / 4n)``
+own axis, open / wall      faces ``0..n-1``             DCT-III / DCT-II    ``-4 sin²(π (2k+1) / 4n)``
+other axis                 cells (face boundary)        as :mod:`phisim.poisson` (DST-II, DCT-II, type 4)
+=========================  ===========================  ==================  ====================================
+
+("wall" stands for any odd ghost rule of the normal velocity: no-slip, free-slip, Dirichlet; "open" for an
+even one: open, Neumann). Samples fixed by the boundary are not unknowns; non-zero boundary values (a
+moving lid, an inflow profile, a flux) enter as a constant source ``b``: ``L u = L₀ u + b``. So a
+backward-Euler or Crank-Nicolson step in a box is one forward transform, a division and one inverse
+transform per component, exact to round-off.
+
+Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability; then
+the θ-scheme is solved by :func:`phisim.linalg.cg` on the free faces, preconditioned with the exact box
+solve. The operator is made symmetric by halving the rows of free boundary faces on open sides (the
+vertex-centred Neumann stencil is symmetric in that weighted inner product).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from functools import lru_cache
+
+import torch
+
+from . import fft as _fft
+from .boundary import pad_staggered_component, set_boundary_faces
+from .checks import check_dt, check_nonnegative
+from .errors import ParameterError, ShapeError
+from .poisson import _TRANSFORM, _axis_eigs
+
+STAGGERED_METHODS = ("implicit", "crank_nicolson", "spectral", "explicit")
+
+_OWN_AXIS = {  # (lower odd?, upper odd?) -> (forward kind, inverse kind, first unknown, unknowns - n)
+    (True, True): ("dst1", "dst1", 1, -1),
+    (False, False): ("dct1", "dct1", 0, 1),
+    (True, False): ("dst3", "dst2", 1, 0),
+    (False, True): ("dct3", "dct2", 0, 0),
+}
+
+
+class _Component:
+    """Geometry of one MAC component: unknown slice along its own axis, transforms, eigenvalues, weights."""
+
+    def __init__(self, grid, boundary, i: int):
+        self.i = i
+        self.rank = grid.rank
+        self.dx = grid.dx
+        self.boundary = boundary
+        n = grid.resolution[i]
+        self.n = n
+        self.face_shape = grid.face_shape(i)
+        kinds = []  # per axis: ('periodic',) or (forward, inverse)
+        eigs = []
+        scale = 1.0
+        for a in range(grid.rank):
+            lo, hi = boundary.sides[a]
+            if boundary.is_periodic(a):
+                kinds.append(None)
+                m = grid.resolution[a]
+                k = torch.arange(m, dtype=torch.float64)
+                eigs.append(-4 * torch.sin(math.pi * k / m) ** 2 / self.dx[a] ** 2)
+                continue
+            if a == i:
+                odd = (lo.rule("normal", i)[0] == "odd", hi.rule("normal", i)[0] == "odd")
+                fwd, inv, first, extra = _OWN_AXIS[odd]
+                self.first, self.count = first, n + extra
+                k = torch.arange(self.count, dtype=torch.float64)
+                if fwd == "dst1":
+                    lam = -4 * torch.sin(math.pi * (k + 1) / (2 * n)) ** 2
+                elif fwd == "dct1":
+                    lam = -4 * torch.sin(math.pi * k / (2 * n)) ** 2
+                else:
+                    lam = -4 * torch.sin(math.pi * (2 * k + 1) / (4 * n)) ** 2
+                eigs.append(lam / self.dx[a] ** 2)
+                kinds.append((fwd, inv))
+                scale /= 2 * n
+                self.odd = odd
+                continue
+            pair = tuple("dirichlet" if c.rule("tangential", i)[0] == "odd" else "neumann" for c in (lo, hi))
+            kinds.append(_TRANSFORM[pair])
+            eigs.append(_axis_eigs(grid.resolution[a], pair, self.dx[a], False))
+            scale /= 2 * grid.resolution[a]
+        if boundary.is_periodic(i):
+            self.first, self.count, self.odd = 0, n, None
+        self.kinds = kinds
+        self.scale = scale
+        self.periodic = [a for a in range(grid.rank) if kinds[a] is None]
+        self.r2r = [a for a in range(grid.rank) if kinds[a] is not None]
+        # eigenvalue sum in the spectral layout (last periodic axis halved for the rfft)
+        total = torch.zeros((), dtype=torch.float64)
+        for a, lam in enumerate(eigs):
+            if self.periodic and a == self.periodic[-1]:
+                lam = lam[: lam.numel() // 2 + 1]
+            shape = [1] * grid.rank
+            shape[a] = -1
+            total = total + lam.reshape(shape)
+        self.lam = total
+        self._mults: dict = {}  # (method, theta * alpha, dtype, device) -> prescaled multiplier (shared by copies)
+        # the source of non-zero boundary values is needed only when a rule carries a value
+        self.has_values = any(
+            not _is_zero_rule(c.rule("normal" if a == i else "tangential", i))
+            for a in range(grid.rank) for c in boundary.sides[a] if not boundary.is_periodic(a)
+        )
+        # row weights that make the operator symmetric: 1/2 on free boundary faces of open sides
+        self.weight = None
+        if self.odd is not None and not all(self.odd):
+            w = torch.ones(self.count, dtype=torch.float64)
+            if not self.odd[0]:
+                w[0] = 0.5
+            if not self.odd[1]:
+                w[-1] = 0.5
+            shape = [1] * (grid.rank + 1)
+            shape[1 + i] = -1
+            self.weight = w.reshape(shape)
+
+    # -- unknowns <-> full component --------------------------------------------------------------------
+
+    def restrict(self, u: torch.Tensor) -> torch.Tensor:
+        """The unknown samples of a full component ``(B, *face_shape)``."""
+        return u.narrow(1 + self.i, self.first, self.count)
+
+    def embed(self, x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """Full component from unknowns: boundary faces from the boundary, face n = face 0 if periodic."""
+        dim = 1 + self.i
+        if self.odd is None:
+            return torch.cat([x, x.narrow(dim, 0, 1)], dim=dim)
+        parts = []
+        if self.first:
+            parts.append(torch.zeros_like(like.narrow(dim, 0, 1)))
+        parts.append(x)
+        if self.first + self.count < self.n + 1:
+            parts.append(torch.zeros_like(like.narrow(dim, 0, 1)))
+        full = torch.cat(parts, dim=dim) if len(parts) > 1 else x
+        return set_boundary_faces(full, self.i, self.boundary)
+
+    def laplace(self, u: torch.Tensor) -> torch.Tensor:
+        """The full stencil ``L u`` on the full component (ghosts and boundary values from the rules)."""
+        p = pad_staggered_component(u, self.i, self.boundary, self.dx, 1)
+        out = 0
+        for a in range(self.rank):
+            dim = 1 + a
+            m = p.shape[dim] - 2
+            d2 = p.narrow(dim, 2, m) - 2 * p.narrow(dim, 1, m) + p.narrow(dim, 0, m)
+            for b in range(self.rank):
+                if b != a:
+                    d2 = d2.narrow(1 + b, 1, d2.shape[1 + b] - 2)
+            out = out + d2 / self.dx[a] ** 2
+        return out
+
+    def source(self, like: torch.Tensor) -> torch.Tensor | None:
+        """``b`` on the unknowns: the stencil of the boundary values alone."""
+        if not self.has_values:
+            return None
+        z = self.embed(torch.zeros_like(self.restrict(like)), like)
+        return self.restrict(self.laplace(z))
+
+    # -- spectral application ------------------------------------------------------------------------------
+
+    def inverse_multiplier(self, coef, dtype, device) -> torch.Tensor:
+        """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
+        if isinstance(coef, torch.Tensor):
+            return (self.scale / (1.0 - coef * self.lam.to(device))).to(dtype)
+        key = (float(coef), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            m = (self.scale / (1.0 - float(coef) * self.lam)).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
+    def apply(self, x: torch.Tensor, mult: torch.Tensor, engine, prescaled: bool = False) -> torch.Tensor:
+        """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` in spectral layout (float64, or
+        already normalised and in ``x``'s dtype when ``prescaled``)."""
+        y = x
+        if self.r2r:
+            y = _fft.r2rn(y, tuple(self.kinds[a][0] for a in self.r2r), tuple(1 + a for a in self.r2r),
+                          engine=engine)
+        m = mult if prescaled else (mult * self.scale).to(x.dtype)
+        if self.periodic:
+            axes = tuple(1 + a for a in self.periodic)
+            Y = _fft.rfftn(y, axes, engine=engine)
+            y = _fft.irfftn(Y * m, tuple(x.shape[d] for d in axes), axes, engine=engine)
+        else:
+            y = y * m
+        if self.r2r:
+            y = _fft.r2rn(y, tuple(self.kinds[a][1] for a in self.r2r), tuple(1 + a for a in self.r2r),
+                          engine=engine)
+        return y
+
+
+def _is_zero_rule(rule) -> bool:
+    return len(rule) < 2 or (isinstance(rule[1], (int, float)) and rule[1] == 0)
+
+
+@lru_cache(maxsize=64)
+def _cached_component(grid, boundary, i: int) -> _Component:
+    return _Component(grid, boundary, i)
+
+
+def _component(grid, boundary, i: int) -> _Component:
+    """The (cached) geometry of component ``i``, bound to this very ``boundary`` object.
+
+    Boundaries that compare equal may still hold different evaluated inflow profiles (not part of their
+    equality), so the cached geometry is copied and given the caller's boundary for the value terms.
+    """
+    try:
+        comp = copy.copy(_cached_component(grid, boundary, i))
+    except TypeError:  # boundaries holding unhashable values (tensors in lists)
+        return _Component(grid, boundary, i)
+    comp.boundary = boundary
+    return comp
+
+
+def _fixed_masks(fixed, velocity):
+    if fixed is None:
+        return None
+    if not isinstance(fixed, (tuple, list)) or len(fixed) != velocity.rank:
+        raise ShapeError(f"fixed must hold one face mask per component ({velocity.rank}), got {type(fixed).__name__}")
+    out = []
+    for i, m in enumerate(fixed):
+        if m is None:
+            out.append(None)
+            continue
+        m = torch.as_tensor(m, device=velocity.device)
+        shape = velocity.grid.face_shape(i)
+        if m.ndim == len(shape):
+            m = m[None]
+        if tuple(m.shape[1:]) != shape or m.shape[0] not in (1, velocity.batch_size):
+            raise ShapeError(f"fixed[{i}] must have shape (1 or B, *{shape}), got {tuple(m.shape)}")
+        m = m.to(velocity.dtype)
+        out.append(m if bool(m.any()) else None)
+    return out
+
+
+def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixed=None, solve=None,
+                      engine: str | None = None):
+    """See :func:`phisim.diffusion.diffuse_staggered` (the public entry point)."""
+    from .field import StaggeredGrid
+    from .linalg import Solve, cg
+
+    if not isinstance(velocity, StaggeredGrid):
+        raise ParameterError(f"diffuse_staggered expects a StaggeredGrid, got {type(velocity).__name__}")
+    if method not in STAGGERED_METHODS:
+        raise ParameterError(f"method must be one of {STAGGERED_METHODS}, got {method!r}")
+    dt = check_dt(dt)
+    nu = check_nonnegative(viscosity, "viscosity")
+    masks = _fixed_masks(fixed, velocity)
+    if masks is not None and method == "spectral" and any(m is not None for m in masks):
+        raise ParameterError(
+            "method='spectral' is exact only in a box; with fixed faces (bodies) use 'implicit' or 'crank_nicolson'"
+        )
+    if not isinstance(dt, torch.Tensor) and not isinstance(nu, torch.Tensor) and (float(dt) == 0 or float(nu) == 0):
+        return velocity
+    alpha = dt * nu
+    grid, boundary = velocity.grid, velocity.boundary
+    if method == "explicit":
+        number = float(alpha) * sum(2.0 / d**2 for d in grid.dx)
+        if number > 1.0:
+            raise ParameterError(
+                f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt "
+                "or use method='implicit' / 'crank_nicolson' / 'spectral'"
+            )
+    theta = 0.5 if method == "crank_nicolson" else 1.0
+    out = []
+    for i, u in enumerate(velocity.values):
+        comp = _component(grid, boundary, i)
+        mask = None if masks is None else masks[i]
+        if method == "explicit":
+            new = u + alpha * comp.laplace(u)
+            if mask is not None:
+                new = mask * u + (1 - mask) * new
+            out.append(new)
+            continue
+        lam = comp.lam.to(u.device)
+        x = comp.restrict(u)
+        b = comp.source(u)
+        if method == "spectral":
+            y = comp.apply(x, torch.exp(alpha * lam), engine)
+            if b is not None:
+                y = y + comp.apply(b, alpha * _phi1(alpha * lam), engine)
+            out.append(comp.embed(y, u))
+            continue
+        rhs = x
+        if theta < 1:
+            rhs = rhs + ((1 - theta) * alpha) * comp.restrict(comp.laplace(u))
+            if b is not None:
+                rhs = rhs + (theta * alpha) * b
+        elif b is not None:
+            rhs = rhs + alpha * b
+        inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
+        if mask is None:
+            out.append(comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
+            continue
+        # bodies: CG on the free faces, the exact box solve as preconditioner
+        p = 1 - comp.restrict(mask)
+        w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
+        a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
+        v_fixed = (1 - p) * x
+
+        def lap0(y, u=u, comp=comp, b=b):  # the stencil with zero boundary values, on unknowns
+            full = comp.restrict(comp.laplace(comp.embed(y, u)))
+            return full if b is None else full - b
+
+        def weighted(y, w=w):
+            return y if w is None else y * w
+
+        def operator(y, a, p=p, lap0=lap0, weighted=weighted):
+            return p * weighted(y - a * lap0(p * y)) + (1 - p) * y
+
+        def precond(r, p=p, comp=comp, inverse=inverse, w=w):
+            z = p * r if w is None else p * r / w
+            return p * comp.apply(z, inverse.to(r.dtype), engine, prescaled=True) + (1 - p) * r
+
+        rhs_cg = p * weighted(rhs + a_t * lap0(v_fixed))
+        if solve is None:
+            solve = Solve(rtol=1e-10 if u.dtype == torch.float64 else 1e-6)
+        y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t,))
+        out.append(comp.embed(y + v_fixed, u))
+    result = velocity.with_values(tuple(out))
+    return result.with_boundary_faces()
+
+
+def _phi1(z: torch.Tensor) -> torch.Tensor:
+    small = z.abs() < 1e-8
+    safe = torch.where(small, torch.ones_like(z), z)
+    return torch.where(small, 1.0 + z / 2, torch.expm1(safe) / safe)

@@ -1,0 +1,291 @@
+"""Time integrators for incompressible flow that are second order (or better) in time.
+
+The first-order step of :func:`phisim.fluid.navier_stokes_step` splits one step into advection, forcing,
+viscosity and projection; the splitting error halves with ``dt`` (first order). The integrators here instead
+treat the spatially discretised, projected equations
+
+    ``du/dt = P F(u, t)``,   ``F(u, t) = -C(u) + ν L u + f(t)``
+
+as an ordinary differential equation and apply an explicit strong-stability-preserving Runge-Kutta method,
+projecting every stage (``P`` = :func:`phisim.fluid.make_incompressible`). Because ``P`` is linear and
+leaves divergence-free fields unchanged, projecting each stage equals projecting the stage's right-hand
+side, so the velocity inherits the Runge-Kutta order (Sanderse & Koren 2012, "Accuracy analysis of
+explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equations", J. Comput. Phys. 231).
+
+* ``C(u)`` is the MAC convection term in divergence form, ``C_i = Σ_j ∂_j(u_j u_i)`` with second-order
+  central differences (Harlow & Welch 1965; cell-centre products for ``j = i``, cell-edge products for
+  ``j ≠ i``); boundary ghosts follow the velocity boundary (walls, moving lids, open sides, periodic).
+  For a discretely divergence-free field it conserves momentum and kinetic energy in a periodic box
+  (Morinishi et al. 1998, J. Comput. Phys. 143).
+* ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.differential.laplace`).
+* ``f(t)`` is a body force (a StaggeredGrid, or a callable of time for time-dependent forcing).
+* obstacles: faces touching solid cells are set to zero before every projection (resting no-slip bodies).
+
+Orders in time (velocity; measured in ``tests/phisim/test_integrators.py``):
+
+==================  ==================================================  ===========  ========================
+integrator          stages                                              order        stability
+==================  ==================================================  ===========  ========================
+``'split'``         :func:`~phisim.fluid.navier_stokes_step`            1            unconditional (SL)
+``'rk2'``           Heun / SSP-RK2, 2 projections, explicit viscosity   2            needs viscosity *
+``'rk3'``           Shu-Osher SSP-RK3, 3 projections, explicit visc.    3 (≥ 2)      CFL ≲ 1.7 / π per axis
+``'imex2'``         Crank-Nicolson viscosity, Heun convection,          2            any viscous number;
+                    incremental pressure, 2 implicit solves + 2 proj.                CFL as ``'rk2'``
+==================  ==================================================  ===========  ========================
+
+(*) Heun's amplification for purely imaginary eigenvalues (central convection without viscosity) is
+``|1 + z + z²/2| = (1 + y⁴/4)^{1/2} > 1``: a weak growth ``≈ (cfl π)⁴ / 8`` per step that viscosity must
+damp; prefer ``'rk3'`` for nearly inviscid flow. Viscosity is explicit in ``'rk2'`` and ``'rk3'``:
+``ν dt Σ 4/dx² ≤ 2`` (RK2) or ``≤ 2.5`` (RK3); larger viscous numbers raise :class:`ParameterError` and
+call for ``'imex2'``.
+
+``'imex2'`` (a pressure-correction scheme, e.g. Guermond, Minev & Shen 2006, "An overview of projection
+methods for incompressible flows", Comput. Methods Appl. Mech. Engrg. 195): with ``E(u, t) = -C(u) + f(t)``
+and ``q`` the previous step's pressure potential (``pressure_guess``, in the ``dt * p`` convention),
+
+    ``(I - ν dt/2 L) u* = u_n + dt E(u_n, t_n) + ν dt/2 L u_n - G q``,   ``u1 = P u*``,
+    ``(I - ν dt/2 L) u** = u_n + dt/2 (E(u_n, t_n) + E(u1, t_n + dt)) + ν dt/2 L u_n - G q``,
+    ``u_{n+1} = P u**``,  ``q_{n+1} = q + φ`` (``φ`` the potential of the last projection).
+
+The implicit solves are :func:`phisim.diffusion.diffuse_staggered` (exact spectral box solves; PCG with
+the faces touching obstacles held at 0). The incremental pressure ``-G q`` makes the splitting error of
+viscosity and projection at walls second order: pass the returned pressure back as ``pressure_guess``
+(``None`` on the first step is fine; without it on every step the scheme is first order at walls).
+
+The returned pressure is the potential of the last stage's correction rescaled to the convention of
+:func:`phisim.fluid.make_incompressible` (``dt * p / rho``), so it is an approximation of the pressure at
+the end of the step and a good warm start for the next step's CG solves.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ..boundary import pad_staggered_component
+from ..checks import check_dt, check_nonnegative
+from ..differential import gradient, laplace
+from ..errors import GridMismatchError, ParameterError
+from ..field import CenteredGrid, StaggeredGrid
+from .bodies import solid_layout
+from .projection import impose_solids, make_incompressible
+from .step import _to_time, kinetic_energy, normalize_energy
+
+__all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
+
+#: Time integrators of incompressible flow with their order in time for the velocity.
+INTEGRATORS = {"split": 1, "rk2": 2, "rk3": 3, "imex2": 2}
+
+# (weight of u_n, weight of the previous stage after its Euler step, time offset of the stage) per stage
+_SHU_OSHER = {
+    "rk2": ((0.0, 1.0, 0.0), (0.5, 0.5, 1.0)),
+    "rk3": ((0.0, 1.0, 0.0), (0.75, 0.25, 1.0), (1.0 / 3.0, 2.0 / 3.0, 0.5)),
+}
+_VISCOUS_LIMIT = {"rk2": 2.0, "rk3": 2.5}  # ν dt Σ 4/dx² on the negative real axis
+
+
+def convection(velocity: StaggeredGrid) -> StaggeredGrid:
+    """The MAC convection term ``C_i = Σ_j ∂_j (u_j u_i)`` (divergence form, second order, central).
+
+    For component ``i`` on its faces: ``∂_i(u_i²)`` from squares of the cell-centre averages of ``u_i``,
+    and for ``j ≠ i`` ``∂_j(u_j u_i)`` from products at the cell edges (``u_i`` averaged along ``j``,
+    ``u_j`` averaged along ``i``). Ghost values come from the velocity boundary
+    (:func:`phisim.boundary.pad_staggered_component`), so a no-slip wall contributes its wall velocity.
+
+    Args:
+        velocity: MAC velocity ``(B, *face_shape(i))`` per component, 1-3 axes.
+
+    Returns:
+        ``C`` as a StaggeredGrid on the same grid and boundary (values on fixed boundary faces are
+        computed but meaningless; a projection resets them). ``-C`` is the convective acceleration.
+
+    Raises:
+        GridMismatchError: If ``velocity`` is not a StaggeredGrid.
+    """
+    if not isinstance(velocity, StaggeredGrid):
+        raise GridMismatchError(f"convection needs a StaggeredGrid velocity, got {type(velocity).__name__}")
+    grid, boundary = velocity.grid, velocity.boundary
+    dx = grid.dx
+    out = []
+    for i, ui in enumerate(velocity.values):
+        total = 0
+        for j in range(grid.rank):
+            dim_j = 1 + j
+            if j == i:
+                p = pad_staggered_component(ui, i, boundary, dx, 1, axes=[i])  # samples -1 .. n+1
+                m = p.shape[dim_j] - 1
+                centre = 0.5 * (p.narrow(dim_j, 0, m) + p.narrow(dim_j, 1, m))  # cells -1 .. n
+                sq = centre * centre
+                k = sq.shape[dim_j] - 1
+                total = total + (sq.narrow(dim_j, 1, k) - sq.narrow(dim_j, 0, k)) / dx[j]
+                continue
+            uj = velocity.values[j]
+            dim_i = 1 + i
+            # u_i at the edges: average along j (u_i is cell-centred along j)
+            pi = pad_staggered_component(ui, i, boundary, dx, 1, axes=[j])
+            m = pi.shape[dim_j] - 1
+            ui_edge = 0.5 * (pi.narrow(dim_j, 0, m) + pi.narrow(dim_j, 1, m))
+            # u_j at the edges: average along i (u_j is cell-centred along i)
+            pj = pad_staggered_component(uj, j, boundary, dx, 1, axes=[i])
+            m = pj.shape[dim_i] - 1
+            uj_edge = 0.5 * (pj.narrow(dim_i, 0, m) + pj.narrow(dim_i, 1, m))
+            flux = ui_edge * uj_edge
+            k = flux.shape[dim_j] - 1
+            total = total + (flux.narrow(dim_j, 1, k) - flux.narrow(dim_j, 0, k)) / dx[j]
+        out.append(total)
+    return StaggeredGrid(tuple(out), grid, boundary)
+
+
+def _force_at(force, t, velocity: StaggeredGrid) -> StaggeredGrid | None:
+    if force is None:
+        return None
+    f = force(t) if callable(force) and not isinstance(force, StaggeredGrid) else force
+    if not isinstance(f, StaggeredGrid) or f.grid != velocity.grid:
+        raise GridMismatchError("force must be a StaggeredGrid on the velocity's grid (or a callable returning one)")
+    return f.with_boundary(velocity.boundary)
+
+
+def navier_stokes_rk_step(
+    velocity: StaggeredGrid,
+    dt,
+    *,
+    viscosity: float = 0.0,
+    integrator: str = "rk2",
+    force: StaggeredGrid | Callable[[float], StaggeredGrid] | None = None,
+    time: float = 0.0,
+    obstacles=None,
+    solve=None,
+    pressure_guess: CenteredGrid | torch.Tensor | None = None,
+    energy_normalization: bool = False,
+) -> tuple[StaggeredGrid, CenteredGrid]:
+    """One incompressible Navier-Stokes step of second (or third) order in time.
+
+    ``'rk2'``/``'rk3'``: stage ``s`` (Shu-Osher form) is
+    ``u^(s) = P[a_s u_n + b_s (u^(s-1) + dt F(u^(s-1), t_n + c_s dt))]`` with ``F = -C(u) + ν L u + f`` and
+    ``P`` the projection with the solids imposed at the stage's time; ``'imex2'`` is the Crank-Nicolson /
+    Heun pressure-correction scheme (see the module docstring). Inflow profiles and moving bodies are
+    evaluated at the stage times.
+
+    Args:
+        velocity: Divergence-free MAC velocity at ``t_n`` (e.g. the output of a projection).
+        dt: Time step ``>= 0``.
+        viscosity: Kinematic viscosity ``>= 0`` (explicit in ``'rk2'``/``'rk3'``, see the stability limits
+            in the module docstring; Crank-Nicolson in ``'imex2'``).
+        integrator: ``'rk2'`` (Heun, second order), ``'rk3'`` (SSP-RK3, third order) or ``'imex2'``
+            (Crank-Nicolson viscosity, Heun convection, incremental pressure; second order).
+        force: Body force (acceleration): a StaggeredGrid, or ``force(t) -> StaggeredGrid`` evaluated at the
+            stage times (needed for second order with time-dependent forcing).
+        time: ``t_n``, for a callable force, moving bodies and time-dependent inflows.
+        obstacles: Obstacles and bodies (see :func:`phisim.fluid.make_incompressible`).
+        solve: CG settings of the pressure solves with solids (and of the viscous solve with solids).
+        pressure_guess: The previous step's pressure (as returned): a warm start of the CG solves for
+            ``'rk2'``/``'rk3'``, and the incremental pressure of ``'imex2'`` (see the module docstring).
+        energy_normalization: Rescale the result to the kinetic energy of ``velocity``.
+
+    Returns:
+        ``(velocity, pressure)`` at ``t_n + dt``; the pressure in the convention of ``make_incompressible``.
+
+    Raises:
+        ParameterError: Unknown integrator, negative dt/viscosity, or (``'rk2'``, ``'rk3'``) a viscous
+            number beyond the explicit stability limit.
+        GridMismatchError: For a non-StaggeredGrid velocity or force.
+        SolveError: If a CG solve does not converge.
+    """
+    if not isinstance(velocity, StaggeredGrid):
+        raise GridMismatchError(f"velocity must be a StaggeredGrid, got {type(velocity).__name__}")
+    if integrator not in (*_SHU_OSHER, "imex2"):
+        raise ParameterError(f"integrator must be one of {(*_SHU_OSHER, 'imex2')}, got {integrator!r}")
+    dt = check_dt(dt)
+    nu = check_nonnegative(viscosity, "viscosity")
+    time = float(time)
+    if integrator == "imex2":
+        return _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure_guess, energy_normalization)
+    number = float(nu) * float(dt) * sum(4.0 / d**2 for d in velocity.grid.dx)
+    if number > _VISCOUS_LIMIT[integrator] * (1 + 1e-12):
+        raise ParameterError(
+            f"explicit viscosity in {integrator!r} is unstable: ν dt Σ 4/dx² = {number:.3g} > "
+            f"{_VISCOUS_LIMIT[integrator]}; reduce dt or use integrator='imex2' (implicit viscosity)"
+        )
+    e0 = kinetic_energy(velocity) if energy_normalization else None
+    u0 = velocity
+    stage = velocity
+    guess = pressure_guess
+    pressure = None
+    b_last = 1.0
+    stages = _SHU_OSHER[integrator]
+    for k, (a, b, c) in enumerate(stages):
+        rate = -convection(stage)
+        if float(nu) != 0:
+            rate = rate + nu * laplace(stage)
+        f = _force_at(force, time + c * float(dt), stage)
+        if f is not None:
+            rate = rate + f
+        w = stage + dt * rate
+        if b != 1.0:
+            w = w * b
+        if a != 0.0:
+            w = w + a * u0.with_boundary(w.boundary)
+        t_out = time + float(dt) * (stages[k + 1][2] if k + 1 < len(stages) else 1.0)
+        w = _to_time(w, t_out)
+        layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
+        w = impose_solids(w, layout)
+        stage, pressure = make_incompressible(w, layout, solve=solve, pressure_guess=guess, time=t_out)
+        guess = pressure.values / b if b != 1.0 else pressure
+        b_last = b
+    pressure = pressure.with_values(pressure.values / b_last) if b_last != 1.0 else pressure
+    if e0 is not None:
+        stage = normalize_energy(stage, e0)
+    return stage, pressure
+
+
+def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
+    """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
+    from ..diffusion import diffuse_staggered
+
+    grid = velocity.grid
+    t_new = time + float(dt)
+    e0 = kinetic_energy(velocity) if energy_normalization else None
+    layout = solid_layout(obstacles, grid, velocity.boundary, t_new, velocity.dtype, velocity.device)
+    fixed = None
+    if layout is not None:  # faces entirely inside solids keep the solids' velocity in the viscous solve
+        fixed = tuple((th <= 0).to(velocity.dtype) for th in layout.theta)
+    u0 = velocity
+    half_lap = 0.5 * dt * nu * laplace(u0) if float(nu) != 0 else None
+    explicit0 = -convection(u0)
+    f0 = _force_at(force, time, u0)
+    if f0 is not None:
+        explicit0 = explicit0 + f0
+    grad_q = None
+    if pressure is not None:
+        q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
+        q = q.to(dtype=velocity.dtype, device=velocity.device)
+        q = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
+        g = gradient(q, at="face").values
+        if layout is not None:
+            g = tuple(x * th.to(x.dtype) for x, th in zip(g, layout.theta))
+        grad_q = (q, g)
+
+    def stage(explicit):
+        y = u0 + dt * explicit
+        if grad_q is not None:
+            y = y.with_values(tuple(c - x for c, x in zip(y.values, grad_q[1])))
+        if half_lap is not None:
+            y = y + half_lap
+        y = impose_solids(_to_time(y, t_new), layout)
+        if float(nu) != 0:
+            y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve)
+        return make_incompressible(y, layout, solve=solve, time=t_new,
+                                   pressure_guess=None if grad_q is None else torch.zeros_like(grad_q[0].values))
+
+    u1, _ = stage(explicit0)
+    explicit1 = -convection(u1)
+    f1 = _force_at(force, t_new, u1)
+    if f1 is not None:
+        explicit1 = explicit1 + f1
+    explicit1 = explicit1.with_boundary(u0.boundary)  # time-dependent inflows: u1 carries the new time
+    u2, phi = stage(0.5 * (explicit0 + explicit1))
+    p = phi if grad_q is None else phi.with_values(phi.values + grad_q[0].values)
+    if e0 is not None:
+        u2 = normalize_energy(u2, e0)
+    return u2, p

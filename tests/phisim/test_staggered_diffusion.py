@@ -1,0 +1,264 @@
+"""Tests of diffuse_staggered: exact box solves against dense references, bodies by PCG, orders, gradients."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.fft as sfft
+import scipy.linalg
+import torch
+
+from phisim import Grid, NoSlipWall, StaggeredGrid, fft
+from phisim.boundary import Boundary, Dirichlet
+from phisim.differential import laplace
+from phisim.diffusion import diffuse, diffuse_staggered
+from phisim.errors import ParameterError, ShapeError
+
+F64 = torch.float64
+
+BOUNDARIES = [
+    "wall",
+    "periodic",
+    "open",
+    "free_slip",
+    {"x": "periodic", "y": "wall"},
+    {"x": ("wall", "open"), "y": ("open", "wall")},
+    {"x": "wall", "y": ("wall", NoSlipWall(velocity=(1.0, 0.0)))},
+    {"x": (Dirichlet((0.5, 0.2)), "open"), "y": "free_slip"},
+]
+
+
+@pytest.fixture(autouse=True)
+def _fast_planning():
+    with fft.fft_settings(planner_effort="FFTW_ESTIMATE"):
+        yield
+
+
+def _random_velocity(grid, boundary, batch=2, seed=0) -> StaggeredGrid:
+    g = torch.Generator().manual_seed(seed)
+    b = Boundary.create(boundary, grid.rank)
+    values = tuple(torch.randn(batch, *grid.face_shape(i), generator=g, dtype=F64) for i in range(grid.rank))
+    return StaggeredGrid(values, grid, b).with_boundary_faces()
+
+
+def _free_system(v: StaggeredGrid, i: int, b: int):
+    """Component ``i`` of sample ``b`` as an affine system on its free samples.
+
+    Returns ``(A, c, y0, full)``: ``L x = A y + c`` on the free samples ``y``, their current values, and a
+    function mapping free values to the full component (fixed samples from the boundary, face n = face 0 on
+    a periodic axis).
+    """
+    comps = [c[b : b + 1] for c in v.values]
+    probe = StaggeredGrid(tuple(torch.full_like(c, 7.0) if j == i else c for j, c in enumerate(comps)), v.grid,
+                          v.boundary).with_boundary_faces().values[i][0]
+    free = (probe == 7.0).numpy()
+    if v.boundary.is_periodic(i):
+        free[(slice(None),) * i + (-1,)] = False
+    base = v.with_boundary_faces().values[i][b].numpy()
+    f = free.reshape(-1)
+
+    def full(y):
+        x = base.reshape(-1).copy()
+        x[f] = y
+        x = x.reshape(base.shape)
+        if v.boundary.is_periodic(i):
+            idx = [slice(None)] * x.ndim
+            idx[i] = -1
+            src = [slice(None)] * x.ndim
+            src[i] = 0
+            x[tuple(idx)] = x[tuple(src)]
+        return x
+
+    def lap(y):
+        x = torch.as_tensor(full(y))[None]
+        field = StaggeredGrid(tuple(x if j == i else c for j, c in enumerate(comps)), v.grid, v.boundary)
+        return laplace(field).values[i][0].numpy().reshape(-1)[f]
+
+    m = int(f.sum())
+    c = lap(np.zeros(m))
+    A = np.stack([lap(np.eye(m)[k]) - c for k in range(m)], 1)
+    return A, c, base.reshape(-1)[f], full
+
+
+def _theta_reference(v: StaggeredGrid, alpha: float, theta: float):
+    """Dense θ-scheme: ``(I - θαA) y' = y + (1-θ)α A y + α c`` on the free samples of every component."""
+    out = []
+    for i in range(v.rank):
+        res = []
+        for b in range(v.batch_size):
+            A, c, y, full = _free_system(v, i, b)
+            y1 = np.linalg.solve(np.eye(len(y)) - theta * alpha * A, y + (1 - theta) * alpha * A @ y + alpha * c)
+            res.append(full(y1))
+        out.append(np.stack(res))
+    return out
+
+
+# ---- the transforms used --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["dct1", "dst1"])
+@pytest.mark.parametrize("engine", ["torch", "pyfftw"])
+def test_type1_transforms_match_scipy_and_gradcheck(kind, engine):
+    if engine not in fft.available_engines():
+        pytest.skip("pyfftw not installed")
+    x = torch.randn(3, 7, 5, dtype=F64)
+    y = fft.r2rn(x, (kind, kind), (1, 2), engine=engine)
+    ref = (sfft.dctn if kind == "dct1" else sfft.dstn)(x.numpy(), type=1, axes=(1, 2))
+    np.testing.assert_allclose(y.numpy(), ref, rtol=1e-12, atol=1e-12)
+    xx = torch.randn(2, 6, 4, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda z: fft.r2rn(z, kind, (1, 2), engine=engine), (xx,))
+
+
+# ---- exactness in a box ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("boundary", BOUNDARIES, ids=str)
+@pytest.mark.parametrize("method, theta", [("implicit", 1.0), ("crank_nicolson", 0.5)])
+def test_box_solve_equals_dense_theta_scheme(boundary, method, theta):
+    grid = Grid((7, 5), bounds=[(0, 1.4), (0, 1.0)])
+    v = _random_velocity(grid, boundary)
+    alpha = 0.03
+    out = diffuse_staggered(v, 1.5, viscosity=alpha / 1.5, method=method)
+    ref = _theta_reference(v, alpha, theta)
+    for a, r in zip(out.values, ref):
+        np.testing.assert_allclose(a.numpy(), r, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("boundary", ["wall", {"x": "open", "y": ("wall", NoSlipWall(velocity=(1.0, 0.0)))},
+                                      {"x": "periodic", "y": ("open", "free_slip")}], ids=str)
+def test_spectral_method_is_the_matrix_exponential(boundary):
+    grid = Grid((6, 5), bounds=[(0, 1.2), (0, 1.0)])
+    v = _random_velocity(grid, boundary, batch=1)
+    alpha = 0.02
+    out = diffuse_staggered(v, 1.0, viscosity=alpha, method="spectral")
+    for i in range(2):
+        A, c, y, full = _free_system(v, i, 0)
+        E = scipy.linalg.expm(alpha * A)
+        expected = E @ y + np.linalg.solve(A, (E - np.eye(len(y))) @ c)  # u(t) = e^{tA} y + A^{-1}(e^{tA} - I) c
+        np.testing.assert_allclose(out.values[i][0].numpy(), full(expected), rtol=0, atol=1e-11)
+
+
+def test_3d_box_against_dense_reference_and_batch_one():
+    grid = Grid((4, 3, 5), bounds=[(0, 1), (0, 0.75), (0, 1.25)])
+    v = _random_velocity(grid, {"x": "periodic", "y": "wall", "z": ("open", "free_slip")}, batch=3)
+    out = diffuse_staggered(v, 0.02, viscosity=1.0)
+    for a, r in zip(out.values, _theta_reference(v, 0.02, 1.0)):
+        np.testing.assert_allclose(a.numpy(), r, rtol=0, atol=1e-11)
+    one = diffuse_staggered(v._map(lambda c: c[2:]), 0.02, viscosity=1.0)
+    for a, r in zip(one.values, out.values):
+        torch.testing.assert_close(a[0], r[2], rtol=0, atol=1e-13)
+
+
+def test_taylor_green_decay_orders_in_time():
+    """Pure viscous decay of a periodic mode: BE first order, CN second order, spectral exact."""
+    n = 16
+    grid = Grid((n, n), bounds=[(0, 2 * np.pi), (0, 2 * np.pi)])
+
+    def tg(x):
+        return torch.stack([torch.sin(x[..., 0]) * torch.cos(x[..., 1]),
+                            -torch.cos(x[..., 0]) * torch.sin(x[..., 1])], -1)
+
+    v0 = StaggeredGrid.from_function(tg, grid, "periodic", dtype=F64)
+    lam = -2 * (4 * np.sin(grid.dx[0] / 2) ** 2) / grid.dx[0] ** 2  # stencil eigenvalue of the mode
+    nu, t_end = 0.5, 1.0
+    exact = np.exp(nu * lam * t_end)
+    errs = {}
+    for method in ("implicit", "crank_nicolson", "spectral"):
+        errs[method] = []
+        for steps in (4, 8, 16):
+            v = v0
+            for _ in range(steps):
+                v = diffuse_staggered(v, t_end / steps, viscosity=nu, method=method)
+            errs[method].append(float((v.values[0] - exact * v0.values[0]).abs().max()))
+    rate = {m: np.log2(np.array(e[:-1]) / np.array(e[1:])) for m, e in errs.items() if m != "spectral"}
+    assert np.all(np.abs(rate["implicit"] - 1) < 0.15), rate
+    assert np.all(np.abs(rate["crank_nicolson"] - 2) < 0.05), rate
+    assert max(errs["spectral"]) < 1e-13
+
+
+# ---- bodies: fixed faces solved by PCG ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method, theta", [("implicit", 1.0), ("crank_nicolson", 0.5)])
+def test_fixed_faces_satisfy_the_theta_scheme(method, theta):
+    grid = Grid((10, 8), bounds=[(0, 1.25), (0, 1.0)])
+    boundary = {"x": ("wall", "open"), "y": ("wall", NoSlipWall(velocity=(1.0, 0.0)))}
+    v = _random_velocity(grid, boundary, batch=2)
+    # a body: faces touching cells 3..5 x 2..4 keep their (moving) velocity
+    solid = torch.zeros(10, 8, dtype=torch.bool)
+    solid[3:6, 2:5] = True
+    masks = []
+    for i in range(2):
+        m = torch.zeros(grid.face_shape(i), dtype=torch.bool)
+        lo = [slice(3, 7), slice(2, 5)] if i == 0 else [slice(3, 6), slice(2, 6)]
+        m[tuple(lo)] = True
+        masks.append(m)
+    values = tuple(torch.where(m, torch.full_like(c, 0.3 * (i + 1)), c)
+                   for i, (c, m) in enumerate(zip(v.values, masks)))
+    v = v.with_values(values)
+    alpha = 0.05
+    out = diffuse_staggered(v, alpha, viscosity=1.0, method=method, fixed=masks)
+    box = diffuse_staggered(v, alpha, viscosity=1.0, method=method)
+    lap_new, lap_old = laplace(out), laplace(v)
+    for i in range(2):
+        m = masks[i]
+        torch.testing.assert_close(out.values[i][:, m], v.values[i][:, m], rtol=0, atol=0)
+        # free interior faces (not on the boundary) satisfy the scheme
+        resid = (out.values[i] - theta * alpha * lap_new.values[i]
+                 - v.values[i] - (1 - theta) * alpha * lap_old.values[i])
+        dim = 1 + i
+        inner = resid.narrow(dim, 1, resid.shape[dim] - 2)
+        inner_mask = ~m.narrow(i, 1, m.shape[i] - 2)
+        assert float(inner[:, inner_mask].abs().max()) < 1e-8
+        assert float((out.values[i] - box.values[i]).abs().max()) > 1e-3  # the body matters
+
+
+def test_gradcheck_spectral_and_cg_paths():
+    grid = Grid((4, 3), bounds=[(0, 1), (0, 0.75)])
+    b = Boundary.create({"x": "open", "y": "wall"}, 2)
+    u0 = torch.randn(1, 5, 3, dtype=F64, requires_grad=True)
+    w0 = torch.randn(1, 4, 4, dtype=F64, requires_grad=True)
+    mask = (torch.zeros(5, 3, dtype=torch.bool).index_fill_(0, torch.tensor([2]), True), None)
+
+    def fn(u, w, nu):
+        v = StaggeredGrid((u, w), grid, b).with_boundary_faces()
+        a = diffuse_staggered(v, 0.1, viscosity=nu, method="crank_nicolson").values
+        c = diffuse_staggered(v, 0.1, viscosity=nu, fixed=mask).values
+        return a + c
+
+    nu = torch.tensor(0.7, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(fn, (u0, w0, nu))
+
+
+# ---- API -------------------------------------------------------------------------------------------------
+
+
+def test_diffuse_dispatches_staggered_and_explicit_matches_laplace():
+    grid = Grid((8, 6), bounds=[(0, 1), (0, 1)])
+    v = _random_velocity(grid, "wall")
+    a = diffuse(v, 0.001, viscosity=1.0, method="spectral")
+    b = diffuse_staggered(v, 0.001, viscosity=1.0, method="spectral")
+    for x, y in zip(a.values, b.values):
+        torch.testing.assert_close(x, y, rtol=0, atol=0)
+    e = diffuse_staggered(v, 0.001, viscosity=1.0, method="explicit")
+    ref = (v + 0.001 * laplace(v)).with_boundary_faces()
+    for x, y in zip(e.values, ref.values):
+        torch.testing.assert_close(x, y, rtol=0, atol=1e-14)
+
+
+def test_bad_arguments():
+    grid = Grid((8, 6), bounds=[(0, 1), (0, 1)])
+    v = _random_velocity(grid, "wall")
+    with pytest.raises(ParameterError, match="method"):
+        diffuse_staggered(v, 0.1, viscosity=1.0, method="rk4")
+    with pytest.raises(ParameterError, match="unstable"):
+        diffuse_staggered(v, 1.0, viscosity=1.0, method="explicit")
+    with pytest.raises(ParameterError, match="viscosity"):
+        diffuse_staggered(v, 0.1, viscosity=-1.0)
+    with pytest.raises(ParameterError, match="StaggeredGrid"):
+        diffuse_staggered(1.0, 0.1, viscosity=1.0)
+    masks = (torch.ones(9, 6, dtype=torch.bool), torch.ones(8, 7, dtype=torch.bool))
+    with pytest.raises(ParameterError, match="spectral"):
+        diffuse_staggered(v, 0.1, viscosity=1.0, method="spectral", fixed=masks)
+    with pytest.raises(ShapeError, match="fixed"):
+        diffuse_staggered(v, 0.1, viscosity=1.0, fixed=(torch.ones(3, 3), None))
