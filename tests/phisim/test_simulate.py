@@ -212,6 +212,9 @@ def test_cli_simulate_and_one_line_errors(tmp_path, capsys):
                  "--steps", "2", "--resolution", "16", "--out", str(tmp_path / "b"), "--quiet"]) == 0
     assert len(check_dataset_dir(tmp_path / "b")) == 2
     capsys.readouterr()
+    assert main(["simulate", "burgers", "--set", "dim=1", "--trajectories", "2", "--trajectories-per-file", "1",
+                 "--steps", "2", "--resolution", "16", "--out", str(tmp_path / "b"), "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["skipped"] == 2  # the same command continues: nothing left
     assert main(["simulate", "burgers", "--set", "viscocity=1", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "did you mean 'viscosity'" in err
