@@ -249,7 +249,8 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
             if base == key:
                 for m, c in curves.items():
                     it = c.get(h.split("_", 1)[0] + "_iteration", c["iteration"])
-                    lines[f"{m} ({h.split('_', 1)[0]})"] = (it, c[h])
+                    tag = "held-out" if h.startswith(("eval_", "heldout_")) else h.split("_", 1)[0]
+                    lines[f"{m} ({tag})"] = (it, c[h])
         label = key
         for m in curves:
             name = units[m].get(f"{key}_name") or units[m].get("metric_name" if key == "metric" else "loss_name")
