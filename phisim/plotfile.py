@@ -258,6 +258,14 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
                 label = str(name)
                 break
         plot_curves(lines, ax, logy=True, title=f"{Path(path).name}: {key}", ylabel=label)
+        colours = {ln.get_label(): ln.get_color() for ln in ax.get_lines()}
+        for ln in ax.get_lines():  # a held-out curve: its method's colour, dashed
+            name = ln.get_label()
+            if name.endswith(")") and " (" in name and name.rsplit(" (", 1)[0] in colours:
+                ln.set_color(colours[name.rsplit(" (", 1)[0]])
+                ln.set_linestyle("--")
+                ln.set_linewidth(2.0)
+        ax.legend()
     return save_figure(fig, out)
 
 
