@@ -14,7 +14,8 @@ only on the seed and ``i``, so the files do not depend on the number of workers 
 written under a temporary name and renamed when complete; rerunning the same command skips complete files
 (a killed run continues where it stopped). ``workers`` runs files in parallel processes; under
 ``torchrun`` (``WORLD_SIZE`` > 1) rank ``r`` simulates the files ``i ≡ r (mod world_size)`` and rank 0
-writes the statistics once all ranks are done.
+writes the statistics once all ranks are done (a gloo process group is started for the barrier when none
+exists; ranks on several nodes need ``OUT`` on a file system they share).
 """
 
 from __future__ import annotations
