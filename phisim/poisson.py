@@ -54,7 +54,7 @@ import torch
 
 from . import fft as _fft
 from .checks import all_finite
-from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError, SolveError
+from .errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
 
 __all__ = [
     "AXIS_KINDS",
@@ -640,37 +640,20 @@ def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
     return m.to(like.dtype)
 
 
-def _pocket_diagnosis(f: torch.Tensor, m: torch.Tensor, kinds: Kinds, tol: float) -> str | None:
-    """A message naming a closed fluid pocket whose rhs has a non-zero mean, or None (failure diagnosis)."""
-    from scipy import ndimage
-
-    rank = f.ndim - 1
-    structure = ndimage.generate_binary_structure(rank, 1)
-    fm = (f * m).detach().double().cpu().numpy()
-    masks = m.detach().cpu().numpy() > 0.5
-    for b in range(f.shape[0]):
-        labels, n = ndimage.label(masks[min(b, len(masks) - 1)], structure=structure)
-        if n < 2:
+def _mask_face_weights(m: torch.Tensor, kinds: Kinds) -> tuple[torch.Tensor, ...]:
+    """0/1 face weights of a cell mask: open between two fluid cells and on Dirichlet sides of a fluid cell."""
+    out = []
+    for a, (lo, hi) in enumerate(kinds):
+        dim, n = 1 + a, m.shape[1 + a]
+        if lo == "periodic":
+            wrap = m.narrow(dim, n - 1, 1) * m.narrow(dim, 0, 1)
+            out.append(torch.cat([wrap, m.narrow(dim, 1, n - 1) * m.narrow(dim, 0, n - 1), wrap], dim))
             continue
-        rms = math.sqrt(float((fm[b] ** 2).sum()) / max(1, int((labels > 0).sum()))) or 1.0
-        for k in range(1, n + 1):
-            cells = labels == k
-            touches_dirichlet = any(
-                kind == "dirichlet" and bool(np.take(cells, 0 if side == 0 else -1, axis=a).any())
-                for a, pair in enumerate(kinds) for side, kind in enumerate(pair)
-            )
-            periodic = any(pair[0] == "periodic" for pair in kinds)
-            if touches_dirichlet or periodic:
-                continue
-            mean = float(fm[b][cells].mean())
-            if abs(mean) > tol * rms:
-                return (
-                    f"sample {b}: the fluid region {k} of {n} ({int(cells.sum())} cells, enclosed by obstacles "
-                    f"and closed sides) has a rhs mean of {mean:.3g} (RMS {rms:.3g}); a closed pocket needs a "
-                    "zero net source of its own, which projecting out the global mean does not give. Remove "
-                    "the mean per region, open the pocket (a Dirichlet side or a gap), or fill it with obstacle"
-                )
-    return None
+        inner = m.narrow(dim, 1, n - 1) * m.narrow(dim, 0, n - 1)
+        first = m.narrow(dim, 0, 1) if lo == "dirichlet" else torch.zeros_like(m.narrow(dim, 0, 1))
+        last = m.narrow(dim, n - 1, 1) if hi == "dirichlet" else torch.zeros_like(m.narrow(dim, 0, 1))
+        out.append(torch.cat([first, inner, last], dim))
+    return tuple(out)
 
 
 def masked_poisson_solve(
@@ -691,15 +674,14 @@ def masked_poisson_solve(
     """Solve ``∇²_h u = rhs`` on the fluid cells of a box with obstacles by preconditioned CG.
 
     Obstacle cells (``mask`` False) are excluded; faces between fluid and obstacle cells are
-    zero-Neumann (no flux), the box sides follow ``kinds``/``values``; ``u`` is 0 in obstacles. The CG
-    system is ``-∇²_h`` (symmetric positive (semi-)definite on fluid cells, identity on obstacle
-    cells), preconditioned by the exact spectral inverse of the obstacle-free box (masked both sides,
-    which keeps it symmetric positive definite).
+    zero-Neumann (no flux), the box sides follow ``kinds``/``values``; ``u`` is 0 in obstacles. The
+    solve is :class:`phisim.poisson_masked.MaskedPoisson` with 0/1 face weights (the same operator the
+    fluid projection uses): CG on ``-∇²_h`` (symmetric positive (semi-)definite on fluid cells, identity
+    on obstacle cells), preconditioned by the exact spectral inverse of the obstacle-free box.
 
-    Without a Dirichlet side the problem is singular: the rhs mean over fluid cells is checked as in
-    :func:`spectral_poisson_solve` and the zero-mean (over fluid cells) solution is returned. This
-    assumes one connected fluid region; a fluid pocket enclosed by obstacles needs a compatible rhs of
-    its own, otherwise CG stagnates and raises :class:`~phisim.errors.SolveError`.
+    Every connected fluid region that reaches no Dirichlet side is singular on its own (a closed box, or a
+    pocket enclosed by obstacles): its rhs mean is checked as in :func:`spectral_poisson_solve` (per
+    region) and the solution has zero mean over each such region.
 
     Args:
         rhs: Right-hand side ``(B, *resolution)``, float32/float64.
@@ -723,7 +705,7 @@ def masked_poisson_solve(
         SolveError: CG did not converge.
         ParameterError, BoundaryError, ShapeError, NonFiniteError: For invalid input.
     """
-    from .linalg import Solve, cg
+    from .linalg import Solve
 
     rank = _check_rhs(rhs)
     kinds = normalize_kinds(kinds, rank)
@@ -737,70 +719,39 @@ def masked_poisson_solve(
     m = _mask_tensor(mask, rhs)
     if bool((m.flatten(1).sum(1) == 0).any()):
         raise ParameterError("masked_poisson_solve: the mask has no fluid cell in some sample")
-    faces = _open_faces(m, kinds)
-    singular = _singular(kinds)
+    from .poisson_masked import MaskedPoisson
 
     f = rhs
     b = boundary_source(rhs, dx, kinds, values)
     if b is not None:
         f = f - b
     f = f * m
-    n_fluid = m.flatten(1).sum(1)
-    dims = tuple(range(1, rhs.ndim))
-
-    def project(t: torch.Tensor) -> torch.Tensor:
-        mm = m.to(t.dtype)
-        mean = (t * mm).sum(dim=dims, keepdim=True) / n_fluid.to(t.dtype).reshape((-1,) + (1,) * rank)
-        return t - mean * mm
-
-    if singular:
+    op = MaskedPoisson(_mask_face_weights(m, kinds), dx, kinds, engine=engine)
+    if op.singular:  # every closed fluid region needs a compatible rhs of its own
         tol = _compat_tol(rhs.dtype) if compat_rtol is None else compat_rtol
         with torch.no_grad():
-            mean = (f.sum(dim=dims) / n_fluid).abs()
-            rms = ((f**2).sum(dim=dims) / n_fluid).sqrt()
-            bad = mean > tol * rms
+            z = (op.null > 0).to(f.dtype)
+            count = z.flatten(2).sum(-1).clamp_min(1)
+            mean = op.region_sums(f) / count
+            rms = (op.region_sums(f**2) / count).sqrt()
+            bad = (mean.abs() > tol * rms) & (count > 0) & (z.flatten(2).sum(-1) > 0)
         if bool(bad.any()):
+            b_i, k_i = (int(v) for v in torch.nonzero(bad)[0])
             msg = (
-                f"masked_poisson_solve: singular problem (no Dirichlet side) with an incompatible rhs for "
-                f"samples {[int(i) for i in torch.nonzero(bad).flatten()]} (mean over fluid cells beyond "
-                f"{tol:g} x RMS). Fix the data or pass incompatible='project'/'warn'."
+                f"masked_poisson_solve: singular problem with an incompatible rhs: sample {b_i}, closed fluid "
+                f"region {k_i + 1} of {op.null.shape[1]} (a pocket of "
+                f"{int(count[min(b_i, count.shape[0] - 1), k_i])} cells, no Dirichlet side) has a rhs mean of "
+                f"{float(mean[b_i, k_i]):.3g} (beyond {tol:g} x RMS {float(rms[b_i, k_i]):.3g}). Each region "
+                "enclosed by obstacles and closed sides needs a zero net source of its own: fix the data, open "
+                "the region, or pass incompatible='project'/'warn' "
+                "(the mean of each region is then removed)."
             )
             if incompatible == "raise":
                 raise ParameterError(msg)
             if incompatible == "warn":
-                warnings.warn(msg + " The mean was removed.", RuntimeWarning, stacklevel=2)
-
-    def operator(x: torch.Tensor) -> torch.Tensor:
-        mm = m.to(x.dtype)
-        fc = [fa.to(x.dtype) for fa in faces]
-        return -_laplace_zero(x * mm, dx, kinds, fc) * mm + (1 - mm) * x
-
-    inv = _inverse_eigs(tuple(rhs.shape[1:]), dx, kinds, rhs.device)
-
-    def spectral_pre(r: torch.Tensor) -> torch.Tensor:
-        mm = m.to(r.dtype)
-        z = -_apply_multiplier(r * mm, kinds, inv, engine)  # (-∇²_box)^-1 (constant mode dropped)
-        return z * mm + (1 - mm) * r
-
-    try:
-        out = cg(
-            operator,
-            -f,
-            x0,
-            solve=solve,
-            preconditioner=spectral_pre if preconditioner else None,
-            return_info=return_info,
-            project=project if singular else None,
-        )
-    except SolveError as exc:
-        why = _pocket_diagnosis(f, m, kinds, _compat_tol(rhs.dtype)) if singular else None
-        if why is None:
-            raise
-        raise ParameterError(f"masked_poisson_solve: incompatible rhs: {why}") from exc
-    x, info = out if return_info else (out, None)
+                warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    x, info = op.solve(-f, solve=solve, x0=x0, preconditioned=preconditioner is not None)
     x = x * m
-    if singular:  # the gauge: zero mean over fluid cells
-        x = project(x)
     return (x, info) if return_info else x
 
 

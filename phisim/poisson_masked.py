@@ -256,8 +256,8 @@ class MaskedPoisson:
         y = torch.where(self.active, y, r).addcmul_(self._cast("cut", self._cut_inv, r.dtype), r)
         return self.project(y)
 
-    def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None
-              ) -> tuple[torch.Tensor, SolveInfo]:
+    def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None,
+              preconditioned: bool = True) -> tuple[torch.Tensor, SolveInfo]:
         """Solve ``apply(p) = rhs`` on the active cells (``rhs`` is zeroed on inactive ones).
 
         In singular regions the right-hand side's mean is removed first (the caller checks compatibility
@@ -267,6 +267,7 @@ class MaskedPoisson:
             rhs: ``(B, *resolution)``.
             solve: CG settings.
             x0: Optional warm start ``(B, *resolution)``.
+            preconditioned: Use the preconditioner (spectral box inverse plus Jacobi on cut cells).
 
         Returns:
             ``(p, info)``; ``p`` is 0 on inactive cells. Differentiable w.r.t. ``rhs`` and the weights.
@@ -289,6 +290,7 @@ class MaskedPoisson:
                 return self._apply(x, *self.weights)
         # Nothing to differentiate: skip autograd and cg's probe for captured grad-requiring tensors.
         with torch.set_grad_enabled(torch.is_grad_enabled() and (rhs.requires_grad or bool(params))):
-            x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition, return_info=True,
-                         operator_params=params, project=self.project if self.null is not None else None)
+            x, info = cg(operator, b, x0, solve=solve, preconditioner=self._precondition if preconditioned else None,
+                     return_info=True, operator_params=params,
+                     project=self.project if self.null is not None else None)
         return x * act, info
