@@ -41,6 +41,21 @@ def test_karman_writes_a_well_file_gif_and_forces(tmp_path, dim):
         assert np.isfinite(forces).all() and forces[-1, 0] == pytest.approx(0.1)
         assert f["boundary_conditions"] is not None
     assert math.isnan(out["strouhal"])  # no shedding period in 0.1 time units
+    # The Well's loader reads the file; every window's frames are one output interval apart
+    import shutil
+
+    import torch
+    from the_well.data import WellDataset
+
+    split = tmp_path / "ds" / "data" / "train"
+    split.mkdir(parents=True)
+    shutil.copy(out["h5"], split / "karman.h5")
+    ds = WellDataset(path=str(split), n_steps_input=1, n_steps_output=1, use_normalization=False)
+    assert len(ds) == 2
+    for i in range(len(ds)):
+        s = ds[i]
+        t = torch.cat([s["input_time_grid"], s["output_time_grid"]]).double().numpy()
+        np.testing.assert_allclose(np.diff(t), 0.05, rtol=1e-6)
 
 
 def test_optimize_body_lowers_the_drag(tmp_path):
