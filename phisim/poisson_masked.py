@@ -95,14 +95,14 @@ class MaskedPoisson:
         self.null = self._null_space()
         self._inv = _inverse_eigs(res, self.dx, self.kinds, active.device)
         self._scale2 = tuple(1.0 / d**2 for d in self.dx)
-        self._cast: dict = {}  # per dtype: (active, 1 - active, null space) in that dtype
+        self._cast: dict = {}  # per dtype: (active mask, null space) in that dtype
 
     def _in(self, dtype: torch.dtype) -> tuple:
-        """``(active, 1 - active, null)`` as ``dtype`` tensors (cast once per dtype, not once per iteration)."""
+        """``(active, null)`` as ``dtype`` tensors (cast once per dtype, not once per iteration)."""
         hit = self._cast.get(dtype)
         if hit is None:
-            act = self.active.to(dtype)
-            hit = self._cast[dtype] = (act, 1 - act, None if self.null is None else self.null.to(dtype))
+            null = None if self.null is None else self.null.to(dtype)
+            hit = self._cast[dtype] = (self.active.to(dtype), null)
         return hit
 
     # ---- structure ---------------------------------------------------------------------------------------
@@ -162,10 +162,9 @@ class MaskedPoisson:
         """Remove each closed region's mean from ``t`` ``(B, *res)`` (identity without null space)."""
         if self.null is None:
             return t
-        z = self._in(t.dtype)[2]
-        dims = tuple(range(2, z.ndim))
-        coef = (z * t.unsqueeze(1)).sum(dim=dims, keepdim=True)
-        return t - (coef * z).sum(1)
+        z = self._in(t.dtype)[1].flatten(2)  # (B or 1, K, N)
+        coef = torch.matmul(z, t.flatten(1).unsqueeze(-1))  # (B, K, 1): one pass, no temporaries
+        return t - torch.matmul(coef.transpose(1, 2), z).view(t.shape)
 
     def region_sums(self, t: torch.Tensor) -> torch.Tensor | None:
         """Per closed region, ``sum t`` over its cells ``(B, K)`` (None without null space)."""
@@ -207,10 +206,9 @@ class MaskedPoisson:
         return out
 
     def _apply(self, p: torch.Tensor, *weights: torch.Tensor) -> torch.Tensor:
-        act, inact, _ = self._in(p.dtype)
         g = self.gradient(p)
         lap = self.divergence(tuple(w.to(p.dtype) * gi for w, gi in zip(weights, g)))
-        return inact * p - lap * act
+        return torch.where(self.active, -lap, p)
 
     def apply(self, p: torch.Tensor) -> torch.Tensor:
         """``-div(w grad p)`` on active cells, ``p`` on inactive ones (the SPD system :meth:`solve` inverts)."""
@@ -219,9 +217,8 @@ class MaskedPoisson:
     def _precondition(self, r: torch.Tensor) -> torch.Tensor:
         # ``r`` is a CG residual, already projected onto the range (cg applies ``project`` to every residual
         # before the preconditioner), so only the output is projected.
-        act, inact, _ = self._in(r.dtype)
-        y = _apply_multiplier(r * act, self.kinds, self._inv, self.engine)
-        return self.project(inact * r - y * act)
+        y = _apply_multiplier(r * self._in(r.dtype)[0], self.kinds, self._inv, self.engine)
+        return self.project(torch.where(self.active, -y, r))
 
     def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, SolveInfo]:
