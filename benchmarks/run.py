@@ -821,12 +821,18 @@ def write_doc(base: str, path: str) -> None:
     if os.path.exists(visc):  # written by benchmarks/bench_viscosity.py --write
         with open(visc) as fh:
             parts += ["## Viscosity step (MAC velocity): explicit vs spectral implicit", "", fh.read().strip(), ""]
+    rel = os.path.join(RESULTS, "reliability.json")
+    if os.path.exists(rel):  # written by bench_reliability.py
+        from bench_reliability import markdown
+
+        with open(rel) as fh:
+            parts += markdown(json.load(fh))
     for sec in kept:
         parts += [sec, ""]
     others = [
         f
-        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_viscosity.py", "bench_bodies.py",
-                  "bench_flow_bodies.py")
+        for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_viscosity.py", "bench_reliability.py",
+                  "bench_bodies.py", "bench_flow_bodies.py")
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:

@@ -7,10 +7,12 @@ Experiments:
   on the linear loss, as the other methods) and ``hig_squared`` (lr 1 on ``½(y − y*)²``, as HIG is usually run).
   Metric ``sin(a/x) + 1``; curves are shown as running averages over 1000 mini-batches.
 * ``e3``: Poisson's equation (:class:`inverse.problems.PoissonProblem`), U-net with 37,697 parameters;
-  methods ``pg``, ``adam``, ``sgd``, ``pg_lbfgsb``. Metric x MAE; running average over 16 mini-batches (the
-  published analysis), with the 64-batch average beside it in the summary.
+  methods ``pg``, ``adam``, ``sgd``, ``pg_lbfgsb``. Metric: x L1 per sample (sum over cells), training
+  batch; running average over 16 mini-batches (the published analysis), with the 64-batch average beside it
+  in the summary.
 * ``e4``: heat equation (:class:`inverse.problems.HeatProblem`), the same U-net; methods ``pg``, ``adam``,
-  ``pg_lbfgsb``, ``sgd``. Metric x MAE; running average over 16 mini-batches (64 beside it).
+  ``pg_lbfgsb``, ``sgd``. Metric: x L1 per sample (sum over cells), training batch; running average over 16
+  mini-batches (64 beside it).
 * ``e4-opt``: plain optimisation of a few heat problems without a network, from ``x = 0``: gradient descent
   (step 1, 1000 iterations), the Bayes-damped inverse iterated (100 iterations), L-BFGS-B (scipy).
 
@@ -56,15 +58,16 @@ from phisim.errors import PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
 from phisim.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
 
+X_L1 = "x L1 per sample (sum over cells), training batch"
 EXPERIMENTS: dict[str, dict] = {
     "e2": {"problem": "sine", "window": 1000, "iterations": 10000,
            "methods": ["supervised", "adam", "pg_newton", "pg_inverse_gradient", "pg_analytic", "hig",
                        "hig_squared"],
-           "metric": "sin(a/x) + 1", "reference": "adam"},
+           "metric": "sin(a/x) + 1 per sample, training batch", "reference": "adam"},
     "e3": {"problem": "poisson", "window": 16, "alt_window": 64, "iterations": 5000,
-           "methods": ["pg", "adam", "sgd", "pg_lbfgsb"], "metric": "x MAE", "reference": "adam"},
+           "methods": ["pg", "adam", "sgd", "pg_lbfgsb"], "metric": X_L1, "reference": "adam"},
     "e4": {"problem": "heat", "window": 16, "alt_window": 64, "iterations": 10000,
-           "methods": ["pg", "adam", "pg_lbfgsb", "sgd"], "metric": "x MAE", "reference": "adam"},
+           "methods": ["pg", "adam", "pg_lbfgsb", "sgd"], "metric": X_L1, "reference": "adam"},
 }
 #: E3/E4: ``window`` is the published analysis' running mean (16 mini-batches); the summaries also give the
 #: values for ``alt_window`` (64, the window of this project's earlier tables) beside it.
@@ -281,7 +284,7 @@ def plot_reconstruction(exp: str, problem: Problem, models: dict[str, torch.nn.M
     ``batch_size`` problems drawn with :data:`TEST_SEED`; sample ``index`` is shown.
 
     Returns:
-        ``{method: x MAE of the shown sample}``.
+        ``{method: x L1 error (sum over cells) of the shown sample}``.
     """
     batch = problem.sample(batch_size, batch_generator(TEST_SEED, 0))
     n = 2 + len(models)
@@ -299,7 +302,7 @@ def plot_reconstruction(exp: str, problem: Problem, models: dict[str, torch.nn.M
             x = problem.predict(model, batch)
         mae = float(problem.metric(x, batch)[index])
         maes[key] = mae
-        plot_field(x[index].double(), ax, title=f"{key}\nMAE {mae:.4g}", colorbar=False, vmin=lo, vmax=hi)
+        plot_field(x[index].double(), ax, title=f"{key}\nx L1 (sum) {mae:.4g}", colorbar=False, vmin=lo, vmax=hi)
     for ax in axes:
         ax.set_xticks([])
         ax.set_yticks([])
@@ -319,13 +322,13 @@ def _x_mae(x: torch.Tensor, x_true: torch.Tensor) -> np.ndarray:
 
 def optimise_heat(*, samples: int, resolution: int | None, gd_iterations: int, inverse_iterations: int,
                   lbfgsb_iterations: int, seed: int, out: Path) -> dict:
-    """E4 without a network: optimise ``x`` for a few heat problems from ``x = 0`` and record x MAE curves.
+    """E4 without a network: optimise ``x`` for a few heat problems from ``x = 0`` and record x L1 curves.
 
     Methods: ``opt_gd`` (gradient descent on ``½‖P(x) − y*‖²`` with step 1, via
     :class:`~inverse.local_solvers.GradientStepSolver`), ``opt_inverse`` (``x ← P⁻¹(y*; x)``, the Bayes-damped
     inverse of :class:`inverse.operators.Heat` iterated), ``opt_inverse_floor`` (the same with the operator's
     ``noise_floor=1e-6``), ``opt_lbfgsb`` (scipy's L-BFGS-B per sample on the
-    same loss, x MAE recorded at every iteration; a sample that stops early keeps its last value).
+    same loss, x L1 recorded at every iteration; a sample that stops early keeps its last value).
     Curves (mean over the samples) go to ``/training/<method>`` of ``out/e4-opt.h5``; iteration 0 is
     ``x = 0``.
 
@@ -398,7 +401,7 @@ def optimise_heat(*, samples: int, resolution: int | None, gd_iterations: int, i
     summary = {}
     for name, rows in curves.items():
         mean = rows.mean(axis=1)
-        assert np.all(np.isfinite(mean)), f"{name}: non-finite x MAE"
+        assert np.all(np.isfinite(mean)), f"{name}: non-finite x L1"
         with TrainingLog(h5, name, attrs={"problem": "heat", "samples": samples, "seed": seed,
                                           "x0": "zeros"}) as tl:
             for it, v in enumerate(mean):
@@ -477,7 +480,7 @@ def run_opt_experiment(args: argparse.Namespace) -> dict:
     res = _problem("e4", args.resolution).resolution
     plot_curves({k: (c["iteration"], c["metric"]) for k, c in curves.items()}, ax, logy=True,
                 title=f"E4 optimisation from x = 0 ({args.samples} samples, {res[0]}x{res[1]})",
-                ylabel="x MAE (mean over samples)")
+                ylabel="x L1 per sample (sum over cells), mean over samples")
     ax.set_xscale("symlog", linthresh=1.0)
     ax.set_xlim(left=0)
     save_figure(fig, out / "e4-opt_curves.png")

@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--resume", action="store_true")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
         sp.add_argument("--eval-every", type=int, default=None,
-                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end)")
+                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end only)")
         sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
         sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
                         help="network and data precision (default: the problem's)")
@@ -85,12 +85,9 @@ def describe_file(path: Path) -> str:
     import h5py
     import numpy as np
 
-    from phisim.errors import FileFormatError
+    from phisim._h5util import open_for_read
 
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise FileFormatError(f"{path}: not a readable HDF5 file ({exc})") from exc
+    f = open_for_read(path)  # typed errors for missing files, folders, pipes, truncated or locked files
     lines = [f"{path}"]
     with f:
         for k, v in f.attrs.items():
@@ -147,11 +144,65 @@ def _train(args, problem, method):
     return r
 
 
+def _check_args(args) -> None:
+    """Check output paths and the device before any work starts (a bad --out must not fail after training)."""
+    from phisim._h5util import check_output_path
+    from phisim.checks import check_device
+    from phisim.errors import ParameterError
+
+    if getattr(args, "device", None) is not None:
+        check_device(args.device)
+    if getattr(args, "out", None) is not None:
+        check_output_path(args.out, append=True)
+    plot = getattr(args, "plot", None)
+    if plot is not None:
+        if plot.is_dir():
+            raise ParameterError(f"--plot {plot} is a directory; give a file name such as {plot / 'curves.png'}")
+        try:
+            plot.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ParameterError(f"--plot {plot}: cannot create its folder ({exc.strerror or exc})") from exc
+        import os
+
+        if not os.access(plot.parent, os.W_OK):
+            raise ParameterError(f"--plot {plot}: the folder {plot.parent} is not writable")
+    for name in ("iterations", "checkpoint_every"):
+        v = getattr(args, name, None)
+        if v is not None and v < 0:
+            raise ParameterError(f"--{name.replace('_', '-')} must be >= 0, got {v}")
+    if getattr(args, "batch_size", None) is not None and args.batch_size < 1:
+        raise ParameterError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if getattr(args, "resolution", None) is not None and any(n < 1 for n in args.resolution):
+        raise ParameterError(f"--resolution entries must be >= 1, got {args.resolution}")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the ``phisim`` command; returns the exit status (2 for user errors, with a one-line message)."""
+    """Run the ``phisim`` command; returns the exit status.
+
+    User errors (bad arguments, files, devices, any :class:`~phisim.errors.PhisimError`) print one line
+    ``phisim: error: ...`` and return 2; an unexpected error prints one line and returns 1 (set
+    ``PHISIM_DEBUG=1`` for its traceback); Ctrl-C returns 130. No traceback is printed otherwise.
+    """
+    import os
+
     args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except KeyboardInterrupt:
+        print("phisim: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the command line shows one line, never a traceback
+        if os.environ.get("PHISIM_DEBUG"):
+            raise
+        print(f"phisim: error: {type(exc).__name__}: {exc} (set PHISIM_DEBUG=1 for the traceback)", file=sys.stderr)
+        return 1
+
+
+def _dispatch(args) -> int:
+    """Run the parsed command; user errors (PhisimError) print one line and return 2."""
     started = False
     try:
+        _check_args(args)
         if args.command == "list":
             from .problems import PROBLEMS
 
@@ -172,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
 
         started = _start_process_group(args.device)
         problem = _problem(args)
+        for m in [args.method] if args.command == "train" else args.methods:
+            problem.method(m)  # every method known before the first one trains
         if args.command == "train":
             _train(args, problem, args.method)
             return 0

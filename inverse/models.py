@@ -65,6 +65,10 @@ def problem_spec(problem) -> dict:
     dataclass fields that differ from their defaults and are plain values.
     """
     spec = getattr(problem, "spec", None)
+    from .custom import CustomProblem
+
+    if isinstance(problem, CustomProblem) and not (isinstance(spec, dict) and spec.get("factory")):
+        return {"factory": None, "settings": {}}  # built from functions in Python: not rebuildable by name
     if isinstance(spec, dict) and spec.get("factory"):
         settings = {k: _jsonable(v) for k, v in spec.get("settings", {}).items()}
         return {"factory": spec["factory"], "settings": {k: v for k, v in settings.items() if v is not _SKIP}}
@@ -113,7 +117,7 @@ def save_model(path: str | os.PathLike, network: nn.Module, problem, *, method: 
     state = {
         "format": MODEL_FORMAT,
         "problem": str(getattr(problem, "name", "")),
-        "factory": spec["factory"],
+        "factory": spec["factory"] or "",
         "settings_json": json.dumps(spec["settings"]),
         "network_class": f"{type(network).__module__}.{type(network).__qualname__}",
         "parameters": int(sum(p.numel() for p in network.parameters())),
@@ -175,6 +179,11 @@ def load_model(path: str | os.PathLike, *, network: nn.Module | None = None, dev
     state = read_model_file(path)
     if network is None:
         from .problems import get_problem
+
+        if not state["factory"]:
+            raise ParameterError(f"model file {path} comes from a problem built in Python (make_problem without "
+                                 "a factory); pass the network to load the weights into: load_model(path, "
+                                 "network=...)")
 
         settings = {k: tuple(v) if isinstance(v, list) else v for k, v in state["settings"].items()}
         network = get_problem(state["factory"], **settings).make_network()
@@ -238,7 +247,9 @@ def predict_file(model: str | os.PathLike, inputs: str | os.PathLike, out: str |
     ``(N, *input_shape)``: leading axes (e.g. trajectories and time of a Well field ``t0_fields/<name>``
     ``(B, T, *res)``) are flattened and restored in the output, a channel axis of 1 is added when the
     network takes one channel. The output file holds ``/predictions`` (leading axes, then the network's output
-    shape), attributes ``model``, ``input_file``, ``input_key``, ``problem`` and ``method``.
+    shape), attributes ``model``, ``input_file``, ``input_key``, ``problem`` and ``method``. The predictions are
+    the network's raw output (a problem's own post-processing, e.g. the heat problem's mean correction in
+    :meth:`~inverse.problems.HeatProblem.predict`, is not applied).
 
     Returns:
         The output path.

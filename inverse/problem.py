@@ -57,6 +57,19 @@ class Method:
     rcond: float = 1e-5
     loss: Callable | None = None
 
+    def __post_init__(self):
+        import math
+
+        for name in ("lr", "momentum", "eta", "rcond"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ParameterError(f"method {self.name!r}: {name} must be a finite number >= 0, got {v!r}")
+        if self.lr == 0:
+            raise ParameterError(f"method {self.name!r}: lr must be > 0 (a zero learning rate never trains)")
+        if self.grad_clip is not None and (isinstance(self.grad_clip, bool) or not isinstance(
+                self.grad_clip, (int, float)) or not self.grad_clip > 0):
+            raise ParameterError(f"method {self.name!r}: grad_clip must be None or > 0, got {self.grad_clip!r}")
+
 
 @dataclass
 class Batch:
@@ -154,7 +167,7 @@ class Problem:
         return 0.5 * ((y - y_target) ** 2).reshape(y.shape[0], -1).sum(dim=1)
 
     def metric(self, x: torch.Tensor, batch: Batch) -> torch.Tensor:
-        """Per-sample x MAE ``Σ_cells |x − x*|``, shape ``(B,)``."""
+        """Per-sample x L1 error ``Σ_cells |x − x*|`` (a sum over cells), shape ``(B,)``."""
         return (x - batch.x_true.to(x.dtype)).abs().reshape(x.shape[0], -1).sum(dim=1)
 
     hig_physics: Callable | None = None

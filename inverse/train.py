@@ -35,8 +35,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from phisim._h5util import check_output_path
+from phisim._journal import write_failure
+from phisim.checks import check_device
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
-from phisim.io import TrainingLog
+from phisim.io import TrainingLog, recover_file
 
 from .distributed import convert_sync_batchnorm, init_from_env, launched_by_torchrun, rank_device
 from .hig import HIG, GaussNewton
@@ -194,7 +197,8 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
         chunk_size: Samples per forward pass.
 
     Returns:
-        ``{'loss': float, 'metric': float}``, means over the samples.
+        ``{'loss': float, 'metric': float}``, means over the samples (``loss`` is NaN for a problem without
+        forward physics, ``has_physics = False``).
     """
     batch = problem.heldout(device) if batch is None else batch
     n = int(batch.inputs.shape[0])
@@ -207,7 +211,10 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
             for start in range(0, n, chunk):
                 part = batch if chunk >= n else _slice_batch(batch, slice(start, start + chunk))
                 x = problem.predict(model, part)
-                loss_sum += float(problem.loss(part.operator(x), part.y_target).double().sum())
+                if getattr(problem, "has_physics", True):
+                    loss_sum += float(problem.loss(part.operator(x), part.y_target).double().sum())
+                else:  # offline data without a forward physics: no y-space loss, as in training
+                    loss_sum = math.nan
                 metric_sum += float(problem.metric(x, part).double().sum())
     finally:
         model.train(was_training)
@@ -216,11 +223,27 @@ def evaluate(problem: Problem, model: nn.Module, batch: Batch | None = None, *, 
 
 def _save_checkpoint(path: Path, state: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+    except (OSError, RuntimeError) as exc:  # full disk, vanished folder: no temp file, old checkpoint kept
+        tmp.unlink(missing_ok=True)
+        raise write_failure(path, exc, "write the checkpoint") from exc
+
+
+def _run_identity(problem: Problem, batch_size: int) -> dict:
+    """The settings a checkpoint must share with the run resuming it (problem fields and batch size)."""
+    keep = {}
+    for k, v in vars(problem).items():
+        if isinstance(v, (bool, int, float, str)) or (isinstance(v, tuple) and all(
+                isinstance(e, (bool, int, float, str)) for e in v)):
+            keep[k] = list(v) if isinstance(v, tuple) else v
+    keep["batch_size"] = int(batch_size)
+    return keep
 
 
 def _truncate_log(h5path: Path, method: str, n: int) -> None:
+    recover_file(h5path)  # a log killed mid-write: rebuild the file from its journal first
     with h5py.File(h5path, "a") as f:
         grp = f.get(f"training/{method}")
         if grp is None:
@@ -293,8 +316,9 @@ def train(
             Under ``torchrun`` the group is initialised from its environment (NCCL for CUDA, gloo
             otherwise). ``None``: on when a group is initialised or the process was started by torchrun.
             Not for HIG.
-        eval_every: Iterations between held-out evaluations (``None``: about 20 per run; 0: only after
-            the last iteration). The final model is always evaluated.
+        eval_every: Iterations between held-out evaluations (``None``: ``iterations // 20``, about 20 per
+            run, and only the final one for runs under 20 iterations; 0: only after the last iteration).
+            The final model is always evaluated.
         tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
             the ``tensorboard`` package is not installed.
 
@@ -316,14 +340,17 @@ def train(
         raise ParameterError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
     if (resume or checkpoint_every) and out is None:
         raise ParameterError("checkpoints and resume need an output file (out=...)")
-    batch_size = problem.batch_size if batch_size is None else int(batch_size)
-    if batch_size < 1:
-        raise ParameterError(f"batch_size must be >= 1, got {batch_size}")
+    batch_size = problem.batch_size if batch_size is None else batch_size
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ParameterError(f"batch_size must be an int >= 1, got {batch_size!r}")
+    batch_size = int(batch_size)
     if eval_every is None:
-        eval_every = max(1, iterations // 20)
+        eval_every = iterations // 20  # about 20 evaluations; a run under 20 iterations: only at the end
     if isinstance(eval_every, bool) or not isinstance(eval_every, int) or eval_every < 0:
         raise ParameterError(f"eval_every must be an int >= 0, got {eval_every!r}")
-    device = torch.device(device)
+    device = check_device(device)
+    if out is not None:
+        check_output_path(out, append=True)  # before any work: a bad --out fails now, not after training
 
     import torch.distributed as dist
 
@@ -361,6 +388,14 @@ def train(
             raise FileFormatError(
                 f"checkpoint {ckpt_path} belongs to problem={state.get('problem')} method={state.get('method')} "
                 f"seed={state.get('seed')}, not {problem.name}/{method.name}/seed {seed}"
+            )
+        saved = state.get("settings")
+        if saved is not None and saved != _run_identity(problem, batch_size):
+            now = _run_identity(problem, batch_size)
+            diff = {k: (saved.get(k), now.get(k)) for k in sorted(set(saved) | set(now)) if saved.get(k) != now.get(k)}
+            raise FileFormatError(
+                f"checkpoint {ckpt_path} was written with other settings (saved, now): {diff}; resume with the "
+                "same settings, or start afresh without resume (or delete the checkpoint)"
             )
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -436,7 +471,8 @@ def train(
             if checkpoint_every and (it + 1) % checkpoint_every == 0 and rank == 0:
                 _save_checkpoint(ckpt_path, {"iteration": it + 1, "model": net.state_dict(),
                                              "optimizer": opt.state_dict(), "problem": problem.name,
-                                             "method": method.name, "seed": seed})
+                                             "method": method.name, "seed": seed,
+                                             "settings": _run_identity(problem, batch_size)})
     finally:
         if bar is not None:
             bar.close()

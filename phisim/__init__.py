@@ -15,7 +15,15 @@ from .boundary import (
     pad_staggered_component,
     set_boundary_faces,
 )
-from .checks import all_finite, check_dt, check_finite, check_nonnegative, check_positive
+from .checks import (
+    all_finite,
+    check_device,
+    check_dt,
+    check_finite,
+    check_finite_number,
+    check_nonnegative,
+    check_positive,
+)
 from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
 from .diffusion import (
     diffuse,
@@ -29,6 +37,7 @@ from .errors import (
     BoundaryError,
     FileFormatError,
     GridMismatchError,
+    IncompleteFileWarning,
     NonFiniteError,
     ParameterError,
     PhisimError,
@@ -53,7 +62,15 @@ from .fluid import (
     step,
 )
 from .grid import Grid
-from .io import SimulationData, SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
+from .io import (
+    SimulationData,
+    SimulationWriter,
+    TrainingLog,
+    read_simulation,
+    read_training,
+    recover_file,
+    well_bc_type,
+)
 from .linalg import Solve, SolveInfo, cg, remove_mean
 from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
@@ -61,18 +78,20 @@ from .scenarios import e5_simulation
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
-    "NonFiniteError", "SolveError", "FileFormatError",
+    "NonFiniteError", "SolveError", "FileFormatError", "IncompleteFileWarning",
     "Grid",
     "Solve", "SolveInfo", "cg", "remove_mean",
     "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open", "Inflow",
     "pad", "pad_staggered_component", "set_boundary_faces",
     "CenteredGrid", "StaggeredGrid", "Field", "sample_padded",
-    "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite",
+    "check_dt", "check_finite", "check_nonnegative", "check_positive", "all_finite", "check_device",
+    "check_finite_number",
     "gradient", "divergence", "laplace", "curl", "velocity_from_stream_function",
     "FFTSettings", "fft_settings", "get_fft_settings", "set_fft_settings",
     "spectral_poisson_solve", "masked_poisson_solve", "solve_poisson",
     "diffuse", "diffuse_staggered", "diffuse_values", "explicit_stability_limit", "fourier_heat", "heat_decay_factors",
     "SimulationWriter", "SimulationData", "read_simulation", "TrainingLog", "read_training", "well_bc_type",
+    "recover_file",
     "advect", "semi_lagrangian", "maccormack", "conservative",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",

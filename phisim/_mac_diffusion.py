@@ -110,6 +110,7 @@ class _Component:
             shape[a] = -1
             total = total + lam.reshape(shape)
         self.lam = total
+        self._mults: dict = {}  # (method, theta * alpha, dtype, device) -> prescaled multiplier (shared by copies)
         # the source of non-zero boundary values is needed only when a rule carries a value
         self.has_values = any(
             not _is_zero_rule(c.rule("normal" if a == i else "tangential", i))
@@ -170,13 +171,27 @@ class _Component:
 
     # -- spectral application ------------------------------------------------------------------------------
 
-    def apply(self, x: torch.Tensor, mult: torch.Tensor, engine) -> torch.Tensor:
-        """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` float64 in spectral layout."""
+    def inverse_multiplier(self, coef, dtype, device) -> torch.Tensor:
+        """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
+        if isinstance(coef, torch.Tensor):
+            return (self.scale / (1.0 - coef * self.lam.to(device))).to(dtype)
+        key = (float(coef), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            m = (self.scale / (1.0 - float(coef) * self.lam)).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
+    def apply(self, x: torch.Tensor, mult: torch.Tensor, engine, prescaled: bool = False) -> torch.Tensor:
+        """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` in spectral layout (float64, or
+        already normalised and in ``x``'s dtype when ``prescaled``)."""
         y = x
         if self.r2r:
             y = _fft.r2rn(y, tuple(self.kinds[a][0] for a in self.r2r), tuple(1 + a for a in self.r2r),
                           engine=engine)
-        m = (mult * self.scale).to(x.dtype)
+        m = mult if prescaled else (mult * self.scale).to(x.dtype)
         if self.periodic:
             axes = tuple(1 + a for a in self.periodic)
             Y = _fft.rfftn(y, axes, engine=engine)
@@ -288,9 +303,9 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
                 rhs = rhs + (theta * alpha) * b
         elif b is not None:
             rhs = rhs + alpha * b
-        inverse = 1.0 / (1.0 - (theta * alpha) * lam)
+        inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
         if mask is None:
-            out.append(comp.embed(comp.apply(rhs, inverse, engine), u))
+            out.append(comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
             continue
         # bodies: CG on the free faces, the exact box solve as preconditioner
         p = 1 - comp.restrict(mask)
@@ -310,7 +325,7 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
 
         def precond(r, p=p, comp=comp, inverse=inverse, w=w):
             z = p * r if w is None else p * r / w
-            return p * comp.apply(z, inverse, engine) + (1 - p) * r
+            return p * comp.apply(z, inverse.to(r.dtype), engine, prescaled=True) + (1 - p) * r
 
         rhs_cg = p * weighted(rhs + a_t * lap0(v_fixed))
         if solve is None:

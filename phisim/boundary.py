@@ -39,9 +39,10 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
-from .errors import BoundaryError, ShapeError
+from .errors import BoundaryError, NonFiniteError, ShapeError
 from .grid import AXIS_NAMES
 
 __all__ = [
@@ -90,6 +91,40 @@ def _component_value(value, component: int | None):
     return value
 
 
+def _check_value(value, what: str, *, scalar_ok: bool = True) -> None:
+    """Raise a BoundaryError/NonFiniteError unless ``value`` is a finite number, tuple of numbers or real array."""
+    if isinstance(value, bool) or value is None or isinstance(value, (str, bytes)):
+        raise BoundaryError(f"{what} must be a number, a tuple of numbers or a real tensor, got {value!r}")
+    if isinstance(value, (tuple, list)):
+        if not value:
+            raise BoundaryError(f"{what} is an empty sequence; give one number per vector component")
+        for v in value:
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)):
+                raise BoundaryError(f"{what} must hold numbers, got {value!r}")
+            if not math.isfinite(float(v)):
+                raise NonFiniteError(f"{what} contains NaN or Inf: {value!r}")
+        return
+    if isinstance(value, (int, float, np.number)):
+        if not scalar_ok:
+            raise BoundaryError(f"{what} must be a vector (one number per axis), got the scalar {value!r}")
+        if isinstance(value, complex) or not math.isfinite(float(value)):
+            raise NonFiniteError(f"{what} must be a finite real number, got {value!r}")
+        return
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind not in "fiu":
+            raise BoundaryError(f"{what} must be a real numeric array, got dtype {value.dtype}")
+        if not np.isfinite(value).all():
+            raise NonFiniteError(f"{what} contains NaN or Inf")
+        return
+    if isinstance(value, torch.Tensor):
+        if value.is_complex() or value.dtype == torch.bool:
+            raise BoundaryError(f"{what} must be a real tensor, got dtype {value.dtype}")
+        if value.is_floating_point() and not bool(torch.isfinite(value.detach()).all()):
+            raise NonFiniteError(f"{what} contains NaN or Inf")
+        return
+    raise BoundaryError(f"{what} must be a number, a tuple of numbers or a real tensor, got {type(value).__name__}")
+
+
 @dataclass(frozen=True)
 class Periodic(BoundaryCondition):
     """Periodic side: the domain wraps around. Must be used on both sides of an axis."""
@@ -113,6 +148,9 @@ class Dirichlet(BoundaryCondition):
     value: object = 0.0
     name = "dirichlet"
 
+    def __post_init__(self):
+        _check_value(self.value, "Dirichlet value")
+
     def rule(self, role, component):
         """See :meth:`BoundaryCondition.rule`."""
         return ("odd", _component_value(self.value, component))
@@ -128,6 +166,9 @@ class Neumann(BoundaryCondition):
 
     flux: object = 0.0
     name = "neumann"
+
+    def __post_init__(self):
+        _check_value(self.flux, "Neumann flux")
 
     def rule(self, role, component):
         """See :meth:`BoundaryCondition.rule`."""
@@ -146,6 +187,17 @@ class NoSlipWall(BoundaryCondition):
 
     velocity: tuple[float, ...] | None = None
     name = "no_slip"
+
+    def __post_init__(self):
+        if self.velocity is not None:
+            if isinstance(self.velocity, (int, float, np.number)) and not isinstance(self.velocity, bool):
+                raise BoundaryError(
+                    f"NoSlipWall velocity must be a vector (one number per axis), e.g. (1.0, 0.0), got "
+                    f"{self.velocity!r}"
+                )
+            if not isinstance(self.velocity, (tuple, list)):
+                raise BoundaryError(f"NoSlipWall velocity must be a tuple of numbers, got {self.velocity!r}")
+            _check_value(tuple(self.velocity), "NoSlipWall velocity")
 
     def rule(self, role, component):
         """See :meth:`BoundaryCondition.rule`."""
@@ -400,6 +452,20 @@ class Boundary:
     sides: tuple[tuple[BoundaryCondition, BoundaryCondition], ...]
 
     def __post_init__(self):
+        if not isinstance(self.sides, tuple) or not 1 <= len(self.sides) <= 3:
+            raise BoundaryError(f"Boundary needs one (lower, upper) pair per axis (1-3 axes), got {self.sides!r}")
+        rank = len(self.sides)
+        for axis, pair in enumerate(self.sides):
+            if not isinstance(pair, tuple) or len(pair) != 2 or not all(
+                    isinstance(c, BoundaryCondition) for c in pair):
+                raise BoundaryError(f"axis {axis}: expected a (lower, upper) pair of conditions, got {pair!r}")
+            for c in pair:
+                vec = c.velocity if isinstance(c, NoSlipWall) else getattr(c, "value", getattr(c, "flux", None))
+                if isinstance(vec, (tuple, list)) and len(vec) != rank:
+                    raise BoundaryError(
+                        f"axis {AXIS_NAMES[axis]}: the per-component value {tuple(vec)} of {c.name} has "
+                        f"{len(vec)} entries for a {rank}-D domain; give one per axis"
+                    )
         for axis, (lo, hi) in enumerate(self.sides):
             if isinstance(lo, Periodic) != isinstance(hi, Periodic):
                 raise BoundaryError(
@@ -421,6 +487,8 @@ class Boundary:
         Raises:
             BoundaryError: If the specification is unknown, incomplete or inconsistent.
         """
+        if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)) or not 1 <= rank <= 3:
+            raise BoundaryError(f"rank must be 1, 2 or 3, got {rank!r}")
         if isinstance(spec, Boundary):
             if spec.rank != rank:
                 raise BoundaryError(f"boundary is {spec.rank}-D but the grid is {rank}-D")

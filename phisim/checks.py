@@ -8,7 +8,8 @@ import torch
 
 from .errors import NonFiniteError, ParameterError
 
-__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite"]
+__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
+           "check_finite_number"]
 
 
 def check_dt(dt, name: str = "dt") -> float:
@@ -24,7 +25,9 @@ def check_dt(dt, name: str = "dt") -> float:
     Raises:
         ParameterError: If ``dt`` is negative, NaN or infinite.
     """
-    value = float(dt.detach()) if isinstance(dt, torch.Tensor) else dt
+    if isinstance(dt, bool) or isinstance(dt, (str, bytes)):
+        raise ParameterError(f"{name} must be a number, got {dt!r}")
+    value = float(dt.detach()) if isinstance(dt, torch.Tensor) and dt.numel() == 1 else dt
     try:
         value = float(value)
     except (TypeError, ValueError) as exc:
@@ -40,7 +43,9 @@ def check_nonnegative(value, name: str) -> float:
     Raises:
         ParameterError: If the value is negative, NaN or infinite.
     """
-    v = float(value.detach()) if isinstance(value, torch.Tensor) else value
+    if isinstance(value, bool) or isinstance(value, (str, bytes)):
+        raise ParameterError(f"{name} must be a number, got {value!r}")
+    v = float(value.detach()) if isinstance(value, torch.Tensor) and value.numel() == 1 else value
     try:
         v = float(v)
     except (TypeError, ValueError) as exc:
@@ -87,3 +92,50 @@ def check_finite(x: torch.Tensor, name: str) -> torch.Tensor:
         bad = int((~finite).sum())
         raise NonFiniteError(f"{name} contains {bad} NaN/Inf value(s) out of {x.numel()}")
     return x
+
+
+def check_device(device) -> torch.device:
+    """Validate a torch device before any work starts.
+
+    Args:
+        device: A ``torch.device`` or its name (``'cpu'``, ``'cuda'``, ``'cuda:1'``, ``'mps'``).
+
+    Returns:
+        The ``torch.device``.
+
+    Raises:
+        ParameterError: For a malformed name, or an accelerator this machine does not have.
+    """
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        raise ParameterError(f"unknown device {device!r}; use 'cpu', 'cuda' or 'cuda:N'") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ParameterError(f"device {device!r} was asked for but CUDA is not available here; use 'cpu'")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ParameterError(f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    elif dev.type == "mps" and not (getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+        raise ParameterError(f"device {device!r} was asked for but MPS is not available here; use 'cpu'")
+    return dev
+
+
+def check_finite_number(value, name: str) -> float:
+    """Validate a finite real number of either sign (a strength, an offset, ...).
+
+    Returns:
+        The value (a float; 0-d tensors are returned unchanged so gradients survive).
+
+    Raises:
+        ParameterError: If the value is not a number, or NaN/Inf.
+    """
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        raise ParameterError(f"{name} must be a number, got {value!r}")
+    v = value.detach() if isinstance(value, torch.Tensor) else value
+    try:
+        f = float(v)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"{name} must be a single number, got {value!r}") from exc
+    if not math.isfinite(f):
+        raise ParameterError(f"{name} must be finite, got {f}")
+    return value if isinstance(value, torch.Tensor) else f

@@ -132,6 +132,11 @@ def laplace(field: CenteredGrid | StaggeredGrid) -> CenteredGrid | StaggeredGrid
     Returns:
         A field of the same kind, grid and boundary.
     """
+    if not isinstance(field, (CenteredGrid, StaggeredGrid)):
+        raise ShapeError(
+            f"laplace needs a CenteredGrid or StaggeredGrid, got {type(field).__name__}; wrap a tensor as "
+            "CenteredGrid(values, grid, boundary), or use phisim.poisson.stencil_laplacian for raw tensors"
+        )
     dx = field.grid.dx
     rank = field.grid.rank
     if isinstance(field, StaggeredGrid):
@@ -170,6 +175,8 @@ def curl(field: CenteredGrid | StaggeredGrid, at: str = "center"):
     Raises:
         ShapeError: For 1-D fields or unsupported combinations.
     """
+    if not isinstance(field, (CenteredGrid, StaggeredGrid)):
+        raise ShapeError(f"curl needs a CenteredGrid or StaggeredGrid, got {type(field).__name__}")
     rank = field.grid.rank
     dx = field.grid.dx
     if rank == 2 and isinstance(field, StaggeredGrid):

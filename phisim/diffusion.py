@@ -81,6 +81,14 @@ def explicit_stability_limit(dx, viscosity: float) -> float:
     return 1.0 / (2.0 * nu * sum(1.0 / d**2 for d in dx))
 
 
+def _check_product(tau) -> None:
+    if not math.isfinite(float(tau.detach() if isinstance(tau, torch.Tensor) else tau)):
+        raise ParameterError(
+            f"viscosity * dt = {float(tau)} overflows: each factor is finite but their product is not; use a "
+            "smaller time step or viscosity (the result would be NaN)"
+        )
+
+
 def _phi1(z: torch.Tensor) -> torch.Tensor:
     small = z.abs() < 1e-8
     safe = torch.where(small, torch.ones_like(z), z)
@@ -140,6 +148,7 @@ def diffuse_values(
     kinds = normalize_kinds(kinds, rank)
     dx = _normalize_dx(dx, rank)
     tau = dt * nu  # ν t, a float or a 0-d tensor
+    _check_product(tau)
     b = boundary_source(u, dx, kinds, values)
     if method == "spectral":
         if spectrum == "continuous" and b is not None:
@@ -389,6 +398,7 @@ def heat_decay_factors(
         ParameterError: For negative/non-finite dt or viscosity.
     """
     t = float(check_dt(dt)) * float(check_nonnegative(viscosity, "viscosity"))
+    _check_product(t)
     resolution = tuple(int(n) for n in resolution)
     return _decay_cached(resolution, t, dtype, torch.device(device or "cpu"))
 

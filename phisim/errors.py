@@ -11,6 +11,7 @@ __all__ = [
     "NonFiniteError",
     "SolveError",
     "FileFormatError",
+    "IncompleteFileWarning",
 ]
 
 
@@ -54,3 +55,7 @@ class SolveError(PhisimError, RuntimeError):
 
 class FileFormatError(PhisimError, OSError):
     """A file is missing required content or is corrupt."""
+
+
+class IncompleteFileWarning(UserWarning):
+    """A file was not closed cleanly (its writer was killed or is still running); what was complete is read."""

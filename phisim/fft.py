@@ -27,6 +27,18 @@ Engines:
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
 
+Planner effort and reproducibility: plans are measured (``FFTW_MEASURE``, the fastest plans), and the
+measured choice is shared by every process on the machine through a wisdom file (see
+:mod:`phisim._fftw_wisdom`): the first process that needs a transform times the candidates once and saves
+its wisdom, every later or concurrent process rebuilds exactly that plan. So same seed and settings give
+bit-identical results in two fresh processes, which a per-process measurement does not (a 64x96 plume
+differed from frame 3-5 on, 7e-7 growing to 1e-4). Costs (``benchmarks/bench_reliability.py``, in
+``docs/BENCHMARKS.md``): one measurement per transform size per machine (10 ms to a few s), a locked file
+read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effort='FFTW_ESTIMATE')`` or
+``PHISIM_FFT_PLANNER=estimate``) needs no file and is deterministic too, but chooses slow real-to-real
+algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in
+every process: no file, at the price of cross-process reproducibility.
+
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
 18.3 ms vs 18.5 ms for 128³), so one thread is the default.
@@ -36,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
@@ -45,6 +58,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from . import _fftw_wisdom
 from .errors import ParameterError, ShapeError
 
 try:  # pragma: no cover - exercised implicitly
@@ -98,9 +112,11 @@ class FFTSettings:
             or ``'pyfftw'`` (CPU tensors only).
         threads: FFTW threads per plan (pyfftw engine). Default 1: two threads measured no faster
             on the 2-core development machine.
-        planner_effort: FFTW planner flag; ``'FFTW_MEASURE'`` (default) times candidate algorithms
-            once per plan (10–500 ms, cached), ``'FFTW_ESTIMATE'`` plans instantly but runs up to
-            2–3x slower for real-to-real transforms.
+        planner_effort: FFTW planner flag. ``'FFTW_ESTIMATE'`` (default) plans instantly from a fixed
+            cost model, so every process computes bit-identical results. ``'FFTW_MEASURE'`` (opt-in,
+            also via the environment variable ``PHISIM_FFT_PLANNER``) times candidate algorithms once
+            per plan (10–500 ms, cached) and may run faster, but the chosen plan, and so the round-off,
+            can differ between processes.
     """
 
     engine: str = "auto"
@@ -116,7 +132,20 @@ class FFTSettings:
             raise ParameterError(f"planner_effort must be one of {_EFFORTS}, got {self.planner_effort!r}")
 
 
-_SETTINGS = FFTSettings()
+def _settings_from_environment() -> FFTSettings:
+    effort = os.environ.get("PHISIM_FFT_PLANNER", "").strip().upper()
+    if not effort:
+        return FFTSettings()
+    if not effort.startswith("FFTW_"):
+        effort = "FFTW_" + effort
+    if effort not in _EFFORTS:
+        warnings.warn(f"PHISIM_FFT_PLANNER={os.environ['PHISIM_FFT_PLANNER']!r} is not one of {_EFFORTS}; "
+                      "using FFTW_MEASURE", stacklevel=2)
+        return FFTSettings()
+    return FFTSettings(planner_effort=effort)
+
+
+_SETTINGS = _settings_from_environment()
 _WARNED_NO_PYFFTW = False
 
 
@@ -367,18 +396,16 @@ def _get_plan(
             return plan
         real = np.dtype(dtype)
         cplx = np.result_type(real, np.complex64)
-        flags = (s.planner_effort, "FFTW_DESTROY_INPUT")
         if op == "r2r":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             b = _pyfftw.empty_aligned(shape, dtype=real)
             direction = [_FFTW_KIND[k] for k in kinds]
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction=direction, flags=flags, threads=s.threads)
         elif op == "rfft":
             a = _pyfftw.empty_aligned(shape, dtype=real)
             oshape = list(shape)
             oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_FORWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_FORWARD"
         elif op == "irfft":
             # shape is the complex input shape; out_n the real output sizes along axes
             oshape = list(shape)
@@ -386,9 +413,12 @@ def _get_plan(
                 oshape[ax] = n
             a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
             b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
-            fftw = _pyfftw.FFTW(a, b, axes=axes, direction="FFTW_BACKWARD", flags=flags, threads=s.threads)
+            direction = "FFTW_BACKWARD"
         else:  # pragma: no cover - internal
             raise AssertionError(op)
+        fftw = _fftw_wisdom.plan(_pyfftw, lambda effort: _pyfftw.FFTW(
+            a, b, axes=axes, direction=direction, flags=(effort, "FFTW_DESTROY_INPUT"), threads=s.threads),
+            s.planner_effort)
         plan = _Plan(fftw, a, b)
         _PLANS[key] = plan
         return plan
@@ -499,11 +529,12 @@ class _MultiplierPlan:
         self.inp = _pyfftw.empty_aligned(shape, dtype=real)
         self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=cplx)
         self.out = _pyfftw.empty_aligned(shape, dtype=real)
-        flags = (effort, "FFTW_DESTROY_INPUT")
-        self.fwd = _pyfftw.FFTW(self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=flags,
-                                threads=threads)
-        self.inv = _pyfftw.FFTW(self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=flags,
-                                threads=threads)
+        self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
+        self.inv = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+            self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            threads=threads), effort)
         self.lock = threading.Lock()
 
     def __call__(self, a: np.ndarray, mult: np.ndarray) -> np.ndarray:

@@ -21,22 +21,36 @@ import torch
 import torch.nn.functional as F
 
 from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
-from .errors import GridMismatchError, ShapeError
+from .errors import GridMismatchError, ParameterError, ShapeError
 from .grid import Grid
 
 __all__ = ["CenteredGrid", "StaggeredGrid", "Field", "sample_padded"]
 
 
 def _as_float_tensor(values, dtype=None, device=None) -> torch.Tensor:
-    if isinstance(values, np.ndarray) and values.dtype == np.float64 and dtype is None:
-        t = torch.as_tensor(values)
-    else:
-        t = torch.as_tensor(values, device=device)
+    if isinstance(values, np.ndarray) and values.dtype.kind not in "fiub":
+        raise ParameterError(f"field values must be a real numeric array, got numpy dtype {values.dtype}")
+    if isinstance(values, (str, bytes)) or values is None:
+        raise ParameterError(f"field values must be a tensor or array, got {values!r}")
+    try:
+        if isinstance(values, np.ndarray) and values.dtype == np.float64 and dtype is None:
+            t = torch.as_tensor(values)
+        else:
+            t = torch.as_tensor(values, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"field values must be a real numeric tensor or array: {exc}") from exc
+    if t.is_complex():
+        raise ParameterError("field values must be real; store the real and imaginary parts as two fields")
     if dtype is not None or device is not None:
         t = t.to(dtype=dtype or t.dtype, device=device or t.device)
     if not (t.is_floating_point() or t.is_complex()):
         t = t.to(torch.get_default_dtype())
     return t
+
+
+def _check_count(n, name: str) -> None:
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ParameterError(f"{name} must be an int >= 1, got {n!r}")
 
 
 # ---- interpolation ------------------------------------------------------------------------------------
@@ -126,6 +140,8 @@ class Field:
             )
         if self.grid != other.grid:
             raise GridMismatchError(f"cannot {what} fields on different grids: {self.grid} vs {other.grid}")
+        if self.device != other.device:
+            raise GridMismatchError(f"cannot {what} fields on different devices: {self.device} vs {other.device}")
         if self.boundary != other.boundary:
             raise GridMismatchError(
                 f"cannot {what} fields with different boundaries: {self.boundary} vs {other.boundary}; "
@@ -137,8 +153,17 @@ class Field:
             self._check_compatible(other, what)
             return self._zip(other, (lambda a, b: op(b, a)) if reverse else op)
         if isinstance(other, np.ndarray):
-            other = torch.as_tensor(other)
-        return self._map((lambda a: op(other, a)) if reverse else (lambda a: op(a, other)))
+            other = _as_float_tensor(other)
+        if isinstance(other, (str, bytes)) or other is None:
+            raise ParameterError(f"cannot {what} a {type(self).__name__} and {other!r}")
+        try:
+            return self._map((lambda a: op(other, a)) if reverse else (lambda a: op(a, other)))
+        except (RuntimeError, TypeError) as exc:
+            shape = tuple(other.shape) if isinstance(other, torch.Tensor) else type(other).__name__
+            raise ShapeError(
+                f"cannot {what} a {type(self).__name__} and {shape}: the operand must be a number or broadcast "
+                f"to the field's values (and live on its device {self.device}): {exc}"
+            ) from exc
 
     def __add__(self, other):
         return self._binary(other, operator.add, "add")
@@ -219,6 +244,9 @@ class CenteredGrid(Field):
     def zeros(cls, grid: Grid, boundary, batch_size: int = 1, channels: int | None = None,
               dtype: torch.dtype | None = None, device=None) -> CenteredGrid:
         """A zero field; ``channels=None`` gives a scalar field, an int a vector field with that many channels."""
+        _check_count(batch_size, "batch_size")
+        if channels is not None:
+            _check_count(channels, "channels")
         shape = (batch_size,) + (() if channels is None else (channels,)) + grid.resolution
         return cls(torch.zeros(shape, dtype=dtype or torch.get_default_dtype(), device=device), grid, boundary)
 
@@ -396,6 +424,7 @@ class StaggeredGrid(Field):
     def zeros(cls, grid: Grid, boundary, batch_size: int = 1, dtype: torch.dtype | None = None,
               device=None) -> StaggeredGrid:
         """A zero velocity field."""
+        _check_count(batch_size, "batch_size")
         dtype = dtype or torch.get_default_dtype()
         return cls(tuple(torch.zeros((batch_size, *grid.face_shape(i)), dtype=dtype, device=device)
                          for i in range(grid.rank)), grid, boundary)

@@ -12,6 +12,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .errors import ParameterError
@@ -24,6 +25,11 @@ AXIS_NAMES = ("x", "y", "z")
 def _as_bounds(resolution: tuple[int, ...], bounds) -> tuple[tuple[float, float], ...]:
     if bounds is None:
         return tuple((0.0, float(n)) for n in resolution)
+    if isinstance(bounds, (str, bytes)) or not isinstance(bounds, (Sequence, np.ndarray)):
+        raise ParameterError(
+            f"bounds must be one (lower, upper) pair or one size per axis, e.g. [(0, 1)] * {len(resolution)}, "
+            f"got {bounds!r}"
+        )
     bounds = list(bounds)
     if len(bounds) != len(resolution):
         raise ParameterError(
@@ -32,8 +38,10 @@ def _as_bounds(resolution: tuple[int, ...], bounds) -> tuple[tuple[float, float]
         )
     out = []
     for axis, b in enumerate(bounds):
-        if isinstance(b, (int, float)):
+        if isinstance(b, (int, float, np.number)) and not isinstance(b, bool):
             lo, hi = 0.0, float(b)
+        elif isinstance(b, (str, bytes, bool)):
+            raise ParameterError(f"bounds[{axis}] = {b!r} is neither a size nor a (lower, upper) pair")
         else:
             try:
                 lo, hi = (float(v) for v in b)
@@ -66,9 +74,15 @@ class Grid:
     bounds: tuple[tuple[float, float], ...]
 
     def __init__(self, resolution: int | Sequence[int], bounds=None):
-        if isinstance(resolution, int):
-            resolution = (resolution,)
+        if isinstance(resolution, (str, bytes, bool, float)):
+            raise ParameterError(
+                f"resolution must be an int or a sequence of ints, e.g. (64, 64), got {resolution!r}"
+            )
+        if isinstance(resolution, (int, np.integer)):
+            resolution = (int(resolution),)
         try:
+            if any(isinstance(n, (str, bytes, bool)) for n in resolution):
+                raise TypeError("not an int")
             res = tuple(int(n) for n in resolution)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"resolution must be a sequence of ints, got {resolution!r}") from exc
@@ -80,6 +94,12 @@ class Grid:
             raise ParameterError(f"every resolution entry must be >= 1, got {res}")
         object.__setattr__(self, "resolution", res)
         object.__setattr__(self, "bounds", _as_bounds(res, bounds))
+        for axis, d in enumerate(self.dx):
+            if not 1e-18 <= d <= 1e18:
+                raise ParameterError(
+                    f"cell size dx = {d:g} along axis {AXIS_NAMES[axis]} is out of range [1e-18, 1e18]: 1/dx^2 "
+                    "would overflow float32 (derivatives give Inf/NaN); rescale the units of the domain"
+                )
 
     # ---- basic geometry -------------------------------------------------------------------------
     @property

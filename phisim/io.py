@@ -15,7 +15,9 @@ A file written by :class:`SimulationWriter` holds ``B`` trajectories (the batch)
         mask      (n_axis,)    bool, True at the boundary cells (index 0 and/or -1) with this type
     /scalars                   attrs: field_names=[parameter names]
         <param>   ()           attrs: sample_varying=False, time_varying=False
-    /t0_fields                 attrs: field_names; scalar fields (B, T, *res)
+        dt        ()           the constant output interval (also a root attribute and simulation parameter)
+    /t0_fields                 attrs: field_names; scalar fields (B, T, *res); constant fields such as an
+                               obstacle mask (*res) or (B, *res) with time_varying=False
     /t1_fields                 attrs: field_names; vector fields (B, T, *res, d) at cell centres, channel LAST
     /t2_fields                 attrs: field_names=[] (no tensor fields are written)
         every field: attrs sample_varying=True, time_varying=True, dim_varying=[True] * d
@@ -30,16 +32,29 @@ Boundary types are derived from :class:`~phisim.boundary.Boundary` side by side:
 value or flux); ``Open`` gives OPEN. The exact conditions (values, fluxes, wall velocities) are kept in
 ``/extras`` so :func:`read_simulation` rebuilds the same ``Boundary``.
 
+Frames are equally spaced in time, as The Well's loader assumes: the writer checks every appended time
+against the output interval (given, or taken from the first two frames) and refuses (or, by a setting,
+warns about) a frame off it.
+
 Frames are written one at a time into resizable datasets (chunks of one sample and one frame, gzip with
-the shuffle filter) and the file is flushed after every frame. The ``time`` dataset grows last, so its
-length is the number of completed frames: a run killed mid-way leaves a file that :func:`read_simulation`
-reads with every completed frame (a partly written frame beyond ``len(time)`` is ignored).
+the shuffle filter) and the file is flushed after every frame.
+
+Crash safety: HDF5 rewrites metadata in place, so a writer killed mid-flush (or a file cut short by a power
+loss) can leave a file HDF5 rejects as a whole. Every frame is therefore first appended to an append-only,
+checksummed sidecar ``<file>.journal`` (see :mod:`phisim._journal`), which is deleted when the writer closes
+cleanly. While a journal exists (the writer was killed, or is still running), :func:`read_simulation` reads
+from it: every frame whose record is complete, never a partial one, with a warning naming the torn tail.
+:func:`recover_file` rebuilds a clean HDF5 file from the journal. The journal costs one raw (uncompressed)
+copy of the frames on disk while the run lasts (``journal=False`` turns it off, leaving best-effort safety:
+the reader then clips to the frames every dataset holds). Write failures (full disk, vanished folder) raise
+:class:`~phisim.errors.FileFormatError` naming the file.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,20 +64,13 @@ import h5py
 import numpy as np
 import torch
 
-from ._h5util import PathLike, open_for_read, to_json
+from ._h5util import PathLike, check_output_path, open_for_read, to_json
 from ._io_extras import IntervalCheck, constant_arrays, read_constant_fields, write_constant_fields
-from .boundary import (
-    Boundary,
-    BoundaryCondition,
-    Dirichlet,
-    FreeSlipWall,
-    Inflow,
-    Neumann,
-    NoSlipWall,
-    Open,
-    Periodic,
-)
-from .errors import FileFormatError, ParameterError, ShapeError
+from ._journal import Journal, check_space, journal_path, write_failure
+from ._recovery import load_journal, recover_file, sim_from_journal
+from ._well import _boundary_from_well, _condition_from_json, _conditionto_json, well_bc_type
+from .boundary import Boundary
+from .errors import FileFormatError, IncompleteFileWarning, ParameterError, ShapeError
 from .field import CenteredGrid, StaggeredGrid
 from .grid import AXIS_NAMES, Grid
 from .traininglog import TrainingLog, _read_training_group, read_training
@@ -71,6 +79,7 @@ __all__ = [
     "SimulationWriter",
     "SimulationData",
     "read_simulation",
+    "recover_file",
     "TrainingLog",
     "read_training",
     "well_bc_type",
@@ -132,94 +141,6 @@ def _as_numpy(values, what: str) -> np.ndarray:
     return arr
 
 
-# ---- boundary <-> Well bc_type ------------------------------------------------------------------------
-
-
-def well_bc_type(condition: BoundaryCondition) -> str:
-    """The Well's ``bc_type`` of one phisim boundary condition.
-
-    Args:
-        condition: A phisim condition on one side of one axis.
-
-    Returns:
-        ``'PERIODIC'`` for :class:`Periodic`, ``'OPEN'`` for :class:`Open`, and ``'WALL'`` for
-        :class:`NoSlipWall`, :class:`FreeSlipWall`, :class:`Dirichlet` and :class:`Neumann` (a closed side
-        with a prescribed value or flux).
-
-    Raises:
-        ParameterError: For a condition type this module does not know.
-    """
-    if isinstance(condition, Periodic):
-        return "PERIODIC"
-    if isinstance(condition, (Open, Inflow)):
-        return "OPEN"
-    if isinstance(condition, (NoSlipWall, FreeSlipWall, Dirichlet, Neumann)):
-        return "WALL"
-    raise ParameterError(f"no Well boundary type is known for condition {condition!r}")
-
-
-def _conditionto_json(c: BoundaryCondition) -> dict:
-    if isinstance(c, Inflow):  # a function itself is not stored: its name is, and the side reads back as open
-        if c.varying:
-            return {"type": "inflow", "function": getattr(c.velocity, "__qualname__", repr(c.velocity))}
-        return {"type": "inflow", "velocity": _valueto_json(c.velocity)}
-    if isinstance(c, Periodic):
-        return {"type": "periodic"}
-    if isinstance(c, Open):
-        return {"type": "open"}
-    if isinstance(c, FreeSlipWall):
-        return {"type": "free_slip"}
-    if isinstance(c, NoSlipWall):
-        v = None if c.velocity is None else [float(x) for x in c.velocity]
-        return {"type": "no_slip", "velocity": v}
-    if isinstance(c, Dirichlet):
-        return {"type": "dirichlet", "value": _valueto_json(c.value)}
-    if isinstance(c, Neumann):
-        return {"type": "neumann", "flux": _valueto_json(c.flux)}
-    raise ParameterError(f"cannot store boundary condition {c!r}")
-
-
-def _valueto_json(v):
-    if isinstance(v, torch.Tensor):
-        return {"tensor": v.detach().cpu().tolist()}
-    if isinstance(v, np.ndarray):
-        return {"tensor": v.tolist()}
-    if isinstance(v, (tuple, list)):
-        return [float(x) for x in v]
-    return float(v)
-
-
-def _value_from_json(v):
-    if isinstance(v, dict):
-        return torch.tensor(v["tensor"])
-    if isinstance(v, list):
-        return tuple(float(x) for x in v)
-    return float(v)
-
-
-def _condition_from_json(d: dict) -> BoundaryCondition:
-    kind = d.get("type")
-    if kind == "periodic":
-        return Periodic()
-    if kind == "open":
-        return Open()
-    if kind == "inflow":
-        return Inflow(_value_from_json(d["velocity"])) if "velocity" in d else Open()
-    if kind == "free_slip":
-        return FreeSlipWall()
-    if kind == "no_slip":
-        v = d.get("velocity")
-        return NoSlipWall(None if v is None else tuple(float(x) for x in v))
-    if kind == "dirichlet":
-        return Dirichlet(_value_from_json(d["value"]))
-    if kind == "neumann":
-        return Neumann(_value_from_json(d["flux"]))
-    raise FileFormatError(f"unknown boundary condition {d!r} in /extras/boundary")
-
-
-_FROM_WELL = {"PERIODIC": Periodic, "WALL": NoSlipWall, "OPEN": Open}
-
-
 # ---- writer -------------------------------------------------------------------------------------------
 
 
@@ -265,6 +186,7 @@ class SimulationWriter:
             ``(*res)`` values shared by all trajectories or ``(B, *res)`` values. Stored in ``/t0_fields``
             with ``time_varying=False`` (as The Well stores constant fields) and read back into
             :attr:`SimulationData.constant_fields`.
+        journal: Keep the crash-safety journal ``<path>.journal`` while writing (see the module docstring).
 
     Raises:
         ParameterError: For unknown field kinds, bad names, non-numeric parameters, a non-positive
@@ -295,6 +217,7 @@ class SimulationWriter:
         output_interval: float | None = None,
         uneven_intervals: str = "error",
         constant_fields: Mapping[str, Any] | None = None,
+        journal: bool = True,
     ):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim Grid, got {type(grid).__name__}")
@@ -342,19 +265,37 @@ class SimulationWriter:
         config_json = to_json(config, "config")
         self._level = int(compression_level)
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = None
+        self._journal = None
+        check_output_path(self.path)
+        jpath = journal_path(self.path)
         try:
+            jpath.unlink(missing_ok=True)  # a journal of an earlier run of the replaced file
             self._file = h5py.File(self.path, "w")
         except OSError as exc:
-            raise FileFormatError(f"cannot create HDF5 file {self.path}: {exc}") from exc
+            raise write_failure(self.path, exc, "create the HDF5 file") from exc
         self._n = 0
         self._last_time = -math.inf
         try:
             self._write_header(dataset_name, config_json)
             write_constant_fields(self._file, constants, self.batch_size, self.dtype, grid.rank)
             self._file.flush()
-        except BaseException:
-            self._file.close()
+            if journal:
+                self._journal = Journal(jpath, fresh=True)
+                self._journal.write_json(b"S", {
+                    "dataset_name": dataset_name, "resolution": list(grid.resolution),
+                    "bounds": [list(b) for b in grid.bounds],
+                    "boundary": [[_conditionto_json(c) for c in side] for side in self.boundary.sides],
+                    "kinds": self.kinds, "parameters": self.parameters, "config": config_json,
+                    "batch_size": self.batch_size, "dtype": self.dtype.str,
+                })
+                if constants:
+                    keys = [[n, list(a.shape), a.dtype.str] for n, a in constants.items()]
+                    self._journal.write_frame({"arrays": keys}, list(constants.values()), kind=b"C")
+        except BaseException as exc:
+            self._abort()
+            if isinstance(exc, (OSError, RuntimeError)) and not isinstance(exc, FileFormatError):
+                raise write_failure(self.path, exc, "write the header of") from exc
             raise
 
     # -- layout --
@@ -538,33 +479,77 @@ class SimulationWriter:
             raise ParameterError(f"time must be finite and increasing: got {t} after {self._last_time}")
         self._interval.check(t, self._last_time, self._file)
         frames = {name: self._frame_arrays(name, value) for name, value in fields.items()}
+        frames = {name: (arr.astype(self.dtype, copy=False),
+                         None if stag is None else tuple(c.astype(self.dtype, copy=False) for c in stag))
+                  for name, (arr, stag) in frames.items()}
+        raw = sum(a.nbytes + sum(c.nbytes for c in (st or ())) for a, st in frames.values())
+        check_space(self.path, raw * (2 if self._journal is not None else 1))
+        if self._journal is not None:  # the commit record: complete in the journal before the HDF5 write
+            keys, arrays = [], []
+            for name, (arr, stag) in frames.items():
+                keys.append([f"c:{name}", list(arr.shape), arr.dtype.str])
+                arrays.append(arr)
+                for a, comp in enumerate(stag or ()):
+                    keys.append([f"s:{name}:{a}", list(comp.shape), comp.dtype.str])
+                    arrays.append(comp)
+            self._journal.write_frame({"time": t, "kinds": self.kinds, "arrays": keys}, arrays)
+        try:
+            self._write_frame(frames, t)
+        except (OSError, RuntimeError) as exc:
+            raise write_failure(self.path, exc, f"write frame {self._n} to") from exc
+        self._n += 1
+        self._last_time = t
+
+    def _write_frame(self, frames: dict, t: float) -> None:
         f, n = self._file, self._n
         for name, (arr, stag) in frames.items():
             ds = f["t0_fields" if self.kinds[name] == "scalar" else "t1_fields"][name]
             ds.resize(n + 1, axis=1)
-            ds[:, n] = arr.astype(self.dtype, copy=False)
+            ds[:, n] = arr
             if stag is not None:
                 for a, comp in enumerate(stag):
                     sds = f["staggered"][f"{name}_{AXIS_NAMES[a]}"]
                     sds.resize(n + 1, axis=1)
-                    sds[:, n] = comp.astype(self.dtype, copy=False)
+                    sds[:, n] = comp
+        f.flush()  # the frame's data is on disk before the time axis grows over it
         tds = f["dimensions"]["time"]
         tds.resize((n + 1,))
         tds[n] = t
         f.flush()
-        self._n = n + 1
-        self._last_time = t
 
     def training_log(self, method: str, attrs: Mapping[str, Any] | None = None) -> TrainingLog:
         """A :class:`TrainingLog` writing into ``/training/<method>`` of this file."""
         self._check_open()
-        return TrainingLog(self._file, method, attrs=attrs)
+        return TrainingLog(self._file, method, attrs=attrs, _journal=self._journal)
+
+    def _abort(self) -> None:
+        """Close after a failure: the partial HDF5 file and the journal are removed (nothing was committed)."""
+        try:
+            if self._file is not None and self._file.id.valid:
+                self._file.close()
+        except Exception:  # noqa: BLE001 - the original error is the one to report
+            pass
+        if self._journal is not None:
+            self._journal.close(delete=True)
+        self.path.unlink(missing_ok=True)
 
     def close(self) -> None:
-        """Flush and close the file (idempotent)."""
+        """Flush and close the file, then delete the journal (idempotent).
+
+        Raises:
+            FileFormatError: If the final flush fails (e.g. a full disk); the journal is kept, so
+                :func:`read_simulation` still returns every appended frame.
+        """
         if self._file is not None and self._file.id.valid:
-            self._file.flush()
-            self._file.close()
+            try:
+                self._file.flush()
+                self._file.close()
+            except (OSError, RuntimeError) as exc:
+                if self._journal is not None:
+                    self._journal.close(delete=False)
+                raise write_failure(self.path, exc, "flush and close") from exc
+        if self._journal is not None and not self._journal.closed:
+            self._journal.close(delete=True)
 
     def __enter__(self) -> SimulationWriter:
         return self
@@ -687,12 +672,27 @@ def _read_data(ds, T: int, expected_tail: tuple[int, ...], B: int, path: Path) -
         raise FileFormatError(
             f"{path}: {ds.name} has shape {shape}, expected (B={B}, T, {', '.join(map(str, expected_tail))})"
         )
-    if shape[1] < T:
+    if shape[1] < T:  # only a file written without a journal and not closed cleanly; _read clips T first
         raise FileFormatError(f"{path}: {ds.name} holds {shape[1]} frames but /dimensions/time lists {T}")
     try:
         return ds[:, :T]
     except (OSError, RuntimeError, ValueError) as exc:
         raise FileFormatError(f"{path}: cannot read {ds.name} (damaged data): {exc}") from exc
+
+
+def _complete_frames(f: h5py.File, T: int, p: Path) -> int:
+    """Frames held by every frame dataset (a file written without a journal may be torn after ``T``)."""
+    n = T
+    for gname in ("t0_fields", "t1_fields", "staggered"):
+        grp = f.get(gname)
+        if isinstance(grp, h5py.Group):
+            for ds in grp.values():
+                if isinstance(ds, h5py.Dataset) and ds.ndim >= 2 and bool(ds.attrs.get("time_varying", True)):
+                    n = min(n, ds.shape[1])
+    if n < T:
+        warnings.warn(f"{p}: /dimensions/time lists {T} frames but some fields hold only {n} (a torn write); "
+                      f"reading the {n} complete ones", IncompleteFileWarning, stacklevel=4)
+    return n
 
 
 def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> SimulationData:
@@ -704,7 +704,9 @@ def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> S
         device: Torch device for ``as_torch``.
 
     Returns:
-        A :class:`SimulationData` with every completed frame. Of a foreign Well file only fields that vary
+        A :class:`SimulationData` with every completed frame (from the journal, with an
+        :class:`~phisim.errors.IncompleteFileWarning`, when the writer did not close cleanly). Of a
+        foreign Well file only fields that vary
         over samples, time and every spatial axis are read; tensor (t2) fields are skipped.
 
     Raises:
@@ -712,13 +714,21 @@ def read_simulation(path: PathLike, *, as_torch: bool = False, device=None) -> S
             attribute, or holds datasets whose shapes do not fit its grid.
     """
     p = Path(path)
+    journal = load_journal(p)
+    if journal is not None and journal.header is not None:
+        return sim_from_journal(journal, p, as_torch, device)
     with open_for_read(p) as f:
         try:
-            return _read(f, p, as_torch, device)
+            data = _read(f, p, as_torch, device)
+            if journal is not None:
+                data.training.update(journal.training_curves())
+            return data
         except FileFormatError:
             raise
-        except (OSError, RuntimeError, KeyError) as exc:
-            raise FileFormatError(f"{p}: damaged HDF5 content: {exc}") from exc
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError) as exc:
+            raise FileFormatError(
+                f"{p}: damaged or malformed HDF5 content (written by another program?): {exc}"
+            ) from exc
 
 
 def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
@@ -736,7 +746,8 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
     if tds.ndim != 1:
         raise FileFormatError(f"{p}: /dimensions/time must be 1-D (sample-varying times are not supported)")
     times = np.asarray(tds[:], dtype=np.float64)
-    T = len(times)
+    T = _complete_frames(f, len(times), p)
+    times = times[:T]
     coords = [np.asarray(_need(dims, name, p, h5py.Dataset)[()]) for name in spatial]
 
     extras = f.get("extras")
@@ -805,27 +816,3 @@ def _read(f: h5py.File, p: Path, as_torch: bool, device) -> SimulationData:
     return SimulationData(p, dataset_name, grid, boundary, times, fields, staggered, kinds, parameters,
                           config,
                           training, constants)
-
-
-def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:
-    sides: list[list[BoundaryCondition]] = [[Open(), Open()] for _ in range(grid.rank)]
-    bcs = f.get("boundary_conditions")
-    if not isinstance(bcs, h5py.Group):
-        raise FileFormatError(f"{p}: missing group /boundary_conditions")
-    for key in bcs:
-        grp = bcs[key]
-        bc_type = _attr_str(_need_attr(grp, "bc_type", p)).upper()
-        if bc_type not in _FROM_WELL:
-            raise FileFormatError(f"{p}: {grp.name} has unknown bc_type {bc_type!r} (PERIODIC, WALL, OPEN)")
-        assoc = _attr_str_list(_need_attr(grp, "associated_dims", p))
-        mask = np.asarray(_need(grp, "mask", p, h5py.Dataset)[()], dtype=bool)
-        if len(assoc) != 1 or assoc[0] not in spatial or mask.ndim != 1:
-            continue  # boundaries not aligned with one axis do not map onto a phisim Boundary
-        a = spatial.index(assoc[0])
-        for side, idx in ((0, 0), (1, -1)):
-            if mask.size and mask[idx]:
-                sides[a][side] = _FROM_WELL[bc_type]()
-    try:
-        return Boundary(tuple((lo, hi) for lo, hi in sides))
-    except Exception as exc:  # inconsistent periodic sides
-        raise FileFormatError(f"{p}: inconsistent boundary_conditions: {exc}") from exc

@@ -24,8 +24,14 @@ Behaviour in brief:
   (``Solve.refine_rtol``), and the loop repeats until the float64 residual meets the tolerance.
   The returned solution has the input dtype; its residual is reported honestly (computed in
   float64): rounding a solution to float32 adds about ``eps32 * ||A|| * ||x||`` to it, so a
-  tolerance below that is unreachable for *any* float32 vector and is reported as a
-  ``precision_floor`` failure that suggests float64 input. ``refine=True`` with float64 input
+  tolerance below that is unreachable for *any* float32 vector. By default
+  (``Solve.widen_tolerance``) such a solve succeeds: the float64 iterate meets the tolerance, the
+  tolerance is widened by the measured rounding floor ``||A (fl32(x) - x)||``, and the widened
+  threshold (which the returned solution's true residual provably meets) is what
+  :attr:`SolveInfo.tolerance` reports, next to :attr:`SolveInfo.precision_floor`. With
+  ``widen_tolerance=False`` it is a ``precision_floor`` failure that suggests float64 input. So float32
+  fields with default settings get a solution without any change by the user, the best one float32
+  can hold. ``refine=True`` with float64 input
   gives the same scheme with float32 inner iterations and a float64 result.
 * **Failures** (``raise_on_failure=True``) raise :class:`~phisim.errors.SolveError` carrying
   ``iterations`` and ``residual`` (per-sample tensors) and a message naming the cause: iteration
@@ -111,6 +117,13 @@ class Solve:
         refine_rtol: Relative residual reduction asked of the float32 inner CG in each
             refinement round. It must be well above float32's own floor. Default ``1e-3``.
         max_refine: Limit on refinement rounds. Default ``20``.
+        widen_tolerance: For float32/float16/bfloat16 output of a refined solve: when the float64
+            iterate meets the tolerance but rounding it to the output dtype pushes the residual
+            over (no vector of that dtype may meet it), accept the rounded solution against the
+            tolerance widened by the rounding floor ``||A (fl(x) - x)||`` and report the widened
+            threshold in :attr:`SolveInfo.tolerance` (and the floor in
+            :attr:`SolveInfo.precision_floor`). Default ``True``; ``False`` raises a
+            ``precision_floor`` :class:`~phisim.errors.SolveError` instead.
         stagnation_window: A sample whose smallest recurrence residual has not decreased by at
             least 1 % within this many iterations is stopped as stagnated (an incompatible
             right-hand side for a singular operator, or a precision floor). Default ``500``.
@@ -128,6 +141,7 @@ class Solve:
     refine: bool | None = None
     refine_rtol: float = 1e-3
     max_refine: int = 20
+    widen_tolerance: bool = True
     stagnation_window: int = 500
     check_every: int | None = None
 
@@ -152,8 +166,9 @@ class Solve:
                 raise bad(name, "must be an integer >= 1" + (" or None" if allow_none else ""))
         if self.refine not in (None, True, False):
             raise bad("refine", "must be None, True or False")
-        if not isinstance(self.raise_on_failure, bool):
-            raise bad("raise_on_failure", "must be True or False")
+        for name in ("raise_on_failure", "widen_tolerance"):
+            if not isinstance(getattr(self, name), bool):
+                raise bad(name, "must be True or False")
 
     def resolved_max_iter(self, n: int) -> int:
         """The iteration limit for ``n`` unknowns per sample.
@@ -178,11 +193,15 @@ class SolveInfo:
         converged: Whether ``residual <= max(rtol * ||rhs_b||, atol)`` (bool).
         rtol: Relative tolerance used.
         atol: Absolute tolerance used.
-        tolerance: The per-sample absolute threshold ``max(rtol * ||rhs_b||, atol)``.
+        tolerance: The per-sample absolute threshold ``max(rtol * ||rhs_b||, atol)``, plus
+            ``precision_floor`` where the tolerance was widened (see ``Solve.widen_tolerance``).
         status: Per-sample outcome names: ``converged``, ``max_iter``, ``stagnated``,
             ``precision_floor``, ``breakdown`` or ``non_finite``.
         refined: Whether mixed-precision iterative refinement was used.
         refinements: Number of refinement rounds (0 without refinement).
+        precision_floor: Per sample, the residual added by rounding the float64-refined solution
+            to the output dtype, ``||A (fl(x) - x)||``, where it widened the tolerance (0 elsewhere);
+            ``None`` when no tolerance was widened.
     """
 
     iterations: Tensor
@@ -194,6 +213,7 @@ class SolveInfo:
     status: tuple[str, ...] = field(default_factory=tuple)
     refined: bool = False
     refinements: int = 0
+    precision_floor: Tensor | None = None
 
     @property
     def all_converged(self) -> bool:
@@ -401,7 +421,7 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
 
     if refine:
         assert Ax64 is not None
-        x, iters, status, rounds = _refine(s, b64, x64_start, Ax64, tol, budget, check_every, dtype)
+        x, iters, status, rounds, x64_ref = _refine(s, b64, x64_start, Ax64, tol, budget, check_every, dtype)
     else:
         x, iters, status = _plain(s, b, x0, tol, budget, check_every, dtype)
         rounds = 0
@@ -411,6 +431,19 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
         res = _norm(b64 - _apply(s.op, x.double(), params))
     else:
         res = _norm(b - _apply(s.op, x, params)).double()
+    floor = None
+    if refine and op64 and dtype in _LOW_PRECISION and solve.widen_tolerance:
+        # The float64 iterate met the tolerance but its rounding to the output dtype may not: no
+        # vector of that dtype need meet it. Widen by the rounding floor ||A (fl(x) - x)||; then
+        # ||b - A fl(x)|| <= ||b - A x|| + ||A (fl(x) - x)|| <= tol + floor holds for the returned x.
+        rounded = (status == _CONVERGED) & (res > tol)
+        if bool(rounded.any()):
+            delta = x.double() - x64_ref
+            Ad = _apply(s.op, delta, params)
+            if s.P is not None:
+                Ad = s.P(Ad)
+            floor = torch.where(rounded, _norm(Ad), torch.zeros_like(tol))
+            tol = tol + floor
     converged = res <= tol
     # A sample whose iteration ended converged but whose returned solution misses the tolerance
     # (rounding to the output dtype) sits on the representation floor.
@@ -418,7 +451,7 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
                          torch.where(status == _CONVERGED, _FLOOR, status))
     info = SolveInfo(iterations=iters, residual=res, converged=converged, rtol=solve.rtol, atol=solve.atol,
                      tolerance=tol, status=tuple(_STATUS_NAMES[int(c)] for c in status.tolist()),
-                     refined=bool(refine), refinements=rounds)
+                     refined=bool(refine), refinements=rounds, precision_floor=floor)
     if solve.raise_on_failure and not bool(converged.all()):
         _raise(info, dtype, refine)
     return x, info
@@ -472,7 +505,7 @@ def _plain(s: _Setup, b: Tensor, x0: Tensor | None, tol64: Tensor, budget: Tenso
 
 
 def _refine(s: _Setup, b64: Tensor, x64: Tensor, Ax64: Tensor, tol64: Tensor, budget: Tensor,
-            check_every: int, out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, int]:
+            check_every: int, out_dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, int, Tensor]:
     """Mixed-precision iterative refinement: float64 residuals, float32 CG corrections."""
     solve = s.solve
     B = b64.shape[0]
@@ -522,7 +555,7 @@ def _refine(s: _Setup, b64: Tensor, x64: Tensor, Ax64: Tensor, tol64: Tensor, bu
     status = torch.where(ok, _CONVERGED, torch.where(status == _RUNNING, _MAX_ITER, status))
     if s.P is not None:
         x64 = s.P(x64)
-    return x64.to(out_dtype), iters, status, rounds
+    return x64.to(out_dtype), iters, status, rounds, x64
 
 
 def _raise(info: SolveInfo, dtype: torch.dtype, refined: bool) -> None:

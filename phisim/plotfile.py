@@ -161,11 +161,14 @@ def plot_frames(data, name: str, path: str | Path, *, sample: int = 0, frames: S
         ax.legend()
         ax.set_title(f"{name}, sample {sample}")
         return save_figure(fig, path)
-    cols = min(columns, len(frames))
+    aspect = data.grid.size[0] / data.grid.size[1]
+    wide = aspect > 2  # a channel: one panel per row
+    cols = 1 if wide else min(columns, len(frames))
     rows = math.ceil(len(frames) / cols)
+    pw, ph = (8.0, max(1.6, 8.0 / aspect + 0.7)) if wide else (3.2, 3.0)
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols + 0.8, 3.0 * rows), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(rows, cols, figsize=(pw * cols + 0.8, ph * rows), squeeze=False, layout="constrained")
     im = None
     for k, ax in enumerate(axes.flat):
         if k >= len(frames):
@@ -198,7 +201,8 @@ def animate_file(data, name: str, path: str | Path, *, sample: int = 0, fps: int
     arr = field_frames(data, name, sample)
     mask = obstacle_of(data, sample)
     lo, hi, cmap = _limits(arr, name)
-    fig, ax = new_figure((5.0, 4.0), dpi)
+    aspect = data.grid.size[0] / data.grid.size[1]
+    fig, ax = new_figure((8.0, max(2.0, 7.0 / aspect + 0.8)) if aspect > 2 else (5.0, 4.0), dpi)
     im = _draw(ax, _slice2d(arr[0]), data.grid, mask, lo, hi, cmap)
     fig.colorbar(im, ax=ax, label=name)
     title = ax.set_title("")

@@ -49,6 +49,7 @@ import warnings
 from collections.abc import Sequence
 from functools import lru_cache
 
+import numpy as np
 import torch
 
 from . import fft as _fft
@@ -121,15 +122,29 @@ def normalize_kinds(kinds, rank: int) -> Kinds:
 
 
 def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
-    if isinstance(dx, (int, float)):
+    if isinstance(dx, torch.Tensor) and dx.numel() == 1:
+        dx = float(dx)
+    if isinstance(dx, (int, float, np.number)) and not isinstance(dx, bool):
         dx = (float(dx),) * rank
-    dx = tuple(float(d) for d in dx)
+    try:
+        dx = tuple(float(d) for d in dx)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"dx must be a positive number or one per axis, got {dx!r}") from exc
     if len(dx) != rank:
         raise ParameterError(f"dx has {len(dx)} entries for {rank} spatial axes")
     for d in dx:
         if not math.isfinite(d) or d <= 0:
             raise ParameterError(f"dx must be finite and > 0, got {dx}")
+        if d < _MIN_DX:
+            raise ParameterError(
+                f"dx = {d:g} is so small that 1/dx^2 overflows float32 (the stencil would give NaN); "
+                "rescale the domain, e.g. work in units where dx is near 1"
+            )
     return dx
+
+
+#: Smallest accepted cell size: ``1/dx**2`` must stay finite in float32 with room for the stencil sums.
+_MIN_DX = 1e-18
 
 
 def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
@@ -140,6 +155,8 @@ def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     if rhs.dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"{name} must be float32 or float64, got {rhs.dtype}")
     rank = rhs.ndim - 1
+    if rhs.numel() == 0 and rhs.ndim >= 1:
+        raise ShapeError(f"{name} is empty (shape {tuple(rhs.shape)}); it needs at least one sample and one cell")
     if not 1 <= rank <= 3:
         raise ShapeError(
             f"{name} must have shape (B, *resolution) with 1-3 spatial axes, got {tuple(rhs.shape)}; "
@@ -372,7 +389,17 @@ def boundary_source(like: torch.Tensor, dx, kinds, values) -> torch.Tensor | Non
             coef = 2.0 / dx[a] ** 2 if kind == "dirichlet" else 1.0 / dx[a]
             slab_shape = list(like.shape)
             slab_shape[1 + a] = 1
-            vt = torch.as_tensor(v, dtype=like.dtype, device=like.device)
+            try:
+                vt = torch.as_tensor(v, dtype=like.dtype, device=like.device)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise BoundaryError(
+                    f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} must be a number or "
+                    f"a real tensor, got {v!r}"
+                ) from exc
+            if not all_finite(vt):
+                raise NonFiniteError(
+                    f"boundary value on axis {a} side {'lower' if side == 0 else 'upper'} contains NaN or Inf"
+                )
             try:
                 vt = torch.broadcast_to(vt, slab_shape)
             except RuntimeError as exc:
@@ -589,7 +616,10 @@ def masked_laplacian(u: torch.Tensor, mask: torch.Tensor, dx, kinds, values=None
 
 
 def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
-    m = torch.as_tensor(mask, device=like.device)
+    try:
+        m = torch.as_tensor(mask, device=like.device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"mask must be a bool or 0/1 array, got {type(mask).__name__}") from exc
     if m.ndim == like.ndim - 1:
         m = m[None]
     if (
@@ -601,7 +631,29 @@ def _mask_tensor(mask, like: torch.Tensor) -> torch.Tensor:
             f"mask must have shape {tuple(like.shape[1:])} or (B, *resolution) matching "
             f"{tuple(like.shape)}, got {tuple(m.shape)}"
         )
+    if m.dtype != torch.bool:
+        if m.is_complex() or not bool(((m == 0) | (m == 1)).all()):
+            raise ParameterError(
+                "mask must hold only 0/1 (False/True): a cell is fluid or not; a fractional mask would "
+                "silently scale the operator. Threshold it first, e.g. mask > 0.5"
+            )
     return m.to(like.dtype)
+
+
+def _mask_face_weights(m: torch.Tensor, kinds: Kinds) -> tuple[torch.Tensor, ...]:
+    """0/1 face weights of a cell mask: open between two fluid cells and on Dirichlet sides of a fluid cell."""
+    out = []
+    for a, (lo, hi) in enumerate(kinds):
+        dim, n = 1 + a, m.shape[1 + a]
+        if lo == "periodic":
+            wrap = m.narrow(dim, n - 1, 1) * m.narrow(dim, 0, 1)
+            out.append(torch.cat([wrap, m.narrow(dim, 1, n - 1) * m.narrow(dim, 0, n - 1), wrap], dim))
+            continue
+        inner = m.narrow(dim, 1, n - 1) * m.narrow(dim, 0, n - 1)
+        first = m.narrow(dim, 0, 1) if lo == "dirichlet" else torch.zeros_like(m.narrow(dim, 0, 1))
+        last = m.narrow(dim, n - 1, 1) if hi == "dirichlet" else torch.zeros_like(m.narrow(dim, 0, 1))
+        out.append(torch.cat([first, inner, last], dim))
+    return tuple(out)
 
 
 def masked_poisson_solve(
@@ -622,15 +674,14 @@ def masked_poisson_solve(
     """Solve ``∇²_h u = rhs`` on the fluid cells of a box with obstacles by preconditioned CG.
 
     Obstacle cells (``mask`` False) are excluded; faces between fluid and obstacle cells are
-    zero-Neumann (no flux), the box sides follow ``kinds``/``values``; ``u`` is 0 in obstacles. The CG
-    system is ``-∇²_h`` (symmetric positive (semi-)definite on fluid cells, identity on obstacle
-    cells), preconditioned by the exact spectral inverse of the obstacle-free box (masked both sides,
-    which keeps it symmetric positive definite).
+    zero-Neumann (no flux), the box sides follow ``kinds``/``values``; ``u`` is 0 in obstacles. The
+    solve is :class:`phisim.poisson_masked.MaskedPoisson` with 0/1 face weights (the same operator the
+    fluid projection uses): CG on ``-∇²_h`` (symmetric positive (semi-)definite on fluid cells, identity
+    on obstacle cells), preconditioned by the exact spectral inverse of the obstacle-free box.
 
-    Without a Dirichlet side the problem is singular: the rhs mean over fluid cells is checked as in
-    :func:`spectral_poisson_solve` and the zero-mean (over fluid cells) solution is returned. This
-    assumes one connected fluid region; a fluid pocket enclosed by obstacles needs a compatible rhs of
-    its own, otherwise CG stagnates and raises :class:`~phisim.errors.SolveError`.
+    Every connected fluid region that reaches no Dirichlet side is singular on its own (a closed box, or a
+    pocket enclosed by obstacles): its rhs mean is checked as in :func:`spectral_poisson_solve` (per
+    region) and the solution has zero mean over each such region.
 
     Args:
         rhs: Right-hand side ``(B, *resolution)``, float32/float64.
@@ -654,7 +705,7 @@ def masked_poisson_solve(
         SolveError: CG did not converge.
         ParameterError, BoundaryError, ShapeError, NonFiniteError: For invalid input.
     """
-    from .linalg import Solve, cg
+    from .linalg import Solve
 
     rank = _check_rhs(rhs)
     kinds = normalize_kinds(kinds, rank)
@@ -668,64 +719,39 @@ def masked_poisson_solve(
     m = _mask_tensor(mask, rhs)
     if bool((m.flatten(1).sum(1) == 0).any()):
         raise ParameterError("masked_poisson_solve: the mask has no fluid cell in some sample")
-    faces = _open_faces(m, kinds)
-    singular = _singular(kinds)
+    from .poisson_masked import MaskedPoisson
 
     f = rhs
     b = boundary_source(rhs, dx, kinds, values)
     if b is not None:
         f = f - b
     f = f * m
-    n_fluid = m.flatten(1).sum(1)
-    dims = tuple(range(1, rhs.ndim))
-
-    def project(t: torch.Tensor) -> torch.Tensor:
-        mm = m.to(t.dtype)
-        mean = (t * mm).sum(dim=dims, keepdim=True) / n_fluid.to(t.dtype).reshape((-1,) + (1,) * rank)
-        return t - mean * mm
-
-    if singular:
+    op = MaskedPoisson(_mask_face_weights(m, kinds), dx, kinds, engine=engine)
+    if op.singular:  # every closed fluid region needs a compatible rhs of its own
         tol = _compat_tol(rhs.dtype) if compat_rtol is None else compat_rtol
         with torch.no_grad():
-            mean = (f.sum(dim=dims) / n_fluid).abs()
-            rms = ((f**2).sum(dim=dims) / n_fluid).sqrt()
-            bad = mean > tol * rms
+            z = (op.null > 0).to(f.dtype)
+            count = z.flatten(2).sum(-1).clamp_min(1)
+            mean = op.region_sums(f) / count
+            rms = (op.region_sums(f**2) / count).sqrt()
+            bad = (mean.abs() > tol * rms) & (count > 0) & (z.flatten(2).sum(-1) > 0)
         if bool(bad.any()):
+            b_i, k_i = (int(v) for v in torch.nonzero(bad)[0])
             msg = (
-                f"masked_poisson_solve: singular problem (no Dirichlet side) with an incompatible rhs for "
-                f"samples {[int(i) for i in torch.nonzero(bad).flatten()]} (mean over fluid cells beyond "
-                f"{tol:g} x RMS). Fix the data or pass incompatible='project'/'warn'."
+                f"masked_poisson_solve: singular problem with an incompatible rhs: sample {b_i}, closed fluid "
+                f"region {k_i + 1} of {op.null.shape[1]} (a pocket of "
+                f"{int(count[min(b_i, count.shape[0] - 1), k_i])} cells, no Dirichlet side) has a rhs mean of "
+                f"{float(mean[b_i, k_i]):.3g} (beyond {tol:g} x RMS {float(rms[b_i, k_i]):.3g}). Each region "
+                "enclosed by obstacles and closed sides needs a zero net source of its own: fix the data, open "
+                "the region, or pass incompatible='project'/'warn' "
+                "(the mean of each region is then removed)."
             )
             if incompatible == "raise":
                 raise ParameterError(msg)
             if incompatible == "warn":
-                warnings.warn(msg + " The mean was removed.", RuntimeWarning, stacklevel=2)
-
-    def operator(x: torch.Tensor) -> torch.Tensor:
-        mm = m.to(x.dtype)
-        fc = [fa.to(x.dtype) for fa in faces]
-        return -_laplace_zero(x * mm, dx, kinds, fc) * mm + (1 - mm) * x
-
-    inv = _inverse_eigs(tuple(rhs.shape[1:]), dx, kinds, rhs.device)
-
-    def spectral_pre(r: torch.Tensor) -> torch.Tensor:
-        mm = m.to(r.dtype)
-        z = -_apply_multiplier(r * mm, kinds, inv, engine)  # (-∇²_box)^-1 (constant mode dropped)
-        return z * mm + (1 - mm) * r
-
-    out = cg(
-        operator,
-        -f,
-        x0,
-        solve=solve,
-        preconditioner=spectral_pre if preconditioner else None,
-        return_info=return_info,
-        project=project if singular else None,
-    )
-    x, info = out if return_info else (out, None)
+                warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    x, info = op.solve(-f, solve=solve, x0=x0, preconditioned=preconditioner is not None)
     x = x * m
-    if singular:  # the gauge: zero mean over fluid cells
-        x = project(x)
     return (x, info) if return_info else x
 
 

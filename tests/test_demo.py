@@ -38,7 +38,8 @@ def test_demo_tiny(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     assert summary["smoke"]["max_divergence"] < 1e-4
     # conservative smoke transport: the smoke mass is exactly what the inflow put in
-    assert abs(summary["smoke"]["smoke_mass"] - summary["smoke"]["smoke_added"]) < 1e-6 * summary["smoke"]["smoke_added"]
+    smoke = summary["smoke"]
+    assert abs(smoke["smoke_mass"] - smoke["smoke_added"]) < 1e-6 * smoke["smoke_added"]
     train = read_simulation(tmp_path / "data" / "train" / "smoke.h5")
     valid = read_simulation(tmp_path / "data" / "valid" / "smoke.h5")
     assert train.n_frames == 4 and train.fields["density"].shape == (1, 4, 16, 16)
@@ -60,6 +61,6 @@ def test_demo_tiny(tmp_path):
         for m in ("adam", "pg"):
             g = f[f"training/{m}"]
             assert g["metric"].shape == (2,) and np.isfinite(g["metric"][()]).all()
-            assert np.isfinite(g["eval_metric"][()]).all()  # 2 iterations: evaluated after each
+            assert np.isfinite(g["eval_metric"][()]).tolist() == [False, True]  # the final model
             assert "sum over cells" in g.attrs["metric_name"] and g.attrs["heldout_size"] == 4
     assert summary["training"]["adam"]["heldout_metric"] > 0

@@ -23,7 +23,7 @@ import torch
 
 from ..advection import SCALAR_SCHEMES, SCHEMES, advect
 from ..boundary import Boundary, pad
-from ..checks import check_dt, check_finite
+from ..checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
 from ..errors import GridMismatchError, ParameterError, ShapeError
 from ..field import CenteredGrid, StaggeredGrid
 from ..grid import Grid
@@ -83,6 +83,7 @@ def buoyancy(
     """
     _check_velocity(velocity)
     dt = check_dt(dt)
+    strength = check_finite_number(strength, "buoyancy strength")
     grid = velocity.grid
     direction = (
         tuple(float(c) for c in direction) if direction is not None else (0.0,) * (grid.rank - 1) + (1.0,)
@@ -131,6 +132,8 @@ def normalize_energy(velocity: StaggeredGrid, energy: torch.Tensor) -> Staggered
     _check_velocity(velocity)
     e = kinetic_energy(velocity)
     target = torch.as_tensor(energy, dtype=e.dtype, device=e.device)
+    if not all_finite(target) or bool((target.detach() < 0).any()):
+        raise ParameterError(f"normalize_energy: the target energy must be finite and >= 0, got {energy!r}")
     tiny = torch.finfo(e.dtype).tiny
     factor = torch.where(e > tiny, torch.sqrt(target / e.clamp_min(tiny)), torch.ones_like(e))
     return velocity.with_values(tuple(c * factor.reshape(-1, *([1] * (c.ndim - 1))) for c in velocity.values))
@@ -153,9 +156,8 @@ def cfl_dt(velocity: StaggeredGrid, cfl: float = 0.5, *, max_dt: float = math.in
         NonFiniteError: For a velocity containing NaN/Inf.
     """
     _check_velocity(velocity)
-    if not (cfl > 0 and math.isfinite(cfl)):
-        raise ParameterError(f"cfl must be finite and > 0, got {cfl}")
-    if not max_dt > 0:
+    cfl = check_positive(cfl, "cfl")
+    if isinstance(max_dt, (str, bytes)) or not max_dt > 0:
         raise ParameterError(f"max_dt must be > 0, got {max_dt}")
     with torch.no_grad():
         rate = 0.0

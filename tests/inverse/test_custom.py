@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from inverse import load_model, make_problem, model_path, predict_file, train
+from inverse import load_model, make_problem, model_path, train
 from inverse.custom import load_problem
 from inverse.nets import MLP
 from phisim.errors import FileFormatError, ParameterError
@@ -116,6 +116,18 @@ def test_burgers_tutorial_trains_through_the_cli(tmp_path):
     assert net(y).shape == (3, 8)
 
 
+def test_model_of_a_python_built_problem_needs_the_network(tmp_path):
+    p = _linear_problem()
+    out = tmp_path / "l.h5"
+    r = train(p, "adam", iterations=2, batch_size=2, out=out)
+    with pytest.raises(ParameterError, match="network="):
+        load_model(model_path(out, "adam"))
+    net = load_model(model_path(out, "adam"), network=MLP([2, 16, 2]))
+    x = torch.randn(4, 2, dtype=torch.float64)
+    with torch.no_grad():
+        assert torch.equal(net(x), r.model.eval()(x))
+
+
 def test_model_file_round_trip_predict_and_mismatch(tmp_path, capsys):
     from inverse import get_problem
     from inverse.nets import UNet
@@ -173,16 +185,21 @@ def test_offline_training_from_a_dataset_and_csv(tmp_path):
     with pytest.raises(FileFormatError, match="Well's layout"):
         DatasetSampler(tmp_path, "temperature")
     out = tmp_path / "w.h5"
-    r = train(load_problem_well(root), "supervised", iterations=3, batch_size=2, out=out,
-              tensorboard=tmp_path / "tb")
+    TensorBoardLogger._warned = False
+    if tensorboard_available():
+        r = train(load_problem_well(root), "supervised", iterations=3, batch_size=2, out=out,
+                  tensorboard=tmp_path / "tb")
+        assert any((tmp_path / "tb" / "supervised").iterdir())
+    else:
+        with pytest.warns(UserWarning, match="TensorBoard logging skipped"):
+            r = train(load_problem_well(root), "supervised", iterations=3, batch_size=2, out=out,
+                      tensorboard=tmp_path / "tb")
     assert np.isfinite(r.curves["metric"]).all()
     files = export_csv(out, tmp_path / "csv")
     text = files[0].read_text().splitlines()
     assert text[0].startswith("iteration,") and len(text) == 4
     col = text[0].split(",").index("metric")
     assert float(text[-1].split(",")[col]) == pytest.approx(float(r.curves["metric"][-1]))
-    if not tensorboard_available():
-        assert not TensorBoardLogger(tmp_path / "tb2", "m").active
 
 
 def load_problem_well(root):

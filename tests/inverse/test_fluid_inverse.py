@@ -279,7 +279,7 @@ def test_registered():
 
 @pytest.mark.parametrize("method", ["adam", "pg"])
 def test_training_smoke(method, tmp_path):
-    problem = FluidProblem(resolution=(32, 32), batch_size=4)
+    problem = FluidProblem(resolution=(32, 32), batch_size=4, heldout_size=4)
     torch.manual_seed(0)
     before = [p.detach().clone() for p in problem.make_network().parameters()]
     r = train(problem, method, iterations=3, seed=0, out=tmp_path / "fluid.h5")

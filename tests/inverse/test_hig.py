@@ -394,3 +394,19 @@ def test_public_names_have_docstrings():
             for meth in ("step", "plan_chunks"):
                 if hasattr(obj, meth) and obj is not JacobianMemoryError:
                     assert inspect.getdoc(getattr(obj, meth)), f"{name}.{meth}"
+
+
+def test_wide_jacobian_factorised_on_the_tall_orientation_gives_the_same_factors():
+    """``J`` with fewer rows than columns is decomposed as ``J^T``; the thin factors still satisfy ``J = U s Vh``."""
+    from inverse.hig import _thin_svd
+
+    rng = np.random.default_rng(4)
+    for shape in [(6, 40), (40, 6)]:
+        J = torch.from_numpy(rng.standard_normal(shape))
+        U, s, Vh = _thin_svd(J)
+        k = min(shape)
+        assert U.shape == (shape[0], k) and Vh.shape == (k, shape[1])
+        np.testing.assert_allclose(s.numpy(), np.linalg.svd(J.numpy(), compute_uv=False), rtol=1e-12)
+        torch.testing.assert_close(U @ torch.diag(s) @ Vh, J, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(U.mT @ U, torch.eye(k, dtype=J.dtype), rtol=0, atol=1e-12)
+        torch.testing.assert_close(Vh @ Vh.mT, torch.eye(k, dtype=J.dtype), rtol=0, atol=1e-12)

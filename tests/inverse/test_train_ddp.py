@@ -169,3 +169,18 @@ def test_torchrun_script_calling_train_initialises_the_group(tmp_path):
     np.testing.assert_allclose(results[0], single.curves["metric"], rtol=1e-10)
     assert proc.stderr.count("toy/adam_pg") >= 1  # rank 0's progress bar
     assert sorted(p.name for p in tmp_path.iterdir()) == ["job.py", "toy.h5", "toy.h5.adam_pg.model.pt"]
+
+
+def test_rank_devices_and_environment(monkeypatch):
+    from inverse.distributed import init_from_env, is_main_process, launched_by_torchrun, rank_device
+    from phisim.errors import ParameterError
+
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    assert not launched_by_torchrun() and not init_from_env("cpu") and is_main_process()
+    monkeypatch.setenv("LOCAL_RANK", "3")
+    assert rank_device("cuda") == torch.device("cuda", 3)  # one GPU per local process
+    assert rank_device("cuda:1") == torch.device("cuda", 1)  # an explicit index is kept
+    assert rank_device("cpu") == torch.device("cpu")
+    with pytest.raises(ParameterError, match="process group"):
+        train(ToyProblem(), "adam_pg", iterations=1, distributed=True)

@@ -298,3 +298,70 @@ def test_user_sdf_with_captured_parameter_gets_gradients_every_call():
         (g,) = torch.autograd.grad(out.values[0].sum(), r)
         grads.append(float(g))
     assert grads[0] != 0 and grads[0] == pytest.approx(grads[1], rel=1e-12)
+
+
+def test_rotating_and_path_driven_bodies():
+    grid = Grid((32, 32), bounds=[(0, 1), (0, 1)])
+    zero = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    pts = torch.tensor([[0.5, 0.5], [0.56, 0.47], [0.45, 0.53]], dtype=F64)
+    spin = Body(Sphere((0.5, 0.5), 0.2), angular_velocity=2.0)
+    out, _ = make_incompressible(zero, spin, solve=TIGHT)
+    r = pts - 0.5
+    expect = torch.stack([-2.0 * r[:, 1], 2.0 * r[:, 0]], 0)  # omega x r inside the body
+    assert torch.allclose(out.sample(pts)[0], expect, atol=1e-12)
+    assert float(divergence(out).values.abs().max()) < 1e-9
+    # a body on a path: position and velocity follow path(t)
+    moving = Body(Sphere((0.3, 0.5), 0.1), path=lambda t: (0.2 * t**2, 0.0))
+    v, w = moving.motion(1.5)
+    assert w is None and torch.allclose(v, torch.tensor([0.6, 0.0], dtype=F64), atol=1e-6)
+    assert float(moving.sdf(torch.tensor([[0.3 + 0.45, 0.5]], dtype=F64), 1.5)) == pytest.approx(-0.1)
+    lay0 = solid_layout(moving, grid, Boundary.create("wall", 2), 0.0)
+    lay1 = solid_layout(moving, grid, Boundary.create("wall", 2), 1.0)
+    area0 = float((1 - lay0.cell_fraction).sum())
+    assert area0 == pytest.approx(float((1 - lay1.cell_fraction).sum()), rel=0.02)  # moved, not deformed
+    assert not torch.equal(lay0.cell_fraction, lay1.cell_fraction)
+    # a turning box: rotation(t) gives the angular velocity by differences
+    turning = Body(RotatedBox((0.5, 0.5), (0.3, 0.1)), rotation=lambda t: 0.5 * t)
+    assert float(turning.motion(0.3)[1]) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_rotation_matrix_3d():
+    from phisim.fluid.geometry import rotation_matrix
+
+    r = rotation_matrix(torch.tensor([0.3, -0.2, 0.5], dtype=F64), 3)
+    assert torch.allclose(r @ r.T, torch.eye(3, dtype=F64), atol=1e-14)
+    assert float(torch.linalg.det(r)) == pytest.approx(1.0)
+    axis = torch.tensor([0.3, -0.2, 0.5], dtype=F64)
+    assert torch.allclose(r @ axis, axis, atol=1e-14)  # the rotation vector is its own axis
+
+
+def test_free_slip_body_keeps_the_tangential_velocity_on_cut_faces():
+    grid = Grid((32, 32), bounds=[(0, 1), (0, 1)])
+    v = StaggeredGrid.uniform((1.0, 0.0), grid, "periodic", dtype=F64)
+    plate = Box((0.3, 0.44), (0.7, 0.56))  # aligned with the stream
+    slip, _ = make_incompressible(v, Body(plate, no_slip=False), solve=TIGHT)
+    stick, _ = make_incompressible(v, Body(plate), solve=TIGHT)
+    probe = torch.tensor([[0.5, 0.57]], dtype=F64)  # just above the plate
+    # free-slip: the flow passes the plate's side faster than the stream (it goes around the blockage)
+    assert float(slip.sample(probe)[0, 0, 0]) > 1.0
+    assert float(stick.sample(probe)[0, 0, 0]) < 0.9  # no-slip blends towards the body's velocity (0)
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_inflow_on_any_side(rank):
+    """Inflow on an upper side (blowing in the -axis direction), outflow opposite, bodies in between."""
+    res = (10, 12) if rank == 2 else (8, 10, 6)
+    grid = Grid(res, bounds=[(0, 1), (0, 1.2)] + ([(0, 0.6)] if rank == 3 else []))
+    spec = {"x": "periodic", "y": (Open(), Inflow(-0.7))}
+    if rank == 3:
+        spec["z"] = ("wall", Inflow(lambda x: torch.stack([0 * x[..., 0], 0 * x[..., 0], -0.2 + 0 * x[..., 0]], -1)))
+        spec["y"] = (Open(), Inflow(-0.7))
+    v = _random(grid, spec, seed=5)
+    body = Body(Sphere((0.5, 0.6) + ((0.3,) if rank == 3 else ()), 0.2))
+    out, _ = make_incompressible(v, body, solve=TIGHT)
+    scale = float(divergence(v.with_boundary_faces()).values.abs().max())
+    assert float(divergence(out).values.abs().max()) < 1e-8 * scale
+    top = out.values[1].narrow(2, res[1], 1)
+    assert torch.allclose(top, torch.full_like(top, -0.7))
+    flux = net_boundary_flux(out)
+    assert float(flux.abs().max()) < 1e-9

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from phisim import Boundary, CenteredGrid, Dirichlet, Grid, NoSlipWall, Open, Periodic, StaggeredGrid
-from phisim.errors import FileFormatError, ParameterError, PhisimError, ShapeError
+from phisim.errors import FileFormatError, IncompleteFileWarning, ParameterError, PhisimError, ShapeError
 from phisim.io import SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
 
 REPO = Path(__file__).resolve().parents[2]
@@ -191,7 +191,8 @@ def test_killed_writer_leaves_readable_file(tmp_path):
     finally:
         proc.kill()
         proc.wait()
-    d = read_simulation(path)
+    with pytest.warns(IncompleteFileWarning, match="not closed cleanly"):  # read from the journal
+        d = read_simulation(path)
     assert d.dataset_name == "killed"
     assert d.n_frames >= done + 1
     for k in range(d.n_frames):
@@ -292,8 +293,9 @@ def test_corrupt_and_foreign_files(tmp_path):
     short.write_bytes(good.read_bytes())
     with h5py.File(short, "a") as f:
         f["t1_fields/u"].resize(2, axis=1)
-    with pytest.raises(FileFormatError, match="frames"):
-        read_simulation(short)
+    with pytest.warns(IncompleteFileWarning, match="hold only 2"):  # torn write: the complete frames
+        d = read_simulation(short)
+    assert d.n_frames == 2 and d.fields["u"].shape[1] == 2 and d.fields["rho"].shape[1] == 2
     assert issubclass(FileFormatError, PhisimError)
 
 

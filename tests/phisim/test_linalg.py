@@ -337,8 +337,16 @@ def test_float32_smooth_solution_hits_representation_floor_float64_mixed_precisi
     b = smooth_rhs(n)
     # No float32 vector reaches 1e-5 here: rounding x alone adds ~eps32*||A||*||x||.
     with pytest.raises(SolveError, match="pass float64 input") as e:
-        cg(neg_laplace, b.float())
+        cg(neg_laplace, b.float(), solve=Solve(widen_tolerance=False))
     assert int(e.value.iterations) < 500
+    # Default: the tolerance is widened by the measured rounding floor, reported, and met by the returned x.
+    x32, info = cg(neg_laplace, b.float(), return_info=True)
+    tol = 1e-5 * torch.linalg.vector_norm(b.float().double())
+    floor = info.precision_floor
+    assert x32.dtype == torch.float32 and info.all_converged and floor is not None
+    assert float(floor[0]) > 0 and info.tolerance[0] == pytest.approx(float(tol) + float(floor[0]), rel=1e-6)
+    true_res = torch.linalg.vector_norm(b.float().double() - neg_laplace(x32.double()))
+    assert float(tol) < float(true_res) <= float(info.tolerance[0])
     x, info = cg(neg_laplace, b, solve=Solve(refine=True), return_info=True)
     assert x.dtype == torch.float64 and info.refined and info.all_converged
     assert rel_residual(neg_laplace, x, b).item() <= 1e-5

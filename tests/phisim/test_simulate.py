@@ -44,7 +44,9 @@ def test_taylor_green_energy_decays_at_the_analytic_rate():
     v = _run(sim, 20)
     e = sum((c**2).sum(dim=tuple(range(1, c.ndim))) for c in v.values)
     expected = math.exp(-4 * 0.05 * 1.0 * 1.0)  # |u|^2 ~ exp(-2 nu |k|^2 t), |k|^2 = 2, t = 1
-    assert torch.allclose(e / e0, torch.full_like(e, expected), rtol=0.02), (e / e0, expected)
+    # the scenario steps with imex2: what is left is the stencil's spatial error, 4 ν t dx²/12 = 6.4e-4
+    # (measured +6e-4; the first-order split step with MacCormack was off by -1.2 %)
+    assert torch.allclose(e / e0, torch.full_like(e, expected), rtol=1.5e-3), (e / e0, expected)
 
 
 def test_burgers_is_dissipative_and_heat_keeps_the_mean():
@@ -79,6 +81,20 @@ def test_cavity_and_smoke_are_divergence_free_and_respect_the_obstacle():
     assert float(s.marker.values.sum()) > 0
 
 
+def test_karman_channel_conserves_mass_and_stores_the_body():
+    cfg, p, sim = _build("karman", resolution=10, dt=0.02)
+    s = _run(sim, 2)
+    assert s.time == pytest.approx(0.04)
+    u = s.velocity.values[0]  # faces normal to x: (B, nx + 1, ny)
+    inflow, outflow = u[:, 0].sum(dim=-1), u[:, -1].sum(dim=-1)
+    assert torch.allclose(inflow, outflow, rtol=1e-6)  # no flux through the walls: what enters leaves
+    assert float(inflow.min()) > 0
+    mask = sim.constant_fields["obstacle_mask"] > 0.5
+    assert 0 < int(mask.sum()) < mask.numel() // 10
+    centre = s.velocity.at_centers().values[:, :, mask]
+    assert float(centre.abs().max()) < 0.1 * p["umax"]  # the no-slip body holds the flow (staircase average)
+
+
 def test_config_errors_suggest_the_closest_name():
     with pytest.raises(ParameterError, match="did you mean 'smoke'"):
         resolve_config("smok")
@@ -86,8 +102,6 @@ def test_config_errors_suggest_the_closest_name():
         resolve_config("burgers", {"viscositty": 0.1})
     with pytest.raises(ParameterError, match="1-D"):
         resolve_config("burgers", dim=3)
-    with pytest.raises(ParameterError, match="not available"):
-        resolve_config("karman")
     with pytest.raises(ParameterError, match="resolution"):
         resolve_config("heat", resolution=[8, 2])
 
