@@ -152,7 +152,7 @@ def _check_args(args) -> None:
 
     if getattr(args, "device", None) is not None:
         check_device(args.device)
-    if getattr(args, "out", None) is not None:
+    if getattr(args, "out", None) is not None and args.command not in ("simulate", "plot"):  # those are folders
         check_output_path(args.out, append=True)
     plot = getattr(args, "plot", None)
     if plot is not None:

@@ -148,7 +148,8 @@ def read_model_file(path: str | os.PathLike) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - anything unreadable is a format problem
-        raise FileFormatError(f"{path} is not a readable model file ({type(exc).__name__}: {exc})") from exc
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+        raise FileFormatError(f"{path} is not a readable model file ({type(exc).__name__}: {first})") from exc
     if not isinstance(state, dict) or state.get("format") != MODEL_FORMAT:
         raise FileFormatError(f"{path} is not a phisim model file (format {MODEL_FORMAT!r} expected)")
     for key in ("factory", "settings_json", "state_dict", "network_class"):

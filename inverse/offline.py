@@ -104,6 +104,12 @@ class DatasetSampler:
             ys.append(self._read(file, traj, self.frames[1]))
         return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys))
 
+    def all(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(x_true, y_target)`` of every trajectory of the split, in file order."""
+        xs = [self._read(f, t, self.frames[0]) for f, t in self._index]
+        ys = [self._read(f, t, self.frames[1]) for f, t in self._index]
+        return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys))
+
     def close(self) -> None:
         """Close the open files."""
         for f in self._handles.values():
@@ -160,7 +166,9 @@ def dataset_problem(data_dir: str, field: str, split: str = "train", x_frame: in
 
     Returns:
         A :class:`~inverse.custom.CustomProblem` whose only method is ``supervised`` (no physics: the y-space
-        loss is logged as NaN).
+        loss is logged as NaN). Its held-out set is every trajectory of the ``valid`` split (else ``test``;
+        ``problem.heldout_split`` says which, None when neither has files and held-out samples are drawn
+        from the training split).
 
     Raises:
         FileFormatError: Bad dataset folder or field.
@@ -178,4 +186,35 @@ def dataset_problem(data_dir: str, field: str, split: str = "train", x_frame: in
     p.methods = {"supervised": Method("supervised", "supervised", lr=lr)}
     p.sampler = sampler
     p.has_physics = False
+    p.loss_name = "none (offline data without physics)"
+    p.heldout_split = None
+    for other in ("valid", "test"):
+        if other == split:
+            continue
+        try:
+            held = DatasetSampler(data_dir, field, other, x_frame, y_frame)
+        except FileFormatError:
+            continue
+        _heldout_from_split(p, held)
+        p.heldout_split = other
+        break
     return p
+
+
+def _heldout_from_split(problem, held: DatasetSampler) -> None:
+    """Make ``problem.heldout()`` every trajectory of another split (instead of draws from the training data)."""
+    problem.heldout_size = held.trajectories
+    sample, cache = problem.sample, {}
+
+    def heldout(device=None):
+        key = str(torch.device(device) if device is not None else "cpu")
+        if key not in cache:
+            data = problem.data
+            problem.data = lambda batch_size, generator: held.all()
+            try:
+                cache[key] = sample(held.trajectories, torch.Generator(), device=device)
+            finally:
+                problem.data = data
+        return cache[key]
+
+    problem.heldout = heldout

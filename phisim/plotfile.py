@@ -249,7 +249,8 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
             if base == key:
                 for m, c in curves.items():
                     it = c.get(h.split("_", 1)[0] + "_iteration", c["iteration"])
-                    lines[f"{m} ({h.split('_', 1)[0]})"] = (it, c[h])
+                    tag = "held-out" if h.startswith(("eval_", "heldout_")) else h.split("_", 1)[0]
+                    lines[f"{m} ({tag})"] = (it, c[h])
         label = key
         for m in curves:
             name = units[m].get(f"{key}_name") or units[m].get("metric_name" if key == "metric" else "loss_name")
@@ -257,6 +258,14 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
                 label = str(name)
                 break
         plot_curves(lines, ax, logy=True, title=f"{Path(path).name}: {key}", ylabel=label)
+        colours = {ln.get_label(): ln.get_color() for ln in ax.get_lines()}
+        for ln in ax.get_lines():  # a held-out curve: its method's colour, dashed
+            name = ln.get_label()
+            if name.endswith(")") and " (" in name and name.rsplit(" (", 1)[0] in colours:
+                ln.set_color(colours[name.rsplit(" (", 1)[0]])
+                ln.set_linestyle("--")
+                ln.set_linewidth(2.0)
+        ax.legend()
     return save_figure(fig, out)
 
 

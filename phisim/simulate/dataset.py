@@ -14,7 +14,8 @@ only on the seed and ``i``, so the files do not depend on the number of workers 
 written under a temporary name and renamed when complete; rerunning the same command skips complete files
 (a killed run continues where it stopped). ``workers`` runs files in parallel processes; under
 ``torchrun`` (``WORLD_SIZE`` > 1) rank ``r`` simulates the files ``i ≡ r (mod world_size)`` and rank 0
-writes the statistics once all ranks are done.
+writes the statistics once all ranks are done (a gloo process group is started for the barrier when none
+exists; ranks on several nodes need ``OUT`` on a file system they share).
 """
 
 from __future__ import annotations
@@ -334,41 +335,10 @@ def _prepare_root(root: Path, cfg: dict, overwrite: bool, rank: int) -> None:
 
 
 def _write_statistics(root: Path) -> Path:
-    """The loader's ``stats.yaml`` over the training split (:mod:`phisim.wellstats` where present)."""
-    try:
-        from ..wellstats import write_statistics
-    except ImportError:  # STATS-FALLBACK: a minimal local version until phisim.wellstats is available
-        return _write_statistics_fallback(root)
+    """The loader's ``stats.yaml`` over the training split (:func:`phisim.wellstats.write_statistics`)."""
+    from ..wellstats import write_statistics
+
     return write_statistics(root)
-
-
-def _write_statistics_fallback(root: Path) -> Path:
-    import h5py
-
-    acc: dict[str, dict[str, list]] = {}
-    for path in check_dataset_dir(root, "train"):
-        with h5py.File(path, "r") as f:
-            for group in ("t0_fields", "t1_fields"):
-                for name, ds in f[group].items():
-                    if not ds.attrs.get("time_varying", True):
-                        continue
-                    a = np.asarray(ds, dtype=np.float64)
-                    comp = a.shape[-1:] if group == "t1_fields" else ()
-                    d = np.diff(a, axis=1)
-                    e = acc.setdefault(name, {"v": [], "d": [], "c": comp})
-                    e["v"].append(a.reshape(-1, *comp))
-                    e["d"].append(d.reshape(-1, *comp))
-    stats: dict[str, dict] = {k: {} for k in ("mean", "std", "rms", "mean_delta", "std_delta", "rms_delta")}
-    for name, e in acc.items():
-        for key, arrs in (("", e["v"]), ("_delta", e["d"])):
-            a = np.concatenate(arrs)
-            for stat, val in (("mean", a.mean(0)), ("std", a.std(0)), ("rms", np.sqrt((a**2).mean(0)))):
-                stats[stat + key][name] = val.tolist() if np.ndim(val) else float(val)
-    target = root / "stats.yaml"
-    tmp = target.with_name("stats.yaml.tmp")
-    tmp.write_text(json.dumps(stats, indent=1) + "\n", encoding="utf-8")  # JSON is valid YAML
-    os.replace(tmp, target)
-    return target
 
 
 def simulate_dataset(

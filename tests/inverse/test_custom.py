@@ -100,6 +100,10 @@ def test_burgers_tutorial_physics_is_differentiable_and_the_generic_inverse_impr
     before = (p.physics(x0) - b.y_target).norm(dim=1)
     after = (p.physics(x1) - b.y_target).norm(dim=1)
     assert (after < 0.05 * before).all()  # inverse-gradient iterations solve P(x) = y*
+    out = mod.main(["--iterations", "1", "--resolution", "8", "--batch-size", "2"])
+    assert set(out) == {"adam", "pg_inverse_gradient", "identity"}
+    # the network starts as the identity map (zero last layer): one small step stays close to it
+    assert out["adam"]["heldout_metric"] == pytest.approx(out["identity"]["heldout_metric"], rel=0.2)
 
 
 def test_burgers_tutorial_trains_through_the_cli(tmp_path):
@@ -195,6 +199,15 @@ def test_offline_training_from_a_dataset_and_csv(tmp_path):
             r = train(load_problem_well(root), "supervised", iterations=3, batch_size=2, out=out,
                       tensorboard=tmp_path / "tb")
     assert np.isfinite(r.curves["metric"]).all()
+    p = load_problem_well(root)
+    assert p.heldout_split is None  # two files: both train
+    root2 = tmp_path / "heat3"
+    simulate_dataset(root2, resolve_config("heat", trajectories=6, trajectories_per_file=2, steps=3, resolution=8),
+                     progress=False)
+    p = load_problem_well(root2)
+    valid = DatasetSampler(root2, "temperature", "valid")
+    assert p.heldout_split == "valid" and p.heldout_size == valid.trajectories == 2
+    assert torch.equal(p.heldout().x_true, valid.all()[0].float())
     files = export_csv(out, tmp_path / "csv")
     text = files[0].read_text().splitlines()
     assert text[0].startswith("iteration,") and len(text) == 4

@@ -160,10 +160,15 @@ def test_dataset_layout_stats_and_the_well_loader(tmp_path):
     assert stats["mean"]["temperature"] == pytest.approx(float(train.astype(np.float64).mean()), rel=1e-6)
     pytest.importorskip("the_well")
     from the_well.data import WellDataset
+    from the_well.data.normalization import ZScoreNormalization
 
     ds = WellDataset(path=str(root), well_split_name="train", n_steps_input=1, n_steps_output=1,
-                     use_normalization=True)
+                     use_normalization=True, normalization_type=ZScoreNormalization)
     assert len(ds) == 2 * 3  # 2 trajectories x 3 input/output windows of 4 frames
+    assert ds.norm is not None  # the statistics file was read
+    x = ds[0]["input_fields"][..., 0].double().numpy()
+    raw = train[0, 0].astype(np.float64)
+    assert np.allclose(x[0], (raw - stats["mean"]["temperature"]) / stats["std"]["temperature"], atol=1e-4)
 
 
 def test_same_seed_same_files_and_workers_do_not_matter(tmp_path):
@@ -212,6 +217,9 @@ def test_cli_simulate_and_one_line_errors(tmp_path, capsys):
                  "--steps", "2", "--resolution", "16", "--out", str(tmp_path / "b"), "--quiet"]) == 0
     assert len(check_dataset_dir(tmp_path / "b")) == 2
     capsys.readouterr()
+    assert main(["simulate", "burgers", "--set", "dim=1", "--trajectories", "2", "--trajectories-per-file", "1",
+                 "--steps", "2", "--resolution", "16", "--out", str(tmp_path / "b"), "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["skipped"] == 2  # the same command continues: nothing left
     assert main(["simulate", "burgers", "--set", "viscocity=1", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "did you mean 'viscosity'" in err
