@@ -181,10 +181,9 @@ class MaskedPoisson:
         """Remove each closed region's mean from ``t`` ``(B, *res)`` (identity without null space)."""
         if self.null is None:
             return t
-        z = self._cast("null", self.null, t.dtype)
-        dims = tuple(range(2, z.ndim))
-        coef = (z * t.unsqueeze(1)).sum(dim=dims, keepdim=True)
-        return t - (coef * z).sum(1)
+        z = self._cast("null", self.null, t.dtype).flatten(2)  # (B or 1, K, N)
+        coef = torch.matmul(z, t.flatten(1).unsqueeze(-1))  # (B, K, 1): one pass, no full-size temporaries
+        return t - torch.matmul(coef.transpose(1, 2), z).view(t.shape)
 
     def region_sums(self, t: torch.Tensor) -> torch.Tensor | None:
         """Per closed region, ``sum t`` over its cells ``(B, K)`` (None without null space)."""
