@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..boundary import Boundary
+from ..boundary import Boundary, Inflow
 from ..errors import BoundaryError, ParameterError, ShapeError
 from ..grid import Grid
-from .geometry import Box, Geometry, Sphere, fluid_fraction, rotation_matrix
+from .geometry import Geometry, fluid_fraction, rotation_matrix
 
 __all__ = ["Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks"]
 
@@ -333,19 +333,22 @@ class SolidLayout:
                            self.bodies)
 
 
-def _normal_l1(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor:
-    """``sum_k |d phi / d x_k|`` by central differences (differentiable in the body's parameters)."""
-    total = 0
-    for k in range(x.shape[-1]):
-        e = torch.zeros(x.shape[-1], dtype=x.dtype, device=x.device)
-        e[k] = h
-        total = total + ((body.sdf(x + e, t) - body.sdf(x - e, t)) / (2 * h)).abs()
-    return total
+def sdf_gradient(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor:
+    """``grad phi`` at points ``x`` ``(..., d)`` by central differences of step ``h`` (differentiable in the
+    body's parameters); shape ``(..., d)``."""
+    eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device) * h
+    return torch.stack([(body.sdf(x + e, t) - body.sdf(x - e, t)) / (2 * h) for e in eye], -1)
+
+
+def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor:
+    """Outward unit normal ``grad phi / |grad phi|`` at points ``x`` ``(..., d)``."""
+    g = sdf_gradient(body, x, t, h)
+    return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def _body_fraction(body: Body, points: torch.Tensor, t: float, dx: float) -> torch.Tensor:
     phi = body.sdf(points, t)
-    return fluid_fraction(phi, _normal_l1(body, points, t, 1e-3 * dx), dx)
+    return fluid_fraction(phi, sdf_gradient(body, points, t, 1e-3 * dx).abs().sum(-1), dx)
 
 
 def _as_solids(obstacles) -> list:
@@ -503,7 +506,7 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
     # inflow sides must stay clear of bodies
     for a, pair in enumerate(boundary.sides):
         for side, cond in enumerate(pair):
-            if type(cond).__name__ == "Inflow":
+            if isinstance(cond, Inflow):
                 face = theta[a].narrow(1 + a, 0 if side == 0 else grid.resolution[a], 1)
                 if bool((face.detach() < 1).any()):
                     raise BoundaryError(
@@ -557,7 +560,3 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
     if solid is None or not bool(solid.any()):
         return None
     return solid
-
-
-# keep the geometry names importable from here for convenience
-_ = (Box, Sphere)

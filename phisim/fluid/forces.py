@@ -34,7 +34,7 @@ import torch
 from ..checks import check_positive
 from ..errors import ParameterError, ShapeError
 from ..field import CenteredGrid, StaggeredGrid
-from .bodies import Body, Obstacle, _body_fraction, _normal_l1
+from .bodies import Body, Obstacle, _body_fraction, unit_normal
 from .geometry import Geometry
 from .projection import _check_velocity
 
@@ -162,13 +162,7 @@ def _viscous(velocity: StaggeredGrid, body: Body, vec: torch.Tensor, t: float, p
     xc = grid.cell_centers(vec.dtype, vec.device)[cut]  # (S, d)
     weight = mag[cut]
     phi = body.sdf(xc, t)
-    grad = []
-    for k in range(grid.rank):
-        e = torch.zeros(grid.rank, dtype=xc.dtype, device=xc.device)
-        e[k] = 1e-3 * h
-        grad.append((body.sdf(xc + e, t) - body.sdf(xc - e, t)) / (2e-3 * h))
-    n = torch.stack(grad, -1)
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    n = unit_normal(body, xc, t, 1e-3 * h)
     xs = xc - phi.unsqueeze(-1) * n
     d1 = probe * h
     pts = torch.cat([xs + d1 * n, xs + 2 * d1 * n], 0)
@@ -221,13 +215,7 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
         for k, b in enumerate(blist):
             sel = idx == k
             if bool(sel.any()):
-                g = []
-                for a in range(grid.rank):
-                    e = torch.zeros(grid.rank, dtype=x.dtype, device=x.device)
-                    e[a] = 1e-3 * h
-                    g.append((b.sdf(x[sel] + e, time) - b.sdf(x[sel] - e, time)) / (2e-3 * h))
-                gg = torch.stack(g, -1)
-                n[sel] = gg / gg.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                n[sel] = unit_normal(b, x[sel], time, 1e-3 * h)
         shift = (1.5 * h - phi).clamp_min(0.0)
         close = shift > 0
         q1 = x + shift.unsqueeze(-1) * n
@@ -236,6 +224,3 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
         val = torch.where(close, v1 + (v1 - v2) * shift / h, v1)
         return val * (density / dt)
     return pressure.sample(x) * (density / dt)
-
-
-_ = _normal_l1

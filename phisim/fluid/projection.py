@@ -43,11 +43,11 @@ from dataclasses import replace
 
 import torch
 
-from ..boundary import Boundary, Inflow, Open
+from ..boundary import Boundary
 from ..differential import divergence, gradient
 from ..errors import GridMismatchError, ParameterError, ShapeError, SolveError
 from ..field import CenteredGrid, StaggeredGrid
-from ..linalg import Solve, SolveInfo
+from ..linalg import Solve
 from ..poisson import field_kinds_and_values, spectral_poisson_solve
 from ..poisson_masked import MaskedPoisson
 from .bodies import SolidLayout, solid_layout
@@ -306,6 +306,3 @@ def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None
         scale = torch.stack([c.flatten(1).abs().max(1).values for c in velocity.values]).max(0).values
         scale = scale / min(velocity.grid.dx)
         return d.abs().max(1).values / scale.clamp_min(torch.finfo(d.dtype).tiny)
-
-
-_ = (Inflow, Open, SolveInfo)
