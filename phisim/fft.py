@@ -76,6 +76,7 @@ __all__ = [
     "fft_settings",
     "available_engines",
     "resolve_engine",
+    "r2r_multiply",
     "rfftn",
     "irfftn",
     "dctn",
@@ -519,31 +520,87 @@ class _PyfftwIrfftn(torch.autograd.Function):
 
 
 class _MultiplierPlan:
-    """rfft and irfft plans sharing one spectrum buffer: ``x -> irfft(rfft(x) * m)`` with two copies, not four."""
+    """A forward and an inverse plan sharing one spectrum buffer: ``x -> inverse(forward(x) * m)``.
 
-    def __init__(self, shape, dtype, axes, threads, effort):
+    Real FFT pair (``kinds`` empty: rfft then irfft) or real-to-real pair (``kinds`` the forward kinds,
+    ``inverse`` the inverse kinds). Two copies per call (in and out) instead of four, no intermediate tensors.
+    """
+
+    def __init__(self, shape, dtype, axes, threads, effort, kinds=(), inverse=()):
         real = np.dtype(dtype)
-        cplx = np.result_type(real, np.complex64)
-        hshape = list(shape)
-        hshape[axes[-1]] = shape[axes[-1]] // 2 + 1
         self.inp = _pyfftw.empty_aligned(shape, dtype=real)
-        self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=cplx)
         self.out = _pyfftw.empty_aligned(shape, dtype=real)
+        if kinds:
+            self.spec = _pyfftw.empty_aligned(shape, dtype=real)
+            fwd_dir, inv_dir = [_FFTW_KIND[k] for k in kinds], [_FFTW_KIND[k] for k in inverse]
+        else:
+            hshape = list(shape)
+            hshape[axes[-1]] = shape[axes[-1]] // 2 + 1
+            self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=np.result_type(real, np.complex64))
+            fwd_dir, inv_dir = "FFTW_FORWARD", "FFTW_BACKWARD"
         self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
-            self.inp, self.spec, axes=axes, direction="FFTW_FORWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            self.inp, self.spec, axes=axes, direction=fwd_dir, flags=(e, "FFTW_DESTROY_INPUT"),
             threads=threads), effort)
         self.inv = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
-            self.spec, self.out, axes=axes, direction="FFTW_BACKWARD", flags=(e, "FFTW_DESTROY_INPUT"),
+            self.spec, self.out, axes=axes, direction=inv_dir, flags=(e, "FFTW_DESTROY_INPUT"),
             threads=threads), effort)
         self.lock = threading.Lock()
 
-    def __call__(self, a: np.ndarray, mult: np.ndarray) -> np.ndarray:
+    def __call__(self, a: np.ndarray, mult: np.ndarray, pre: np.ndarray | None = None) -> np.ndarray:
         with self.lock:
-            self.inp[...] = a
+            if pre is None:
+                self.inp[...] = a
+            else:
+                np.multiply(a, pre, out=self.inp)
             self.fwd.execute()
             np.multiply(self.spec, mult, out=self.spec)
             self.inv.execute()
             return self.out.copy()
+
+
+def _multiplier_plan(shape, dtype, axes, kinds=(), inverse=()) -> _MultiplierPlan:
+    s = _SETTINGS
+    key = (tuple(shape), np.dtype(dtype).str, tuple(axes), tuple(kinds), tuple(inverse), s.threads,
+           s.planner_effort)
+    plan = _MULT_PLANS.get(key)
+    if plan is None:
+        with _PLAN_LOCK:
+            plan = _MULT_PLANS.get(key)
+            if plan is None:
+                plan = _MULT_PLANS[key] = _MultiplierPlan(tuple(shape), dtype, tuple(axes), s.threads,
+                                                          s.planner_effort, tuple(kinds), tuple(inverse))
+    return plan
+
+
+def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], axes: Sequence[int],
+                 mult: torch.Tensor, pre: torch.Tensor | None = None, *, engine: str | None = None
+                 ) -> torch.Tensor | None:
+    """``inverse_r2r(forward_r2r(x * pre) * mult)`` in one pass through shared FFTW buffers, or None.
+
+    A fast path for operators applied many times without autograd (preconditioners). It returns None when
+    it does not apply (pyfftw missing or not the resolved engine, a non-CPU or grad-requiring tensor, or a
+    dtype other than float32/float64); the caller then composes :func:`r2rn` calls itself.
+
+    Args:
+        x: Real tensor (float32/float64) on the CPU.
+        kinds: Forward real-to-real kind per axis (see :func:`r2rn`).
+        inverse: Inverse kind per axis.
+        axes: Transformed axes.
+        mult: Real multiplier of ``x``'s shape (broadcastable), already carrying the transforms' normalisation
+            and ``x``'s dtype.
+        pre: Optional factor applied to ``x`` before the forward transform (e.g. a mask), ``x``'s shape.
+        engine: FFT engine (see :func:`resolve_engine`); only ``'pyfftw'`` takes this path.
+
+    Returns:
+        A new tensor of ``x``'s shape and dtype, or None.
+    """
+    if (x.dtype not in (torch.float32, torch.float64) or x.device.type != "cpu" or x.requires_grad
+            or resolve_engine(x, engine) != "pyfftw"):
+        return None
+    axes = _norm_axes(x, axes)
+    plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes, tuple(kinds), tuple(inverse))
+    out = plan(_np(x), mult.detach().numpy(), None if pre is None else _np(pre))
+    return torch.from_numpy(out)
 
 
 _MULT_PLANS: dict[tuple, _MultiplierPlan] = {}
@@ -554,13 +611,7 @@ class _PyfftwFourierMultiply(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, mult, axes):
-        s = _SETTINGS
-        key = (tuple(x.shape), _np_dtype(x.dtype).str, axes, s.threads, s.planner_effort)
-        with _PLAN_LOCK:
-            plan = _MULT_PLANS.get(key)
-            if plan is None:
-                plan = _MULT_PLANS[key] = _MultiplierPlan(tuple(x.shape), _np_dtype(x.dtype), axes, s.threads,
-                                                          s.planner_effort)
+        plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes)
         m = (mult / math.prod(x.shape[a] for a in axes)).to(x.dtype)  # FFTW's inverse is unnormalised
         ctx.mult, ctx.axes = mult, axes
         return torch.from_numpy(plan(_np(x), m.numpy()))

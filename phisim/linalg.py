@@ -249,6 +249,13 @@ def remove_mean(t: Tensor) -> Tensor:
 # helpers
 
 
+def _all_finite(t: Tensor) -> bool:
+    """Whether ``t`` holds no NaN/Inf: one reduction (NaN/Inf make the sum non-finite); only a sum that
+    overflows from finite values falls through to the element-wise check."""
+    t = t.detach()
+    return bool(torch.isfinite(t.sum())) or bool(torch.isfinite(t).all())
+
+
 def _dot(u: Tensor, v: Tensor) -> Tensor:
     return (u * v).flatten(1).sum(1)
 
@@ -304,68 +311,64 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
 
     Returns:
         ``(x, iterations, status)``; status is ``_RUNNING`` for samples that were not active.
+
+    Per iteration the bookkeeping is a handful of ``(B,)`` operations: one "keeps going" flag combines
+    convergence, stagnation, budget and the finite/positive-curvature checks, and the reason a sample
+    stopped is worked out only in an iteration where some sample stopped (on the CPU, where asking the
+    host is free) or every iteration without a host synchronisation (on other devices).
     """
     B = x.shape[0]
     dev = x.device
+    on_cpu = dev.type == "cpu"
     iters = torch.zeros(B, dtype=torch.int64, device=dev)
     status = torch.full((B,), _RUNNING, dtype=torch.int8, device=dev)
     rnorm = _norm(r)
-    done = active & (rnorm <= tol)
-    status = torch.where(done, _CONVERGED, status)
-    active = active & ~done
-    nonfinite = active & ~torch.isfinite(rnorm)
-    status = torch.where(nonfinite, _NONFINITE, status)
-    active = active & ~nonfinite
+    status = torch.where(active & (rnorm <= tol), _CONVERGED, status)
+    status = torch.where(active & ~torch.isfinite(rnorm), _NONFINITE, status)
+    status = torch.where(active & (status == _RUNNING) & (budget <= 0), _MAX_ITER, status)
+    active = active & (status == _RUNNING)
+    if not bool(active.any()):
+        return x, iters, status
     z = M(r) if M is not None else r
     rz = _dot(r, z)
     p = z * _bcast(active.to(z.dtype), z)
     best = rnorm.clone()
     last_improved = torch.zeros(B, dtype=torch.int64, device=dev)
-    n_max = int(budget.max()) if B else 0
-    if not bool(active.any()):
-        return x, iters, status
+    n_max = int(budget.max())
     k = 0
     while k < n_max:
-        out_of_budget = active & (iters >= budget)
-        status = torch.where(out_of_budget, _MAX_ITER, status)
-        active = active & ~out_of_budget
         q = A(p)
         pq = _dot(p, q)
-        finite = torch.isfinite(pq)
-        breakdown = active & finite & (pq <= 0)
-        nonfinite = active & ~finite
-        status = torch.where(breakdown, _BREAKDOWN, status)
-        status = torch.where(nonfinite, _NONFINITE, status)
-        active = active & ~(breakdown | nonfinite)
-        alpha = torch.where(active, rz / torch.where(active, pq, 1.0), 0.0)
-        ab = _bcast(alpha, x)
-        x.add_(ab * p)
-        r.sub_(ab * q)
+        ok = active & (pq > 0)  # False for p^T A p <= 0 (breakdown) and for NaN
+        alpha = _bcast(torch.where(ok, rz / pq, 0.0), x)
+        x.addcmul_(alpha, p)
+        r.addcmul_(alpha, q, value=-1)
         if P is not None:
             r.copy_(P(r))
-        iters += active
+        iters += ok
         z = M(r) if M is not None else r
         rz_new = _dot(r, z)
         rnorm = _norm(r) if M is not None else rz_new.clamp_min(0).sqrt()
-        conv = active & (rnorm <= tol)
-        status = torch.where(conv, _CONVERGED, status)
-        active = active & ~conv
-        nonfinite = active & ~torch.isfinite(rnorm)
-        status = torch.where(nonfinite, _NONFINITE, status)
-        active = active & ~nonfinite
         improved = rnorm < 0.99 * best
-        best = torch.where(active & improved, rnorm, best)
+        best = torch.where(improved, rnorm, best)
         last_improved = torch.where(improved, iters, last_improved)
-        stagnated = active & (iters - last_improved >= window)
-        status = torch.where(stagnated, _STAGNATED, status)
-        active = active & ~stagnated
-        beta = torch.where(active, rz_new / torch.where(active, rz, 1.0), 0.0)
-        am = _bcast(active.to(z.dtype), z)
-        p = (z + _bcast(beta, p) * p) * am
-        rz = rz_new
+        # NaN fails every comparison: a non-finite residual stops the sample (its reason is set below)
+        going = ok & (rnorm > tol) & (iters - last_improved < window) & (iters < budget)
+        stopped = active & ~going
         k += 1
-        if k % check_every == 0 and not bool(active.any()):
-            break
+        if not on_cpu or bool(stopped.any()):
+            reason = torch.where(
+                ~ok, torch.where(torch.isfinite(pq), _BREAKDOWN, _NONFINITE),
+                torch.where(rnorm <= tol, _CONVERGED,
+                            torch.where(~torch.isfinite(rnorm), _NONFINITE,
+                                        torch.where(iters - last_improved >= window, _STAGNATED, _MAX_ITER))))
+            status = torch.where(stopped, reason.to(torch.int8), status)
+            active = going
+            if (on_cpu or k % check_every == 0) and not bool(active.any()):
+                break
+        beta = _bcast(torch.where(going, rz_new / rz, 0.0), p)
+        p = torch.addcmul(z, beta, p)  # stopped samples get p = z, which alpha = 0 keeps from acting
+        rz = rz_new
     status = torch.where(active, _MAX_ITER, status)
     return x, iters, status
 
@@ -422,15 +425,18 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
     if refine:
         assert Ax64 is not None
         x, iters, status, rounds, x64_ref = _refine(s, b64, x64_start, Ax64, tol, budget, check_every, dtype)
+        res = None
     else:
-        x, iters, status = _plain(s, b, x0, tol, budget, check_every, dtype)
+        x, iters, status, res = _plain(s, b, x0, tol, budget, check_every, dtype)
         rounds = 0
 
-    # True residual of the returned solution, in float64 when the operator allows it.
-    if op64:
-        res = _norm(b64 - _apply(s.op, x.double(), params))
-    else:
-        res = _norm(b - _apply(s.op, x, params)).double()
+    # True residual of the returned solution, in float64 when the operator allows it (a float64 plain solve
+    # has just computed it for this iterate).
+    if res is None or dtype != torch.float64:
+        if op64:
+            res = _norm(b64 - _apply(s.op, x.double(), params))
+        else:
+            res = _norm(b - _apply(s.op, x, params)).double()
     floor = None
     if refine and op64 and dtype in _LOW_PRECISION and solve.widen_tolerance:
         # The float64 iterate met the tolerance but its rounding to the output dtype may not: no
@@ -458,8 +464,12 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
 
 
 def _plain(s: _Setup, b: Tensor, x0: Tensor | None, tol64: Tensor, budget: Tensor, check_every: int,
-           dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
-    """Plain CG in the working dtype with residual replacement and the precision-floor detector."""
+           dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Plain CG in the working dtype with residual replacement and the precision-floor detector.
+
+    Returns ``(x, iterations, status, residual)``; ``residual`` is the true residual norm of the returned
+    ``x`` (float64) when the last check computed it for that iterate, else None.
+    """
     solve = s.solve
     B = b.shape[0]
     eps = torch.finfo(dtype).eps
@@ -494,14 +504,14 @@ def _plain(s: _Setup, b: Tensor, x0: Tensor | None, tol64: Tensor, budget: Tenso
             status = torch.where(floor, _FLOOR, status)
             fix = fix & ~floor
         if not bool(fix.any()):
-            break
+            return x, iters, status, tn
         prev = tn
         x, it2, st2 = _cg_core(A, s.M, s.P, x, r, tol, fix, budget - iters, solve.stagnation_window,
                                check_every)
         iters = iters + it2
         status = torch.where(fix, st2, status)
     del B
-    return x, iters, status
+    return x, iters, status, None
 
 
 def _refine(s: _Setup, b64: Tensor, x64: Tensor, Ax64: Tensor, tol64: Tensor, budget: Tensor,
@@ -571,7 +581,9 @@ def _raise(info: SolveInfo, dtype: torch.dtype, refined: bool) -> None:
     name = str(dtype).replace("torch.", "")
     if "breakdown" in reasons:
         hints.append("p^T A p <= 0 was met: the operator (or the preconditioner) is not symmetric positive "
-                     "definite; CG needs an SPD operator (check signs, e.g. solve -laplace(x) = -b)")
+                     "definite; CG needs an SPD operator (check signs, e.g. solve -laplace(x) = -b), or it is "
+                     "singular and the right-hand side has a part in its null space (pass "
+                     "project=remove_mean for a pure Neumann/periodic Laplacian)")
     if "non_finite" in reasons:
         hints.append("the operator or preconditioner produced NaN/Inf")
     if "precision_floor" in reasons:
@@ -684,14 +696,14 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
         raise ShapeError("cg: rhs needs a leading batch axis, shape (B, ...)")
     if not isinstance(solve, Solve):
         raise ParameterError(f"cg: solve must be a phisim.linalg.Solve, got {type(solve).__name__}")
-    if not bool(torch.isfinite(rhs).all()):
+    if not _all_finite(rhs):
         raise NonFiniteError("cg: rhs contains NaN or Inf")
     if x0 is not None:
         if not isinstance(x0, Tensor) or x0.shape != rhs.shape:
             raise ShapeError(f"cg: x0 must have rhs's shape {tuple(rhs.shape)}, got "
                              f"{tuple(getattr(x0, 'shape', ()))}")
         x0 = x0.detach().to(rhs.dtype)
-        if not bool(torch.isfinite(x0).all()):
+        if not _all_finite(x0):
             raise NonFiniteError("cg: x0 contains NaN or Inf")
     params = tuple(operator_params)
     for p in params:

@@ -43,7 +43,7 @@ from dataclasses import replace
 
 import torch
 
-from ..boundary import Boundary
+from ..boundary import NORMAL, Boundary
 from ..differential import divergence, gradient
 from ..errors import GridMismatchError, ParameterError, ShapeError, SolveError
 from ..field import CenteredGrid, StaggeredGrid
@@ -112,6 +112,9 @@ def _check_balance(v: StaggeredGrid) -> None:
     """A domain without an open side must have zero net inflow."""
     if v.boundary.has_open_side:
         return
+    if all(v.boundary.is_periodic(a) or all(_zero_normal(c, a) for c in v.boundary.sides[a])
+           for a in range(v.grid.rank)):
+        return  # every prescribed normal velocity is 0 (walls): nothing can flow in
     net = net_boundary_flux(v).detach()
     scale = 0.0
     grid = v.grid
@@ -136,6 +139,12 @@ def _check_balance(v: StaggeredGrid) -> None:
             "into a domain without an open side, so no divergence-free velocity exists. Add an outflow side "
             "(Open()) or make the inflows and outflows through walls/Dirichlet/Inflow sides sum to zero."
         )
+
+
+def _zero_normal(condition, axis: int) -> bool:
+    """Whether a side prescribes the normal velocity 0 (a wall, or a zero Dirichlet value)."""
+    rule = condition.rule(NORMAL, axis)
+    return rule[0] == "odd" and isinstance(rule[1], (int, float)) and rule[1] == 0
 
 
 def _pressure_kinds(boundary: Boundary):
@@ -182,9 +191,13 @@ def _blend(values, layout: SolidLayout, corrected=None):
     out = []
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
-        s = 0.0 if layout.solid_velocity is None else layout.solid_velocity[i].to(u.dtype)
         c = u if corrected is None else corrected[i]
-        noslip = th * c + (1 - th) * s
+        if layout.solid_velocity is None:  # bodies at rest
+            s = 0.0
+            noslip = th * c
+        else:
+            s = layout.solid_velocity[i].to(u.dtype)
+            noslip = th * c + (1 - th) * s
         if layout.slip is None:
             out.append(noslip)
             continue
