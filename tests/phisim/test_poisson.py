@@ -318,3 +318,24 @@ def test_masked_solve_handles_enclosed_pockets_per_region():
         masked_poisson_solve(bad, m, 1.0, "neumann")
     u2 = masked_poisson_solve(bad, m, 1.0, "neumann", incompatible="project", solve=Solve(rtol=1e-12))
     assert _t.allclose(u2, u, atol=1e-9)  # the pocket's mean was removed, nothing else changed
+
+
+@pytest.mark.parametrize("kinds,shape", [
+    ("dirichlet", (2, 7, 5)), ("neumann", (2, 7, 5)), ("periodic", (2, 7, 5)), ("dirichlet", (1, 1, 4)),
+    ("neumann", (1, 1, 4)), ("periodic", (1, 1, 4)),
+    ((("dirichlet", "neumann"), ("periodic", "periodic")), (3, 6, 4)),
+    ((("neumann", "dirichlet"), ("dirichlet", "dirichlet"), ("periodic", "periodic")), (2, 3, 4, 5)),
+])
+def test_fused_stencil_equals_face_flux_form(kinds, shape):
+    from phisim.poisson import _laplace_zero, _open_faces, normalize_kinds
+
+    rank = len(shape) - 1
+    k = normalize_kinds(kinds, rank)
+    dx = (0.7, 1.3, 0.9)[:rank]
+    u = torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    ones = _open_faces(torch.ones(shape, dtype=torch.float64), k)  # all faces open: the face-flux form
+    ref = _laplace_zero(u, dx, k, ones)
+    torch.testing.assert_close(stencil_laplacian(u, dx, kinds), ref, rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(stencil_laplacian(u.float(), dx, kinds), ref.float(), rtol=1e-5, atol=1e-5)
+    v = u[:1].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: stencil_laplacian(t, dx, kinds), (v,))
