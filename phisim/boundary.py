@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ._padplan import constant_rules, face_plan, pad_plan
 from .errors import BoundaryError, NonFiniteError, ShapeError
 from .grid import AXIS_NAMES
 
@@ -645,6 +646,27 @@ def _pad_axis(x, dim, n, width, lo_rule, hi_rule, dx, face):
     return torch.cat([lo_g, x, hi_g], dim=dim)
 
 
+def _fast_plan(values, boundary, dx, width, axes, channels, shape, component):
+    """The cached gather plan of :mod:`phisim._padplan` when every rule is constant, else ``None``.
+
+    ``channels`` is the rank for a cell-centred vector array (component ``c`` normal to axis ``c``);
+    ``component`` is the MAC component of a face-centred array (``None``: cell-centred).
+    """
+    sides = boundary.sides
+    comps = (component,) if channels is None else tuple(range(channels))
+    rules = tuple(tuple((sides[a][0].rule(_role(a, c), c), sides[a][1].rule(_role(a, c), c)) for a in axes)
+                  for c in comps)
+    if not all(constant_rules(r) for r in rules):
+        return None
+    counts = tuple(shape[a] - (1 if a == component else 0) for a in axes)
+    faces = tuple(a == component for a in axes)
+    try:
+        return pad_plan(shape, channels, axes, counts, rules, width, tuple(float(dx[a]) for a in axes), faces,
+                        values.dtype, values.device)
+    except TypeError:  # unhashable rule values
+        return None
+
+
 def _role(axis: int, component: int | None) -> str:
     if component is None:
         return SCALAR
@@ -685,7 +707,12 @@ def pad(
             f"expected a {'vector' if vector else 'scalar'} array with {expected} dims (batch"
             f"{', component' if vector else ''}, {rank} spatial), got shape {tuple(values.shape)}"
         )
-    axes = range(rank) if axes is None else axes
+    axes = tuple(range(rank)) if axes is None else tuple(axes)
+    if width and (not vector or values.shape[1] == rank):
+        plan = _fast_plan(values, boundary, dx, width, axes, None if not vector else rank,
+                          tuple(values.shape[2 if vector else 1:]), None)
+        if plan is not None:
+            return plan(values)
     if not vector:
         out = values
         for a in axes:
@@ -736,7 +763,11 @@ def pad_staggered_component(
     rank = boundary.rank
     if values.ndim != rank + 1:
         raise ShapeError(f"staggered component must have shape (B, *face_shape), got {tuple(values.shape)}")
-    axes = range(rank) if axes is None else axes
+    axes = tuple(range(rank)) if axes is None else tuple(axes)
+    if width:
+        plan = _fast_plan(values, boundary, dx, width, axes, None, tuple(values.shape[1:]), component)
+        if plan is not None:
+            return plan(values)
     out = values
     for a in axes:
         lo, hi = boundary.sides[a]
@@ -764,6 +795,9 @@ def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary)
     lo, hi = boundary.sides[component]
     dim = 1 + component
     n = values.shape[dim] - 1
+    rules = (lo.rule(NORMAL, component), hi.rule(NORMAL, component))
+    if constant_rules((rules,)):
+        return face_plan(values.ndim, dim, n + 1, rules, values.dtype, values.device)(values)
     if isinstance(lo, Periodic):
         first = values.narrow(dim, 0, 1)
         return torch.cat([values.narrow(dim, 0, n), first], dim=dim)
