@@ -44,6 +44,7 @@ MacCormack's clamp is piecewise too.
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 import torch.nn.functional as F
@@ -100,6 +101,26 @@ class _Location:
         self.scale = tuple(2.0 / (s - 1) for s in padded)
         self.offset = tuple(_WIDTH * c - 1.0 for c in self.scale)
         self.padded_shape = tuple(padded)
+        self._consts: dict = {}
+
+    def _const(self, dtype, device):
+        """Per dtype/device: base indices per axis; scale, offset, clamp bounds and strides in stacked order."""
+        key = (dtype, device)
+        hit = self._consts.get(key)
+        if hit is None:
+            d = len(self.shape)
+            rev = list(range(d))[::-1]
+            view = [1, d] + [1] * d
+            bases = [_base_index(self.shape, a, dtype, device) for a in range(d)]
+            scale = torch.tensor([self.scale[a] for a in rev], dtype=dtype, device=device).reshape(view)
+            offset = torch.tensor([self.offset[a] for a in rev], dtype=dtype, device=device).reshape(view)
+            # stencil corners: lower corner k in [0, padded - 2] per axis; flat index in the (padded - 1) array
+            sizes = [p - 1 for p in self.padded_shape]
+            upper = torch.tensor([sizes[a] - 1 for a in rev], dtype=dtype, device=device).reshape(view)
+            strides = [math.prod(sizes[a + 1:]) for a in range(d)]
+            stride = torch.tensor([strides[a] for a in rev], dtype=torch.long, device=device).reshape(view)
+            hit = self._consts[key] = (bases, scale, offset, upper, stride)
+        return hit
 
     def physical_points(self, dtype, device) -> torch.Tensor:
         """Physical sample positions ``(*shape, d)``."""
@@ -118,8 +139,9 @@ class _Location:
             Per axis ``(B, *shape)`` indices.
         """
         out = []
+        bases = self._const(velocity[0].dtype, velocity[0].device)[0]
         for a, v in enumerate(velocity):
-            base = _base_index(self.shape, a, v.dtype, v.device)
+            base = bases[a]
             if isinstance(step, torch.Tensor):
                 t = base - v * (step / self.dx[a])
             else:
@@ -142,6 +164,35 @@ class _Location:
         # that axis last as a view is much faster than stacking on the last (strided) axis
         grid = torch.stack(cols[::-1], dim=1).movedim(1, -1)
         return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+    def stack(self, index: list[torch.Tensor]) -> torch.Tensor:
+        """The indices stacked in ``grid_sample``'s coordinate order (last axis first): ``(B, d, *shape)``."""
+        return torch.stack(index[::-1], dim=1)
+
+    def sample_stacked(self, padded: torch.Tensor, stacked: torch.Tensor) -> torch.Tensor:
+        """:meth:`sample` from indices stacked by :meth:`stack` (one scale and one shift for all axes)."""
+        if stacked.shape[1] == 1:
+            return self.sample(padded, [stacked[:, 0]])
+        _, scale, offset, _, _ = self._const(stacked.dtype, stacked.device)
+        grid = (stacked * scale + offset).movedim(1, -1)
+        return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+    def bounds_stacked(self, padded: torch.Tensor, stacked: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`stencil_bounds` from indices stacked by :meth:`stack` (the corner index in a few ops)."""
+        hi, lo = padded, padded
+        for a in range(stacked.shape[1]):
+            dim = 2 + a
+            n = hi.shape[dim] - 1
+            hi = torch.maximum(hi.narrow(dim, 0, n), hi.narrow(dim, 1, n))
+            lo = torch.minimum(lo.narrow(dim, 0, n), lo.narrow(dim, 1, n))
+        _, _, _, upper, stride = self._const(stacked.dtype, stacked.device)
+        k = torch.minimum((stacked.detach() + _WIDTH).floor().clamp_(min=0), upper).long()
+        flat = (k * stride).sum(1)
+        B, C = padded.shape[0], padded.shape[1]
+        flat = flat.reshape(flat.shape[0], 1, -1).expand(B, C, -1)
+        hi = torch.gather(hi.reshape(B, C, -1), 2, flat).reshape(B, C, *self.shape)
+        lo = torch.gather(lo.reshape(B, C, -1), 2, flat).reshape(B, C, *self.shape)
+        return lo, hi
 
     def stencil_bounds(self, padded: torch.Tensor, index: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """Minimum and maximum of the ``2^d`` samples that linear interpolation at ``index`` reads.
@@ -268,15 +319,16 @@ def _advect_array(values: torch.Tensor, pad_fn, loc: _Location, vel: list[torch.
                   clamp, back_vel: list[torch.Tensor] | None) -> torch.Tensor:
     """Advect ``values`` ``(B, C, *shape)`` whose padded form ``pad_fn(values)`` is ``(B, C, *padded_shape)``."""
     padded = pad_fn(values)
-    index = loc.trace(vel, dt)
-    forward = loc.sample(padded, index)
+    index = loc.stack(loc.trace(vel, dt))
+    forward = loc.sample_stacked(padded, index)
     if scheme == "semi_lagrangian":
         return forward
-    backward = loc.sample(pad_fn(forward), loc.trace(back_vel if back_vel is not None else vel, -dt))
+    back = loc.stack(loc.trace(back_vel if back_vel is not None else vel, -dt))
+    backward = loc.sample_stacked(pad_fn(forward), back)
     corrected = forward + 0.5 * (values - backward)
     if clamp is None:
         return corrected
-    lo, hi = loc.stencil_bounds(padded, index)
+    lo, hi = loc.bounds_stacked(padded, index)
     if clamp == "minmax":
         return torch.minimum(torch.maximum(corrected, lo), hi)
     outside = (corrected < lo) | (corrected > hi)
@@ -347,6 +399,12 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         NonFiniteError: If the velocity contains NaN/Inf (checked on CPU only, where it costs no sync).
     """
     dt = _validate(field, velocity, dt, scheme, integrator, clamp)
+    return _advect(field, velocity, dt, scheme, integrator, clamp, limiter, cfl)
+
+
+def _advect(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", integrator: str = "euler",
+            clamp: str | None = "minmax", limiter: str | None = "van_leer", cfl: float = 0.5) -> Field:
+    """:func:`advect` on arguments already validated by the caller (the entry of a fluid step)."""
     if scheme == "conservative":
         from ._fv import conservative_step
 
@@ -361,7 +419,7 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         pad_fn = functools.partial(_pad_centered, boundary=boundary, dx=grid.dx,
                                    velocity_like=field.is_vector and values.shape[1] == grid.rank)
         out = _advect_array(values, pad_fn, loc, vel, dt, scheme, clamp, back)
-        return CenteredGrid(out if field.is_vector else out[:, 0], grid, boundary)
+        return CenteredGrid._trusted(out if field.is_vector else out[:, 0], grid, boundary)
     comps = []
     for i, comp in enumerate(field.values):
         vel = _broadcast_batch([v.to(field.dtype) for v in _velocity_at_faces(velocity, i)], field.batch_size)
@@ -375,7 +433,7 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         if not boundary.is_periodic(i):
             out = set_boundary_faces(out, i, boundary)
         comps.append(out)
-    return StaggeredGrid(tuple(comps), grid, boundary)
+    return StaggeredGrid._trusted(tuple(comps), grid, boundary)
 
 
 def _trace_velocity(velocity, loc, vel, dt, integrator, scheme):

@@ -577,7 +577,21 @@ class Boundary:
                 return Dirichlet(0.0)
             return Neumann(0.0)
 
-        return Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides))
+        return self._memo("pressure", lambda: Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides)))
+
+    def __getstate__(self):
+        return {k: v for k, v in self.__dict__.items() if k != "_derived"}
+
+    def _memo(self, key, make):
+        """``make()`` computed once per boundary object (derived boundaries, padding plans)."""
+        memo = self.__dict__.get("_derived")
+        if memo is None:
+            memo = {}
+            object.__setattr__(self, "_derived", memo)
+        hit = memo.get(key)
+        if hit is None:
+            hit = memo[key] = make()
+        return hit
 
     def for_scalar(self) -> Boundary:
         """Boundary for a scalar quantity (e.g. a marker) transported in a flow with this boundary.
@@ -591,7 +605,7 @@ class Boundary:
                 return Dirichlet(0.0)
             return Neumann(0.0) if isinstance(c, (NoSlipWall, FreeSlipWall, Open)) else c
 
-        return Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides))
+        return self._memo("scalar", lambda: Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides)))
 
     def __repr__(self) -> str:
         parts = []
@@ -652,6 +666,15 @@ def _fast_plan(values, boundary, dx, width, axes, channels, shape, component):
     ``channels`` is the rank for a cell-centred vector array (component ``c`` normal to axis ``c``);
     ``component`` is the MAC component of a face-centred array (``None``: cell-centred).
     """
+    key = ("pad", channels, component, shape, axes, width, tuple(dx), values.dtype, values.device)
+    try:
+        return boundary._memo(key, lambda: _build_plan(boundary, dx, width, axes, channels, shape, component,
+                                                       values.dtype, values.device) or False) or None
+    except TypeError:  # unhashable spacing
+        return _build_plan(boundary, dx, width, axes, channels, shape, component, values.dtype, values.device)
+
+
+def _build_plan(boundary, dx, width, axes, channels, shape, component, dtype, device):
     sides = boundary.sides
     comps = (component,) if channels is None else tuple(range(channels))
     rules = tuple(tuple((sides[a][0].rule(_role(a, c), c), sides[a][1].rule(_role(a, c), c)) for a in axes)
@@ -662,7 +685,7 @@ def _fast_plan(values, boundary, dx, width, axes, channels, shape, component):
     faces = tuple(a == component for a in axes)
     try:
         return pad_plan(shape, channels, axes, counts, rules, width, tuple(float(dx[a]) for a in axes), faces,
-                        values.dtype, values.device)
+                        dtype, device)
     except TypeError:  # unhashable rule values
         return None
 
@@ -778,6 +801,16 @@ def pad_staggered_component(
     return out
 
 
+def _face_plan(lo, hi, component, ndim, n, dtype, device):
+    rules = (lo.rule(NORMAL, component), hi.rule(NORMAL, component))
+    if not constant_rules((rules,)):
+        return False
+    try:
+        return face_plan(ndim, 1 + component, n + 1, rules, dtype, device)
+    except TypeError:
+        return False
+
+
 def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary) -> torch.Tensor:
     """Impose the boundary on the normal velocity stored on the boundary faces of MAC component ``component``.
 
@@ -795,9 +828,10 @@ def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary)
     lo, hi = boundary.sides[component]
     dim = 1 + component
     n = values.shape[dim] - 1
-    rules = (lo.rule(NORMAL, component), hi.rule(NORMAL, component))
-    if constant_rules((rules,)):
-        return face_plan(values.ndim, dim, n + 1, rules, values.dtype, values.device)(values)
+    plan = boundary._memo(("faces", component, values.ndim, n, values.dtype, values.device),
+                          lambda: _face_plan(lo, hi, component, values.ndim, n, values.dtype, values.device))
+    if plan:
+        return plan(values)
     if isinstance(lo, Periodic):
         first = values.narrow(dim, 0, 1)
         return torch.cat([values.narrow(dim, 0, n), first], dim=dim)

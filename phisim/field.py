@@ -241,6 +241,15 @@ class CenteredGrid(Field):
 
     # constructors
     @classmethod
+    def _trusted(cls, values: torch.Tensor, grid: Grid, boundary: Boundary) -> CenteredGrid:
+        """A field from parts already known to be valid (internal fast path: no checks, no conversion)."""
+        obj = object.__new__(cls)
+        object.__setattr__(obj, "values", values)
+        object.__setattr__(obj, "grid", grid)
+        object.__setattr__(obj, "boundary", boundary)
+        return obj
+
+    @classmethod
     def zeros(cls, grid: Grid, boundary, batch_size: int = 1, channels: int | None = None,
               dtype: torch.dtype | None = None, device=None) -> CenteredGrid:
         """A zero field; ``channels=None`` gives a scalar field, an int a vector field with that many channels."""
@@ -421,6 +430,15 @@ class StaggeredGrid(Field):
         object.__setattr__(self, "boundary", Boundary.create(boundary, grid.rank).on(grid))
 
     @classmethod
+    def _trusted(cls, values: tuple[torch.Tensor, ...], grid: Grid, boundary: Boundary) -> StaggeredGrid:
+        """A field from parts already known to be valid (internal fast path: no checks, no conversion)."""
+        obj = object.__new__(cls)
+        object.__setattr__(obj, "values", tuple(values))
+        object.__setattr__(obj, "grid", grid)
+        object.__setattr__(obj, "boundary", boundary)
+        return obj
+
+    @classmethod
     def zeros(cls, grid: Grid, boundary, batch_size: int = 1, dtype: torch.dtype | None = None,
               device=None) -> StaggeredGrid:
         """A zero velocity field."""
@@ -508,7 +526,8 @@ class StaggeredGrid(Field):
         return self._with_components(set_boundary_faces(v, i, self.boundary) for i, v in enumerate(self.values))
 
     def _with_components(self, comps) -> StaggeredGrid:
-        return StaggeredGrid(tuple(comps), self.grid, self.boundary)
+        # the components come from this field's own (same shape, dtype and device): no re-validation
+        return StaggeredGrid._trusted(tuple(comps), self.grid, self.boundary)
 
     def at_centers(self) -> CenteredGrid:
         """Average each component's two faces to the cell centre: a ``(B, d, *res)`` `CenteredGrid`."""

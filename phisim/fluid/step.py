@@ -21,7 +21,8 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from ..advection import SCALAR_SCHEMES, SCHEMES, advect
+from ..advection import SCALAR_SCHEMES, SCHEMES, _advect, advect
+from ..advection import _validate as _validate_advection
 from ..boundary import Boundary, pad
 from ..checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
 from ..errors import GridMismatchError, ParameterError, ShapeError
@@ -336,8 +337,10 @@ def step(
         raise ParameterError(f"unknown marker advection scheme {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
     e0 = kinetic_energy(v0) if energy_normalization else None
     marker = state.marker
+    # validated once here (types, grids, dt, a finite velocity); the inner calls take the trusted paths
+    _validate_advection(marker if marker is not None else v0, v0, dt, marker_advection, "euler", "minmax")
     if marker is not None:
-        marker = advect(marker, v0, dt, scheme=marker_advection)
+        marker = _advect(marker, v0, dt, scheme=marker_advection)
         if marker_source is not None:
             src, _ = _scalar_values(marker_source, marker.grid)
             marker = marker + dt * src.to(dtype=marker.dtype, device=marker.device)
@@ -359,7 +362,7 @@ def step(
                                      time=state.time, obstacles=obstacles, solve=solve,
                                      pressure_guess=state.pressure, energy_normalization=energy_normalization)
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
-    v = advect(v0, v0, dt, scheme=advection)
+    v = _advect(v0, v0, dt, scheme=advection)
     v = _to_time(v, t_new)
     if marker is not None and buoyancy_strength != 0:
         v = buoyancy(v, marker, dt, strength=buoyancy_strength, direction=buoyancy_direction)
