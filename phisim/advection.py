@@ -361,10 +361,15 @@ def _validate(field, velocity, dt, scheme, integrator, clamp):
     dt = check_dt(dt)
     _check_velocity(velocity, field.grid)
     if velocity.device.type == "cpu":  # on accelerators this check would force a device sync per step
-        for i, v in enumerate(velocity.values if isinstance(velocity, StaggeredGrid) else (velocity.values,)):
-            # one cheap reduction: NaN/Inf make the sum non-finite; an overflowing sum of finite values
-            # falls through to the exact element-wise check
-            if not bool(torch.isfinite(v.detach().sum())):
+        comps = velocity.values if isinstance(velocity, StaggeredGrid) else (velocity.values,)
+        # one cheap reduction per component and one read-back: NaN/Inf make the sum non-finite; an
+        # overflowing sum of finite values falls through to the exact element-wise check
+        total = None
+        for v in comps:
+            s = v.detach().sum()
+            total = s if total is None else total + s
+        if not math.isfinite(float(total)):
+            for i, v in enumerate(comps):
                 check_finite(v, "velocity" if isinstance(velocity, CenteredGrid) else f"velocity component {i}")
     return dt
 

@@ -579,8 +579,15 @@ class Boundary:
 
         return self._memo("pressure", lambda: Boundary(tuple((conv(lo), conv(hi)) for lo, hi in self.sides)))
 
+    def __hash__(self):
+        h = self.__dict__.get("_hash")
+        if h is None:
+            h = hash(self.sides)
+            object.__setattr__(self, "_hash", h)
+        return h
+
     def __getstate__(self):
-        return {k: v for k, v in self.__dict__.items() if k != "_derived"}
+        return {k: v for k, v in self.__dict__.items() if k not in ("_derived", "_hash")}
 
     def _memo(self, key, make):
         """``make()`` computed once per boundary object (derived boundaries, padding plans)."""

@@ -8,6 +8,7 @@ on the domain boundary.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -122,7 +123,7 @@ class Grid:
         """Physical extent per axis (``upper - lower``)."""
         return tuple(hi - lo for lo, hi in self.bounds)
 
-    @property
+    @functools.cached_property
     def dx(self) -> tuple[float, ...]:
         """Cell spacing per axis."""
         return tuple(s / n for s, n in zip(self.size, self.resolution))

@@ -512,6 +512,8 @@ def _compat_tol(dtype: torch.dtype) -> float:
 def _remove_mean(f: torch.Tensor, *, incompatible: str, compat_rtol: float | None, what: str) -> torch.Tensor:
     dims = tuple(range(1, f.ndim))
     mean = f.mean(dim=dims, keepdim=True)
+    if incompatible == "project":  # removed silently: no diagnostics to compute
+        return f - mean
     tol = _compat_tol(f.dtype) if compat_rtol is None else compat_rtol
     with torch.no_grad():
         rms = f.pow(2).mean(dim=dims).sqrt()
@@ -592,6 +594,16 @@ def spectral_poisson_solve(
         f = _remove_mean(f, incompatible=incompatible, compat_rtol=compat_rtol, what="spectral_poisson_solve")
     inv = _solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
     return _apply_multiplier(f, kinds, inv, engine, prescaled=True)
+
+
+def _solve_trusted(rhs: torch.Tensor, dx: tuple[float, ...], kinds: Kinds) -> torch.Tensor:
+    """:func:`spectral_poisson_solve` with ``incompatible='project'`` and zero boundary values, for callers
+    that pass a finite ``rhs``, normalised ``kinds`` and a float tuple ``dx`` (the pressure projection)."""
+    f = rhs
+    if _singular(kinds):
+        f = f - f.mean(dim=tuple(range(1, f.ndim)), keepdim=True)
+    inv = _solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
+    return _apply_multiplier(f, kinds, inv, None, prescaled=True)
 
 
 @lru_cache(maxsize=128)

@@ -43,12 +43,13 @@ from dataclasses import replace
 
 import torch
 
-from ..boundary import NORMAL, Boundary
-from ..differential import divergence, gradient
-from ..errors import GridMismatchError, ParameterError, ShapeError, SolveError
+from ..boundary import NORMAL, Boundary, pad
+from ..checks import all_finite
+from ..differential import _diff, divergence
+from ..errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from ..field import CenteredGrid, StaggeredGrid
 from ..linalg import Solve
-from ..poisson import field_kinds_and_values, spectral_poisson_solve
+from ..poisson import _solve_trusted, field_kinds_and_values, normalize_kinds
 from ..poisson_masked import MaskedPoisson
 from .bodies import SolidLayout, solid_layout
 
@@ -260,18 +261,57 @@ def make_incompressible(
     layout = solid_layout(obstacles, grid, boundary, time, velocity.dtype, velocity.device)
     if layout is not None and method == "spectral":
         raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' or 'cg'")
-    v = velocity.with_boundary_faces()
+    if layout is None and method != "cg":
+        out, pressure = _project_box(velocity.with_boundary_faces(), check=True)
+        return (out, pressure, None) if return_info else (out, pressure)
+    return _project(velocity.with_boundary_faces(), layout, solve, pressure_guess, method, return_info)
+
+
+def _box_constants(boundary: Boundary):
+    """Per velocity boundary: the pressure boundary, its solver kinds, and whether no net inflow is possible."""
+    def make():
+        kinds = normalize_kinds(_pressure_kinds(boundary), boundary.rank)
+        closed = boundary.has_open_side or all(
+            boundary.is_periodic(a) or all(_zero_normal(c, a) for c in boundary.sides[a])
+            for a in range(boundary.rank))
+        return boundary.for_pressure(), kinds, closed
+    return boundary._memo("projection", make)
+
+
+def _project_box(v: StaggeredGrid, check: bool = True):
+    """The projection without solids by the direct spectral solve of ``v`` with its boundary faces set.
+
+    ``check`` raises NonFiniteError for a non-finite divergence; a fluid step, which checked its velocity at
+    its entry, skips it (a blow-up inside the step is caught at the entry of the next one).
+    """
+    grid, boundary = v.grid, v.boundary
+    p_boundary, kinds, closed = _box_constants(boundary)
+    if not closed:
+        _check_balance(v)
+    dx = grid.dx
+    div = None
+    for a, c in enumerate(v.values):  # the MAC divergence (as phisim.differential.divergence)
+        t = _diff(c, 1 + a) / dx[a]
+        div = t if div is None else div + t
+    if check and not all_finite(div):
+        raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
+    p = _solve_trusted(div, dx, kinds)
+    pressure = CenteredGrid._trusted(p, grid, p_boundary)
+    comps = []
+    for a, c in enumerate(v.values):  # face gradient (as phisim.differential.gradient(at='face'))
+        g = _diff(pad(p, p_boundary, dx, 1, axes=[a]), 1 + a) / dx[a]
+        comps.append(c - g)
+    out = StaggeredGrid._trusted(tuple(comps), grid, boundary).with_boundary_faces()
+    return out, pressure
+
+
+def _project(v, layout, solve, pressure_guess, method, return_info):
+    """The CG projection (solids, or ``method='cg'``) of ``v`` with its boundary faces set."""
+    grid, boundary = v.grid, v.boundary
     _check_balance(v)
     p_boundary = boundary.for_pressure()
     kinds = _pressure_kinds(boundary)
     info = None
-    if layout is None and method != "cg":
-        div = divergence(v).values
-        p = spectral_poisson_solve(div, grid.dx, kinds, incompatible="project")
-        pressure = CenteredGrid(p, grid, p_boundary)
-        grad = gradient(pressure, at="face").values
-        out = v.with_values(tuple(c - g for c, g in zip(v.values, grad))).with_boundary_faces()
-        return (out, pressure, info) if return_info else (out, pressure)
     if layout is None:
         ones = tuple(torch.ones((1, *grid.face_shape(i)), dtype=v.dtype, device=v.device) for i in range(grid.rank))
         layout = SolidLayout(ones, None, None, torch.ones((1, *grid.resolution), dtype=v.dtype), ())
@@ -281,7 +321,7 @@ def make_incompressible(
     flux = _blend(v.values, layout)
     op = _operator(layout, kinds, grid.dx, v.values[0])
     rhs = -op.divergence(flux)
-    x0 = _guess_tensor(pressure_guess, velocity)
+    x0 = _guess_tensor(pressure_guess, v)
     if solve is None:
         default = PRESSURE_SOLVE if rhs.dtype == torch.float64 else _PRESSURE_SOLVE_LOW
         p, info = op.solve(rhs, solve=replace(default, raise_on_failure=False), x0=x0)

@@ -23,14 +23,14 @@ import torch
 
 from ..advection import SCALAR_SCHEMES, SCHEMES, _advect, advect
 from ..advection import _validate as _validate_advection
-from ..boundary import Boundary, pad
+from ..boundary import Boundary, Inflow, pad
 from ..checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
 from ..errors import GridMismatchError, ParameterError, ShapeError
 from ..field import CenteredGrid, StaggeredGrid
 from ..grid import Grid
 from ..linalg import Solve
 from .bodies import solid_layout
-from .projection import _check_velocity, impose_solids, make_incompressible
+from .projection import _check_velocity, _project_box, impose_solids, make_incompressible
 from .viscosity import diffuse_velocity
 
 __all__ = [
@@ -84,14 +84,24 @@ def buoyancy(
     """
     _check_velocity(velocity)
     dt = check_dt(dt)
+    strength, direction = _buoyancy_args(strength, direction, velocity.grid.rank)
+    m, mb = _scalar_values(marker, velocity.grid)
+    return _buoyancy(velocity, m, mb, dt, strength, direction)
+
+
+def _buoyancy_args(strength, direction, rank: int) -> tuple[float, tuple[float, ...]]:
+    """Validated buoyancy strength and "up" direction (default: the last axis)."""
     strength = check_finite_number(strength, "buoyancy strength")
+    direction = tuple(float(c) for c in direction) if direction is not None else (0.0,) * (rank - 1) + (1.0,)
+    if len(direction) != rank:
+        raise ParameterError(f"direction needs {rank} entries, got {direction}")
+    return strength, direction
+
+
+def _buoyancy(velocity: StaggeredGrid, m: torch.Tensor, mb: Boundary | None, dt, strength: float,
+              direction: tuple[float, ...]) -> StaggeredGrid:
+    """:func:`buoyancy` on validated arguments (marker values ``m`` and boundary ``mb`` on the velocity's grid)."""
     grid = velocity.grid
-    direction = (
-        tuple(float(c) for c in direction) if direction is not None else (0.0,) * (grid.rank - 1) + (1.0,)
-    )
-    if len(direction) != grid.rank:
-        raise ParameterError(f"direction needs {grid.rank} entries, got {direction}")
-    m, mb = _scalar_values(marker, grid)
     m = m.to(dtype=velocity.dtype, device=velocity.device)
     mb = mb if mb is not None else velocity.boundary.for_scalar()
     comps = []
@@ -104,7 +114,7 @@ def buoyancy(
         n = p.shape[dim] - 1
         face = 0.5 * (p.narrow(dim, 0, n) + p.narrow(dim, 1, n))
         comps.append(c + (dt * strength * direction[i]) * face)
-    return velocity.with_values(tuple(comps)).with_boundary_faces()
+    return velocity._with_components(comps).with_boundary_faces()
 
 
 def kinetic_energy(velocity: StaggeredGrid) -> torch.Tensor:
@@ -245,18 +255,29 @@ def navier_stokes_step(
 
 def _to_time(v: StaggeredGrid, t: float) -> StaggeredGrid:
     """``v`` with its boundary's inflow functions evaluated at time ``t``."""
+    if not v.boundary._memo("varying", lambda: any(isinstance(c, Inflow) and c.varying
+                                                     for pair in v.boundary.sides for c in pair)):
+        return v
     b = v.boundary.at(v.grid, t, v.dtype, v.device)
     return v if b is v.boundary else v.with_boundary(b)
 
 
-def _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess, t_new=0.0):
-    """The part of a step after advection and forcing: solids, viscosity, projection, energy."""
-    layout = solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
-    v = impose_solids(v, layout)
+def _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess, t_new=0.0,
+                 faces_set: bool = False):
+    """The part of a step after advection and forcing: solids, viscosity, projection, energy.
+
+    ``faces_set``: ``v`` already has its boundary faces imposed (then not imposed again without solids).
+    """
+    layout = None if obstacles is None else solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
+    if layout is not None or not faces_set:
+        v = impose_solids(v, layout)
     if float(viscosity) != 0:
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None)
-    v, p = make_incompressible(v, layout, solve=solve, pressure_guess=pressure_guess, time=t_new)
+    if layout is None:  # no re-validation; boundary faces already set unless viscosity changed them
+        v, p = _project_box(v if float(viscosity) == 0 else v.with_boundary_faces(), check=True)
+    else:
+        v, p = make_incompressible(v, layout, solve=solve, pressure_guess=pressure_guess, time=t_new)
     if e0 is not None:
         v = normalize_energy(v, e0)
     return v, p
@@ -338,17 +359,25 @@ def step(
     e0 = kinetic_energy(v0) if energy_normalization else None
     marker = state.marker
     # validated once here (types, grids, dt, a finite velocity); the inner calls take the trusted paths
-    _validate_advection(marker if marker is not None else v0, v0, dt, marker_advection, "euler", "minmax")
+    if marker is not None:
+        _validate_advection(marker, v0, dt, marker_advection, "euler", "minmax")
+    else:
+        _validate_advection(v0, v0, dt, advection, "euler", "minmax")
     if marker is not None:
         marker = _advect(marker, v0, dt, scheme=marker_advection)
         if marker_source is not None:
             src, _ = _scalar_values(marker_source, marker.grid)
             marker = marker + dt * src.to(dtype=marker.dtype, device=marker.device)
-        layout = solid_layout(obstacles, v0.grid, v0.boundary, state.time + float(dt), marker.dtype, marker.device)
+        layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary,
+                                                             state.time + float(dt), marker.dtype, marker.device)
         if layout is not None:  # no marker in cells entirely inside a solid
             marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
     elif buoyancy_strength != 0:
         raise ParameterError("buoyancy_strength needs a marker in the state")
+    lift = marker is not None and buoyancy_strength != 0
+    if lift:
+        strength, direction = _buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
+        _scalar_values(state.marker, v0.grid)  # a scalar CenteredGrid on the velocity's grid
     t_new = state.time + float(dt)
     if integrator != "split":
         from .integrators import navier_stokes_rk_step
@@ -364,7 +393,8 @@ def step(
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
     v = _advect(v0, v0, dt, scheme=advection)
     v = _to_time(v, t_new)
-    if marker is not None and buoyancy_strength != 0:
-        v = buoyancy(v, marker, dt, strength=buoyancy_strength, direction=buoyancy_direction)
-    v, p = _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new)
+    if lift:  # sets the boundary faces
+        v = _buoyancy(v, marker.values, marker.boundary, dt, strength, direction)
+    v, p = _finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new,
+                        faces_set=lift)
     return replace(state, velocity=v, marker=marker, pressure=p, time=state.time + float(dt))
