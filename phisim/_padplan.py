@@ -215,3 +215,53 @@ def face_plan(ndim: int, dim: int, length: int, rules: tuple, dtype, device) -> 
     if bool(keep.all()):
         return FacePlan(dim, None, None, None)
     return FacePlan(dim, None, keep.reshape(view), fill.reshape(view))
+
+
+def _role(axis: int, component: int | None) -> str:
+    """The role of a quantity at the sides of ``axis`` (as :func:`phisim.boundary._role`)."""
+    if component is None:
+        return "scalar"
+    return "normal" if component == axis else "tangential"
+
+
+def fast_plan(values, boundary, dx, width, axes, channels, shape, component):
+    """The cached gather plan of :mod:`phisim._padplan` when every rule is constant, else ``None``.
+
+    ``channels`` is the rank for a cell-centred vector array (component ``c`` normal to axis ``c``);
+    ``component`` is the MAC component of a face-centred array (``None``: cell-centred).
+    """
+    key = ("pad", channels, component, shape, axes, width, tuple(dx), values.dtype, values.device)
+    try:
+        return boundary._memo(key, lambda: _build_plan(boundary, dx, width, axes, channels, shape, component,
+                                                       values.dtype, values.device) or False) or None
+    except TypeError:  # unhashable spacing
+        return _build_plan(boundary, dx, width, axes, channels, shape, component, values.dtype, values.device)
+
+
+def _build_plan(boundary, dx, width, axes, channels, shape, component, dtype, device):
+    """The plan of :func:`fast_plan`, or ``None`` when some rule is not constant (a tensor or a profile)."""
+    sides = boundary.sides
+    comps = (component,) if channels is None else tuple(range(channels))
+    rules = tuple(tuple((sides[a][0].rule(_role(a, c), c), sides[a][1].rule(_role(a, c), c)) for a in axes)
+                  for c in comps)
+    if not all(constant_rules(r) for r in rules):
+        return None
+    counts = tuple(shape[a] - (1 if a == component else 0) for a in axes)
+    faces = tuple(a == component for a in axes)
+    try:
+        return pad_plan(shape, channels, axes, counts, rules, width, tuple(float(dx[a]) for a in axes), faces,
+                        dtype, device)
+    except TypeError:  # unhashable rule values
+        return None
+
+
+def fast_face_plan(lo, hi, component, ndim, n, dtype, device):
+    """The :class:`FacePlan` of the sides ``lo``/``hi`` of MAC component ``component`` (``n`` cells along it),
+    or ``False`` when a side's normal-velocity rule is not constant."""
+    rules = (lo.rule("normal", component), hi.rule("normal", component))
+    if not constant_rules((rules,)):
+        return False
+    try:
+        return face_plan(ndim, 1 + component, n + 1, rules, dtype, device)
+    except TypeError:
+        return False

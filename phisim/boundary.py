@@ -42,7 +42,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ._padplan import constant_rules, face_plan, pad_plan
+from ._padplan import fast_face_plan as _fast_face_plan
+from ._padplan import fast_plan as _fast_plan
 from .errors import BoundaryError, NonFiniteError, ShapeError
 from .grid import AXIS_NAMES
 
@@ -62,6 +63,9 @@ __all__ = [
 ]
 
 SCALAR, NORMAL, TANGENTIAL = "scalar", "normal", "tangential"
+#: Pad and set boundary faces by the cached gather plans of :mod:`phisim._padplan` wherever every rule is
+#: constant (bit-identical to the general per-side path, which tests select by setting this to False).
+_FAST_PADDING = True
 
 
 class BoundaryCondition:
@@ -667,36 +671,6 @@ def _pad_axis(x, dim, n, width, lo_rule, hi_rule, dx, face):
     return torch.cat([lo_g, x, hi_g], dim=dim)
 
 
-def _fast_plan(values, boundary, dx, width, axes, channels, shape, component):
-    """The cached gather plan of :mod:`phisim._padplan` when every rule is constant, else ``None``.
-
-    ``channels`` is the rank for a cell-centred vector array (component ``c`` normal to axis ``c``);
-    ``component`` is the MAC component of a face-centred array (``None``: cell-centred).
-    """
-    key = ("pad", channels, component, shape, axes, width, tuple(dx), values.dtype, values.device)
-    try:
-        return boundary._memo(key, lambda: _build_plan(boundary, dx, width, axes, channels, shape, component,
-                                                       values.dtype, values.device) or False) or None
-    except TypeError:  # unhashable spacing
-        return _build_plan(boundary, dx, width, axes, channels, shape, component, values.dtype, values.device)
-
-
-def _build_plan(boundary, dx, width, axes, channels, shape, component, dtype, device):
-    sides = boundary.sides
-    comps = (component,) if channels is None else tuple(range(channels))
-    rules = tuple(tuple((sides[a][0].rule(_role(a, c), c), sides[a][1].rule(_role(a, c), c)) for a in axes)
-                  for c in comps)
-    if not all(constant_rules(r) for r in rules):
-        return None
-    counts = tuple(shape[a] - (1 if a == component else 0) for a in axes)
-    faces = tuple(a == component for a in axes)
-    try:
-        return pad_plan(shape, channels, axes, counts, rules, width, tuple(float(dx[a]) for a in axes), faces,
-                        dtype, device)
-    except TypeError:  # unhashable rule values
-        return None
-
-
 def _role(axis: int, component: int | None) -> str:
     if component is None:
         return SCALAR
@@ -738,7 +712,7 @@ def pad(
             f"{', component' if vector else ''}, {rank} spatial), got shape {tuple(values.shape)}"
         )
     axes = tuple(range(rank)) if axes is None else tuple(axes)
-    if width and (not vector or values.shape[1] == rank):
+    if _FAST_PADDING and width and (not vector or values.shape[1] == rank):
         plan = _fast_plan(values, boundary, dx, width, axes, None if not vector else rank,
                           tuple(values.shape[2 if vector else 1:]), None)
         if plan is not None:
@@ -794,7 +768,7 @@ def pad_staggered_component(
     if values.ndim != rank + 1:
         raise ShapeError(f"staggered component must have shape (B, *face_shape), got {tuple(values.shape)}")
     axes = tuple(range(rank)) if axes is None else tuple(axes)
-    if width:
+    if _FAST_PADDING and width:
         plan = _fast_plan(values, boundary, dx, width, axes, None, tuple(values.shape[1:]), component)
         if plan is not None:
             return plan(values)
@@ -806,16 +780,6 @@ def pad_staggered_component(
         out = _pad_axis(out, 1 + a, n, width, lo.rule(role, component), hi.rule(role, component), dx[a],
                         a == component)
     return out
-
-
-def _face_plan(lo, hi, component, ndim, n, dtype, device):
-    rules = (lo.rule(NORMAL, component), hi.rule(NORMAL, component))
-    if not constant_rules((rules,)):
-        return False
-    try:
-        return face_plan(ndim, 1 + component, n + 1, rules, dtype, device)
-    except TypeError:
-        return False
 
 
 def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary) -> torch.Tensor:
@@ -835,8 +799,9 @@ def set_boundary_faces(values: torch.Tensor, component: int, boundary: Boundary)
     lo, hi = boundary.sides[component]
     dim = 1 + component
     n = values.shape[dim] - 1
-    plan = boundary._memo(("faces", component, values.ndim, n, values.dtype, values.device),
-                          lambda: _face_plan(lo, hi, component, values.ndim, n, values.dtype, values.device))
+    plan = _FAST_PADDING and boundary._memo(
+        ("faces", component, values.ndim, n, values.dtype, values.device),
+        lambda: _fast_face_plan(lo, hi, component, values.ndim, n, values.dtype, values.device))
     if plan:
         return plan(values)
     if isinstance(lo, Periodic):
