@@ -22,6 +22,13 @@ import torch
 from .errors import ShapeError
 
 
+@functools.lru_cache(maxsize=256)
+def const(value: float, dtype, device) -> torch.Tensor:
+    """A cached 0-d tensor: ``x * const(0.5, x.dtype, x.device)`` is ``0.5 * x`` bit for bit (the number is
+    rounded to the dtype either way) without wrapping a Python number on every call."""
+    return torch.tensor(value, dtype=dtype, device=device)
+
+
 def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 

@@ -49,6 +49,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from ._padplan import const
 from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
 from .checks import check_dt, check_finite
 from .errors import GridMismatchError, ParameterError, ShapeError
@@ -119,7 +120,8 @@ class _Location:
             upper = torch.tensor([sizes[a] - 1 for a in rev], dtype=dtype, device=device).reshape(view)
             strides = [math.prod(sizes[a + 1:]) for a in range(d)]
             stride = torch.tensor([strides[a] for a in rev], dtype=torch.long, device=device).reshape(view)
-            hit = self._consts[key] = (bases, scale, offset, upper, stride)
+            one = torch.tensor(float(_WIDTH), dtype=dtype, device=device)
+            hit = self._consts[key] = (bases, scale, offset, upper, stride, one, torch.zeros_like(upper))
         return hit
 
     def physical_points(self, dtype, device) -> torch.Tensor:
@@ -173,7 +175,7 @@ class _Location:
         """:meth:`sample` from indices stacked by :meth:`stack` (one scale and one shift for all axes)."""
         if stacked.shape[1] == 1:
             return self.sample(padded, [stacked[:, 0]])
-        _, scale, offset, _, _ = self._const(stacked.dtype, stacked.device)
+        scale, offset = self._const(stacked.dtype, stacked.device)[1:3]
         grid = (stacked * scale + offset).movedim(1, -1)
         return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
 
@@ -185,8 +187,8 @@ class _Location:
             n = hi.shape[dim] - 1
             hi = torch.maximum(hi.narrow(dim, 0, n), hi.narrow(dim, 1, n))
             lo = torch.minimum(lo.narrow(dim, 0, n), lo.narrow(dim, 1, n))
-        _, _, _, upper, stride = self._const(stacked.dtype, stacked.device)
-        k = torch.minimum((stacked.detach() + _WIDTH).floor().clamp_(min=0), upper).long()
+        _, _, _, upper, stride, one, zero = self._const(stacked.dtype, stacked.device)
+        k = torch.clamp((stacked.detach() + one).floor_(), min=zero, max=upper).long()  # one = _WIDTH
         flat = (k * stride).sum(1)
         B, C = padded.shape[0], padded.shape[1]
         flat = flat.reshape(flat.shape[0], 1, -1).expand(B, C, -1)
@@ -262,10 +264,11 @@ def _velocity_at_centers(velocity: Field) -> list[torch.Tensor]:
     if isinstance(velocity, CenteredGrid):
         return [velocity.values[:, a] for a in range(velocity.rank)]
     out = []
+    half = const(0.5, velocity.dtype, velocity.device)
     for i, v in enumerate(velocity.values):
         dim = 1 + i
         n = v.shape[dim] - 1
-        out.append(0.5 * (v.narrow(dim, 0, n) + v.narrow(dim, 1, n)))
+        out.append((v.narrow(dim, 0, n) + v.narrow(dim, 1, n)) * half)
     return out
 
 
@@ -279,16 +282,17 @@ def _velocity_at_faces(velocity: Field, axis: int) -> list[torch.Tensor]:
         avg = 0.5 * (p.narrow(2 + axis, 0, n) + p.narrow(2 + axis, 1, n))
         return [avg[:, c] for c in range(grid.rank)]
     out = []
+    half = const(0.5, velocity.dtype, velocity.device)
     for j, v in enumerate(velocity.values):
         if j == axis:
             out.append(v)
             continue
         p = pad_staggered_component(v, j, boundary, grid.dx, 1, axes=[axis])
         n = p.shape[dim_i] - 1
-        p = 0.5 * (p.narrow(dim_i, 0, n) + p.narrow(dim_i, 1, n))  # centre along axis -> faces
+        p = (p.narrow(dim_i, 0, n) + p.narrow(dim_i, 1, n)) * half  # centre along axis -> faces
         dim_j = 1 + j
         m = p.shape[dim_j] - 1
-        out.append(0.5 * (p.narrow(dim_j, 0, m) + p.narrow(dim_j, 1, m)))  # faces along j -> centres
+        out.append((p.narrow(dim_j, 0, m) + p.narrow(dim_j, 1, m)) * half)  # faces along j -> centres
     return out
 
 
@@ -325,7 +329,7 @@ def _advect_array(values: torch.Tensor, pad_fn, loc: _Location, vel: list[torch.
         return forward
     back = loc.stack(loc.trace(back_vel if back_vel is not None else vel, -dt))
     backward = loc.sample_stacked(pad_fn(forward), back)
-    corrected = forward + 0.5 * (values - backward)
+    corrected = forward + (values - backward) * const(0.5, values.dtype, values.device)
     if clamp is None:
         return corrected
     lo, hi = loc.bounds_stacked(padded, index)

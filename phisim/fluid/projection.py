@@ -43,6 +43,7 @@ from dataclasses import replace
 
 import torch
 
+from .._padplan import const
 from ..boundary import NORMAL, Boundary, pad
 from ..checks import all_finite
 from ..differential import _diff, divergence
@@ -289,9 +290,10 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     if not closed:
         _check_balance(v)
     dx = grid.dx
+    dxt = [const(d, v.dtype, v.device) for d in dx]
     div = None
     for a, c in enumerate(v.values):  # the MAC divergence (as phisim.differential.divergence)
-        t = _diff(c, 1 + a) / dx[a]
+        t = _diff(c, 1 + a) / dxt[a]
         div = t if div is None else div + t
     if check and not all_finite(div):
         raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
@@ -299,7 +301,7 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     pressure = CenteredGrid._trusted(p, grid, p_boundary)
     comps = []
     for a, c in enumerate(v.values):  # face gradient (as phisim.differential.gradient(at='face'))
-        g = _diff(pad(p, p_boundary, dx, 1, axes=[a]), 1 + a) / dx[a]
+        g = _diff(pad(p, p_boundary, dx, 1, axes=[a]), 1 + a) / dxt[a]
         comps.append(c - g)
     out = StaggeredGrid._trusted(tuple(comps), grid, boundary).with_boundary_faces()
     return out, pressure

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from .._padplan import const
 from ..advection import SCALAR_SCHEMES, SCHEMES, _advect, advect
 from ..advection import _validate as _validate_advection
 from ..boundary import Boundary, Inflow, pad
@@ -112,7 +113,7 @@ def _buoyancy(velocity: StaggeredGrid, m: torch.Tensor, mb: Boundary | None, dt,
         p = pad(m, mb, grid.dx, 1, axes=[i])
         dim = 1 + i
         n = p.shape[dim] - 1
-        face = 0.5 * (p.narrow(dim, 0, n) + p.narrow(dim, 1, n))
+        face = (p.narrow(dim, 0, n) + p.narrow(dim, 1, n)) * const(0.5, m.dtype, m.device)
         comps.append(c + (dt * strength * direction[i]) * face)
     return velocity._with_components(comps).with_boundary_faces()
 
