@@ -105,6 +105,18 @@ class PadPlan:
                 x = x + off
         return x
 
+    def per_channel(self, x: torch.Tensor) -> torch.Tensor:
+        """Pad ``(B, C, ...)``, every channel by this (channel-free) plan: the same operations on ``B * C`` rows."""
+        B, C = x.shape[0], x.shape[1]
+        if self.flat is not None:
+            idx, sign = self.flat
+            y = x.reshape(B * C, -1).index_select(1, idx)
+            if sign is not None:
+                y = y * sign
+            return y.reshape(B, C, *self.out_shape)
+        y = self(x.reshape(B * C, *x.shape[2:]))
+        return y.reshape(B, C, *y.shape[1:])
+
 
 @functools.lru_cache(maxsize=256)
 def pad_plan(shape: tuple[int, ...], channels: int | None, axes: tuple[int, ...], counts: tuple[int, ...],
@@ -237,12 +249,17 @@ def fast_plan(values, boundary, dx, width, axes, channels, shape, component):
     ``channels`` is the rank for a cell-centred vector array (component ``c`` normal to axis ``c``);
     ``component`` is the MAC component of a face-centred array (``None``: cell-centred).
     """
-    key = ("pad", channels, component, shape, axes, width, tuple(dx), values.dtype, values.device)
+    return plan_for(boundary, dx, width, axes, channels, shape, component, values.dtype, values.device)
+
+
+def plan_for(boundary, dx, width, axes, channels, shape, component, dtype, device):
+    """:func:`fast_plan` for arrays of ``dtype`` on ``device`` (memoised on the boundary)."""
+    key = ("pad", channels, component, shape, axes, width, tuple(dx), dtype, device)
     try:
         return boundary._memo(key, lambda: _build_plan(boundary, dx, width, axes, channels, shape, component,
-                                                       values.dtype, values.device) or False) or None
+                                                       dtype, device) or False) or None
     except TypeError:  # unhashable spacing
-        return _build_plan(boundary, dx, width, axes, channels, shape, component, values.dtype, values.device)
+        return _build_plan(boundary, dx, width, axes, channels, shape, component, dtype, device)
 
 
 def _build_plan(boundary, dx, width, axes, channels, shape, component, dtype, device):

@@ -49,7 +49,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ._padplan import const
+from . import boundary as bmod
+from ._padplan import const, plan_for
 from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
 from .checks import check_dt, check_finite
 from .errors import GridMismatchError, ParameterError, ShapeError
@@ -124,6 +125,18 @@ class _Location:
             hit = self._consts[key] = (bases, scale, offset, upper, stride, one, torch.zeros_like(upper))
         return hit
 
+    def padder(self, dtype, device):
+        """Pads ``(B, C, *shape)`` channel by channel (scalars, or MAC component ``face_axis``) by a cached
+        gather plan, or ``None`` where the boundary has non-constant rules (then the general path pads)."""
+        if not bmod._FAST_PADDING:
+            return None
+        key = ("pad", dtype, device)
+        if key not in self._consts:
+            plan = plan_for(self.boundary, self.dx, _WIDTH, tuple(range(len(self.shape))), None, self.shape,
+                            self.face_axis, dtype, device)
+            self._consts[key] = None if plan is None else plan.per_channel
+        return self._consts[key]
+
     def physical_points(self, dtype, device) -> torch.Tensor:
         """Physical sample positions ``(*shape, d)``."""
         if self.face_axis is None:
@@ -177,7 +190,8 @@ class _Location:
             return self.sample(padded, [stacked[:, 0]])
         scale, offset = self._const(stacked.dtype, stacked.device)[1:3]
         grid = (stacked * scale + offset).movedim(1, -1)
-        return F.grid_sample(padded, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        # F.grid_sample(mode='bilinear', padding_mode='border', align_corners=True) without its argument checks
+        return torch.grid_sampler(padded, grid, 0, 1, True)
 
     def bounds_stacked(self, padded: torch.Tensor, stacked: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`stencil_bounds` from indices stacked by :meth:`stack` (the corner index in a few ops)."""
@@ -294,6 +308,10 @@ def _velocity_at_faces(velocity: Field, axis: int) -> list[torch.Tensor]:
         m = p.shape[dim_j] - 1
         out.append((p.narrow(dim_j, 0, m) + p.narrow(dim_j, 1, m)) * half)  # faces along j -> centres
     return out
+
+
+def _as_dtype(vel: list[torch.Tensor], dtype) -> list[torch.Tensor]:
+    return vel if vel[0].dtype == dtype else [v.to(dtype) for v in vel]
 
 
 def _broadcast_batch(vel: list[torch.Tensor], batch: int) -> list[torch.Tensor]:
@@ -420,23 +438,27 @@ def _advect(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", 
         return conservative_step(field, velocity, dt, limiter=limiter, cfl=cfl)
     grid, boundary = field.grid, field.boundary
     if isinstance(field, CenteredGrid):
-        vel = _broadcast_batch([v.to(field.dtype) for v in _velocity_at_centers(velocity)], field.batch_size)
+        vel = _broadcast_batch(_as_dtype(_velocity_at_centers(velocity), field.dtype), field.batch_size)
         loc = _location(grid, boundary, None)
         vel, back = _trace_velocity(velocity, loc, vel, dt, integrator, scheme)
         values = field.values if field.is_vector else field.values.unsqueeze(1)
 
-        pad_fn = functools.partial(_pad_centered, boundary=boundary, dx=grid.dx,
-                                   velocity_like=field.is_vector and values.shape[1] == grid.rank)
+        velocity_like = field.is_vector and values.shape[1] == grid.rank
+        pad_fn = None if velocity_like else loc.padder(values.dtype, values.device)
+        if pad_fn is None:
+            pad_fn = functools.partial(_pad_centered, boundary=boundary, dx=grid.dx, velocity_like=velocity_like)
         out = _advect_array(values, pad_fn, loc, vel, dt, scheme, clamp, back)
         return CenteredGrid._trusted(out if field.is_vector else out[:, 0], grid, boundary)
     comps = []
     for i, comp in enumerate(field.values):
-        vel = _broadcast_batch([v.to(field.dtype) for v in _velocity_at_faces(velocity, i)], field.batch_size)
+        vel = _broadcast_batch(_as_dtype(_velocity_at_faces(velocity, i), field.dtype), field.batch_size)
         loc = _location(grid, boundary, i)
         vel, back = _trace_velocity(velocity, loc, vel, dt, integrator, scheme)
 
-        def pad_fn(x, i=i):
-            return pad_staggered_component(x[:, 0], i, boundary, grid.dx, _WIDTH).unsqueeze(1)
+        pad_fn = loc.padder(comp.dtype, comp.device)
+        if pad_fn is None:
+            def pad_fn(x, i=i):
+                return pad_staggered_component(x[:, 0], i, boundary, grid.dx, _WIDTH).unsqueeze(1)
 
         out = _advect_array(comp.unsqueeze(1), pad_fn, loc, vel, dt, scheme, clamp, back)[:, 0]
         if not boundary.is_periodic(i):
