@@ -759,6 +759,7 @@ Regenerate: `bash benchmarks/setup_phiflow.sh` once, then `python benchmarks/run
 KEPT_SECTIONS = (
     ("<!-- flow-bodies:begin -->", "<!-- flow-bodies:end -->"),  # benchmarks/bench_flow_bodies.py
     ("<!-- bodies-pcg:begin -->", "<!-- bodies-pcg:end -->"),  # benchmarks/bench_bodies.py
+    ("<!-- step-cost:begin -->", "<!-- step-cost:end -->"),  # benchmarks/bench_simulate.py --step-cost
 )
 
 
@@ -832,7 +833,7 @@ def write_doc(base: str, path: str) -> None:
     others = [
         f
         for f in ("bench_cg.py", "bench_hig.py", "bench_spectral.py", "bench_viscosity.py", "bench_reliability.py",
-                  "bench_bodies.py", "bench_flow_bodies.py")
+                  "bench_bodies.py", "bench_flow_bodies.py", "bench_simulate.py")
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:
