@@ -119,9 +119,9 @@ def step_cost(sizes: list[tuple[int, ...]], steps: int, rounds: int, dtype: str,
     return rows
 
 
-def _intercept(rows: list[dict], key: str) -> float | None:
-    """Least-squares intercept of ``key`` against the cell count over the 2-D rows (the fixed cost)."""
-    pts = [(r["cells"], r[key]) for r in rows if r["resolution"].count("x") == 1]
+def _intercept(rows: list[dict], key: str, rank: int = 2) -> float | None:
+    """Least-squares intercept of ``key`` against the cell count over the ``rank``-D rows (the fixed cost)."""
+    pts = [(r["cells"], r[key]) for r in rows if r["resolution"].count("x") == rank - 1]
     if len(pts) < 2:
         return None
     n = len(pts)
@@ -142,9 +142,10 @@ def _markdown(rows: list[dict]) -> str:
                      f"{r['marker_cpu_ms']:.3f} | {r['velocity_cpu_ms']:.3f} | {r['buoyancy_cpu_ms']:.3f} | "
                      f"{r['projection_cpu_ms']:.3f} | {rest:.3f} |")
     out = head + "\n".join(lines) + "\n"
-    a, b = _intercept(rows, "step_cpu_ms"), _intercept(rows, "step_wall_ms")
-    if a is not None:
-        out += f"\nFixed cost (intercept over the 2-D sizes): {a:.3f} ms CPU, {b:.3f} ms wall per step.\n"
+    for rank in (2, 3):
+        a, b = _intercept(rows, "step_cpu_ms", rank), _intercept(rows, "step_wall_ms", rank)
+        if a is not None:
+            out += f"\nFixed cost (intercept over the {rank}-D sizes): {a:.3f} ms CPU, {b:.3f} ms wall per step.\n"
     return out
 
 
