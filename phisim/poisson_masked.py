@@ -22,9 +22,9 @@ eliminated exactly around it (a block LDL^T step: their residual is passed to th
 box inverse and their value recovered from the neighbours' after it). Where no leaves can be used (layouts
 that differ between samples) the inverse diagonal on the cut cells is added instead (additive Jacobi).
 Either way, with fractional bodies this cuts the iterations about threefold against the box inverse alone;
-the elimination also takes a quarter to a third off warm-started solves (plume and cylinder wake). :class:`MaskedPoisson`
-computes the labels, null space and eigenvalues once; a fluid solver keeps one per body layout and calls
-:meth:`MaskedPoisson.solve` every step.
+the elimination also takes a quarter to a third off warm-started solves (plume and cylinder wake).
+:class:`MaskedPoisson` computes the labels, null space and eigenvalues once; a fluid solver keeps one per
+body layout and calls :meth:`MaskedPoisson.solve` every step.
 """
 
 from __future__ import annotations

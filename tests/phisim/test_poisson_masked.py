@@ -30,7 +30,10 @@ def _weights(batch, res, kinds, seed):
     return out
 
 
-@pytest.mark.parametrize("kinds", KINDS + [(("neumann", "dirichlet"), ("periodic", "periodic"), ("neumann", "neumann"))])
+KINDS_3D = (("neumann", "dirichlet"), ("periodic", "periodic"), ("neumann", "neumann"))
+
+
+@pytest.mark.parametrize("kinds", KINDS + [KINDS_3D])
 @pytest.mark.parametrize("batch", [1, 3])
 def test_fixed_weight_stencil_equals_generic_operator(kinds, batch):
     res = (9, 7) if len(kinds) == 2 else (5, 4, 6)
