@@ -58,6 +58,29 @@ __all__ = ["MaskedPoisson"]
 LEAF_THRESHOLD = 0.2
 
 
+def _scatter_add(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor,
+                 in_rounds: bool | None = None) -> torch.Tensor:
+    """``out[:, index] += values`` in place, in a fixed order on every device.
+
+    On the CPU ``index_add_`` accumulates repeated indices in order. Elsewhere it uses atomic additions whose
+    order varies between runs, so the values are added in rounds in which no index repeats (each element then
+    gets one addition per round, a result that does not depend on scheduling). ``in_rounds`` forces either way.
+    """
+    if not (out.device.type != "cpu" if in_rounds is None else in_rounds):
+        return out.index_add_(1, index, values)
+    order = torch.argsort(index, stable=True)
+    sorted_index = index[order]
+    first = torch.ones_like(sorted_index, dtype=torch.bool)
+    first[1:] = sorted_index[1:] != sorted_index[:-1]
+    start = torch.cummax(torch.where(first, torch.arange(len(index), device=index.device), 0), 0).values
+    occurrence = torch.empty_like(index)
+    occurrence[order] = torch.arange(len(index), device=index.device) - start
+    for k in range(int(occurrence.max()) + 1 if len(index) else 0):
+        sel = torch.nonzero(occurrence == k).flatten()
+        out.index_add_(1, index[sel], values.index_select(1, sel))
+    return out
+
+
 class MaskedPoisson:
     """``-div(w grad p)`` on a box with face weights: operator, face gradient and preconditioned CG solve.
 
@@ -376,7 +399,7 @@ class MaskedPoisson:
                                                for k, t in enumerate(leaves[:5]))
             B = r.shape[0]
             r2 = r.reshape(B, -1)
-            rt = r2.index_fill(1, leaf_idx, 0.0).index_add_(1, dst, r2.index_select(1, src) * frac).view_as(r)
+            rt = _scatter_add(r2.index_fill(1, leaf_idx, 0.0), dst, r2.index_select(1, src) * frac).view_as(r)
             act = self._cast("act_nonleaf", self.active & ~leaves[5], dtype)
         else:
             rt = r
@@ -408,7 +431,7 @@ class MaskedPoisson:
         if leaves is not None:
             y2 = y.view(B, -1)
             y2.index_copy_(1, leaf_idx, r2.index_select(1, leaf_idx) * inv_d)
-            y2.index_add_(1, src, y2.index_select(1, dst) * frac)
+            _scatter_add(y2, src, y2.index_select(1, dst) * frac)
         return self.project(y)
 
     def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None,

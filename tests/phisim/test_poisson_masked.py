@@ -130,3 +130,17 @@ def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_
     _, info = op.solve(b, solve=Solve(rtol=1e-8))
     _, info_plain = op.solve(b, solve=Solve(rtol=1e-8), preconditioned=False)
     assert int(info.iterations[0]) * 2 < int(info_plain.iterations[0])
+
+
+def test_scatter_add_in_rounds_equals_index_add():
+    from phisim.poisson_masked import _scatter_add
+
+    gen = torch.Generator().manual_seed(9)
+    index = torch.randint(0, 7, (40,), generator=gen)
+    values = torch.randn(3, 40, dtype=torch.float64, generator=gen)
+    out = torch.randn(3, 7, dtype=torch.float64, generator=gen)
+    ref = out.clone().index_add_(1, index, values)
+    rounds = _scatter_add(out.clone(), index, values, in_rounds=True)
+    torch.testing.assert_close(rounds, ref, rtol=1e-14, atol=1e-14)
+    # each round adds one value per index, in the order the values come: bit for bit on a second call
+    assert torch.equal(rounds, _scatter_add(out.clone(), index, values, in_rounds=True))
