@@ -283,8 +283,8 @@ def _box_constants(boundary: Boundary):
 def _project_box(v: StaggeredGrid, check: bool = True):
     """The projection without solids by the direct spectral solve of ``v`` with its boundary faces set.
 
-    ``check`` raises NonFiniteError for a non-finite divergence; a fluid step, which checked its velocity at
-    its entry, skips it (a blow-up inside the step is caught at the entry of the next one).
+    ``check`` raises NonFiniteError for a non-finite divergence (as the spectral solve does); the other checks
+    of :func:`make_incompressible` are the caller's.
     """
     grid, boundary = v.grid, v.boundary
     p_boundary, kinds, closed = _box_constants(boundary)

@@ -115,6 +115,8 @@ def _buoyancy(velocity: StaggeredGrid, m: torch.Tensor, mb: Boundary | None, dt,
         n = p.shape[dim] - 1
         face = (p.narrow(dim, 0, n) + p.narrow(dim, 1, n)) * const(0.5, m.dtype, m.device)
         comps.append(c + (dt * strength * direction[i]) * face)
+    if m.shape[0] != velocity.batch_size:  # a marker batch broadcasting the velocity's: validate the shapes
+        return velocity.with_values(tuple(comps)).with_boundary_faces()
     return velocity._with_components(comps).with_boundary_faces()
 
 
