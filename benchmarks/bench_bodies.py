@@ -70,7 +70,7 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     op = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
     g = torch.Generator().manual_seed(0)
     rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(device=device, dtype=dtype) * op.active.to(dtype)
-    x = torch.randn_like(rhs)
+    x = torch.randn(rhs.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
 
     r2r, per = _layout(op.kinds)
     fwd = tuple(_TRANSFORM[op.kinds[a]][0] for a in r2r)

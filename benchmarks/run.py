@@ -870,6 +870,10 @@ def main(argv: list[str] | None = None) -> int:
         "--doc", default=None, help="document path (default docs/BENCHMARKS.md; quick: <out>/BENCHMARKS.md)"
     )
     args = ap.parse_args(argv)
+    if not args.doc_only:
+        from phisim.checks import check_device
+
+        check_device(args.device)  # a bad device fails before any suite runs
     if args.out is None:
         args.out = tempfile.mkdtemp(prefix="phisim-bench-") if args.quick else RESULTS
     doc = args.doc or (os.path.join(args.out, "BENCHMARKS.md") if args.quick else DOC)
