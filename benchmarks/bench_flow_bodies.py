@@ -555,7 +555,7 @@ def main(argv=None) -> int:
             "device": a.device, "sizes": a.sizes,
             "rounds": a.rounds, "warm": a.warm, "steps": a.steps, "repeat": a.repeat, "tol": TOL,
             "uptime_before": _uptime(), "results": []}
-    if a.device.startswith("cuda"):
+    if a.device.startswith("cuda") and any(s.startswith("phisim") for s in a.sides):
         import torch
 
         data["machine"] += f", GPU {torch.cuda.get_device_name(a.device)}"
