@@ -54,6 +54,7 @@ from inverse.local_solvers import GradientStepSolver  # noqa: E402
 from inverse.operators import Heat  # noqa: E402
 from inverse.problems import Problem, get_problem  # noqa: E402
 from inverse.train import batch_generator, train  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.errors import PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
 from phisim.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
@@ -535,6 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> dict:
     """Command-line entry point; returns ``{experiment: summary}``."""
     args = build_parser().parse_args(argv)
+    check_device(args.device)  # a bad device fails before anything is written
     args.out.mkdir(parents=True, exist_ok=True)
     exps = ["e2", "e3", "e4", "e4-opt"] if args.experiment == "all" else [args.experiment]
     results = {}
