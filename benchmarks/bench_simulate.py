@@ -27,13 +27,15 @@ import tempfile
 import time
 from pathlib import Path
 
+from phisim.checks import check_device
 from phisim.simulate import resolve_config, simulate_dataset
 
 
-def measure(scenario: str, workers: int, trajectories: int, resolution: int, steps: int) -> float:
+def measure(scenario: str, workers: int, trajectories: int, resolution: int, steps: int, device: str = "cpu"
+            ) -> float:
     """Wall seconds of one dataset with ``trajectories`` trajectories, one per file."""
     cfg = resolve_config(scenario, trajectories=trajectories, trajectories_per_file=1, resolution=resolution,
-                         steps=steps)
+                         steps=steps, device=device)
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         simulate_dataset(Path(tmp) / "ds", cfg, workers=workers, progress=False)
@@ -149,7 +151,7 @@ def _markdown(rows: list[dict]) -> str:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     """Measure and print one JSON line per worker count (or per grid size with ``--step-cost``)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--step-cost", action="store_true", help="time one smoke step on small grids instead")
@@ -158,7 +160,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5, help="rounds per size (--step-cost)")
     ap.add_argument("--calls", type=int, default=100, help="calls per round (--step-cost)")
     ap.add_argument("--dtype", default="float32", choices=("float32", "float64"))
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     ap.add_argument("--markdown", action="store_true", help="print a markdown table (--step-cost)")
     ap.add_argument("--scenario", default="smoke")
     ap.add_argument("--workers", type=int, default=2)
@@ -166,19 +168,21 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=32)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--out", type=Path, default=None)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
+    a.device = str(check_device(a.device))  # before any work or output
     if a.step_cost:
         sizes = [(n, n) for n in a.sizes] + [(n, n, n) for n in a.sizes3d]
         rows = step_cost(sizes, a.calls, a.rounds, a.dtype, a.device)
         if a.markdown:
             print(_markdown(rows))
         if a.out is not None:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
             a.out.write_text(json.dumps(rows, indent=1) + "\n")
         return
     rows = []
     for w in sorted({1, a.workers}):
-        s = measure(a.scenario, w, a.trajectories, a.resolution, a.steps)
-        rows.append({"scenario": a.scenario, "workers": w, "trajectories": a.trajectories,
+        s = measure(a.scenario, w, a.trajectories, a.resolution, a.steps, a.device)
+        rows.append({"scenario": a.scenario, "workers": w, "device": a.device, "trajectories": a.trajectories,
                      "resolution": a.resolution, "steps": a.steps, "seconds": round(s, 3),
                      "trajectories_per_s": round(a.trajectories / s, 3), "cpu_count": os.cpu_count()})
         print(json.dumps(rows[-1]), flush=True)

@@ -64,6 +64,8 @@ SCRIPTS = {
     "benchmarks/bench_training.py": ["--resolution", "16", "--batch-size", "2", "--out", "{out}/t.md"],
     "benchmarks/bench_hig.py": ["--batch-sizes", "2", "--widths", "4", "--out", "{out}/h.md"],
     "benchmarks/run.py": ["--suite", "operators", "--quick", "--out", "{out}"],
+    "benchmarks/bench_simulate.py": ["--step-cost", "--sizes", "8", "12", "--sizes3d", "--rounds", "1", "--calls",
+                                     "2", "--out", "{out}/s.json"],
 }
 
 
@@ -77,8 +79,8 @@ def test_every_script_is_listed():
     found |= {f"benchmarks/{p.name}" for p in (ROOT / "benchmarks").glob("*.py")}
     helpers = {"examples/demo.py", "examples/seed_table.py", "benchmarks/cases_phisim.py", "benchmarks/inputs.py",
                "benchmarks/peer_phiflow.py", "benchmarks/timing.py",
-               # the lead adds --device to these two (edited elsewhere at the time of writing)
-               "benchmarks/bench_viscosity.py", "benchmarks/bench_simulate.py"}
+               # the lead adds --device to this one (edited elsewhere at the time of writing)
+               "benchmarks/bench_viscosity.py"}
     assert found - helpers == set(SCRIPTS)
     for script in SCRIPTS:
         assert "--device" in (ROOT / script).read_text(), script
@@ -207,6 +209,17 @@ def _e5(tmp_path: Path, device: str) -> dict:
     assert -1 <= entry["strength_corr"] <= 1
     assert entry["train_running_mean"] == {}  # fewer than 50 iterations logged
     return entry
+
+
+def test_bench_simulate_step_cost_tiny_cpu(tmp_path):
+    out = tmp_path / "out"
+    load("benchmarks/bench_simulate.py").main(argv("benchmarks/bench_simulate.py", out, "cpu"))
+    rows = json.loads((out / "s.json").read_text())
+    assert [r["resolution"] for r in rows] == ["8x8", "12x12"]
+    for r in rows:
+        assert r["device"] == "cpu"
+        for phase in ("step", "marker", "velocity", "buoyancy", "projection"):
+            assert r[f"{phase}_cpu_ms"] > 0 and r[f"{phase}_wall_ms"] > 0
 
 
 def test_e5_diagnose_tiny_cpu(tmp_path):
