@@ -101,6 +101,9 @@ class _Component:
         self.scale = scale
         self.periodic = [a for a in range(grid.rank) if kinds[a] is None]
         self.r2r = [a for a in range(grid.rank) if kinds[a] is not None]
+        self.fwd_kinds = tuple(kinds[a][0] for a in self.r2r)
+        self.inv_kinds = tuple(kinds[a][1] for a in self.r2r)
+        self.r2r_axes = tuple(1 + a for a in self.r2r)
         # eigenvalue sum in the spectral layout (last periodic axis halved for the rfft)
         total = torch.zeros((), dtype=torch.float64)
         for a, lam in enumerate(eigs):
@@ -148,6 +151,26 @@ class _Component:
         full = torch.cat(parts, dim=dim) if len(parts) > 1 else x
         return set_boundary_faces(full, self.i, self.boundary)
 
+    def solve_box(self, rhs: torch.Tensor, mult: torch.Tensor, like: torch.Tensor, engine) -> torch.Tensor | None:
+        """``embed(apply(rhs, mult, prescaled=True), like)`` written in place into one new full component.
+
+        The fast path of the exact box solve: no autograd, no periodic axis, zero boundary values on the
+        faces outside the unknowns (walls); the transforms run on the interior view of the output. Returns
+        None where it does not apply (the caller composes :meth:`apply` and :meth:`embed`).
+        """
+        if self.periodic or not self.r2r or self.has_values or rhs.requires_grad or like.requires_grad:
+            return None
+        full = torch.empty(like.shape, dtype=rhs.dtype, device=rhs.device)
+        dim = 1 + self.i
+        if _fft.r2r_multiply(rhs, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine,
+                             out=full.narrow(dim, self.first, self.count)) is None:
+            return None
+        if self.first:
+            full.narrow(dim, 0, 1).zero_()
+        if self.first + self.count < self.n + 1:
+            full.narrow(dim, self.n, 1).zero_()
+        return full
+
     def laplace(self, u: torch.Tensor) -> torch.Tensor:
         """The full stencil ``L u`` on the full component (ghosts and boundary values from the rules)."""
         p = pad_staggered_component(u, self.i, self.boundary, self.dx, 1)
@@ -187,6 +210,10 @@ class _Component:
     def apply(self, x: torch.Tensor, mult: torch.Tensor, engine, prescaled: bool = False) -> torch.Tensor:
         """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` in spectral layout (float64, or
         already normalised and in ``x``'s dtype when ``prescaled``)."""
+        if prescaled and self.r2r and not self.periodic:
+            y = _fft.r2r_multiply(x, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine)
+            if y is not None:  # no autograd, pyfftw engine: transform, multiply, transform back in one pass
+                return y
         y = x
         if self.r2r:
             y = _fft.r2rn(y, tuple(self.kinds[a][0] for a in self.r2r), tuple(1 + a for a in self.r2r),
@@ -305,7 +332,8 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
             rhs = rhs + alpha * b
         inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
         if mask is None:
-            out.append(comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
+            full = comp.solve_box(rhs, inverse, u, engine)
+            out.append(full if full is not None else comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
             continue
         # bodies: CG on the free faces, the exact box solve as preconditioner
         p = 1 - comp.restrict(mask)
@@ -333,7 +361,8 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
         y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t,))
         out.append(comp.embed(y + v_fixed, u))
     result = velocity.with_values(tuple(out))
-    return result.with_boundary_faces()
+    # the solves embed their unknowns with the boundary faces already set (embed / solve_box)
+    return result.with_boundary_faces() if method == "explicit" else result
 
 
 def _phi1(z: torch.Tensor) -> torch.Tensor:
