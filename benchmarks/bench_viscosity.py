@@ -31,7 +31,7 @@ import time
 
 import torch
 
-from phisim import Grid, StaggeredGrid, fft
+from phisim import Grid, StaggeredGrid, _mac_diffusion, fft
 from phisim.diffusion import diffuse_staggered
 from phisim.fluid import navier_stokes_step
 from phisim.linalg import Solve
@@ -62,78 +62,94 @@ NOTES = """Reading the tables:
   split step with implicit viscosity; it buys second order in time (docs/SCHEMES.md)."""
 
 
-def bench(fn, repeat: int = 30, min_total: float = 0.3) -> float:
+def bench(fn, repeat: int = 30, min_total: float = 0.3) -> tuple[float, float]:
+    """(wall, CPU) ms of one call: the chosen statistic of the repeats (CPU time of this process)."""
     fn()
     fn()
-    times = []
+    walls, cpus = [], []
     total = 0.0
-    while len(times) < repeat or total < min_total:
-        t = time.perf_counter()
+    while len(walls) < repeat or total < min_total:
+        t, c = time.perf_counter(), time.process_time()
         fn()
         dt = time.perf_counter() - t
-        times.append(dt)
+        cpus.append(time.process_time() - c)
+        walls.append(dt)
         total += dt
-        if len(times) > 2000:
+        if len(walls) > 2000:
             break
-    return 1e3 * (min(times) if STAT == "min" else statistics.median(times))
+    pick = min if STAT == "min" else statistics.median
+    return 1e3 * pick(walls), 1e3 * pick(cpus)
 
 
-def _old_cg(v, alpha, solve):
-    try:
-        from phisim.fluid import _implicit_diffusion
-    except ImportError:  # the fluid package may have moved it
-        return None
-    return lambda: _implicit_diffusion(v, alpha, solve)
+def _disc_masks(grid, n):
+    x = grid.cell_centers(torch.float64)
+    solid = ((x - 0.5) ** 2).sum(-1) <= 0.2**2
+    masks = []
+    for i in range(2):
+        f = torch.nn.functional.pad(solid.to(torch.float64)[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+        m = f.narrow(i, 0, n + 1).narrow(1 - i, 1, n) + f.narrow(i, 1, n + 1).narrow(1 - i, 1, n)
+        masks.append(m > 0)
+    return masks
+
+
+def table(sizes, dtype) -> list[str]:
+    """One viscosity step per method and size (a Markdown table)."""
+    rows = []
+    for n in sizes:
+        grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+        g = torch.Generator().manual_seed(0)
+        v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
+                                for i in range(2)), grid, "wall").with_boundary_faces()
+        dx = grid.dx[0]
+        dt = 2 * dx**2
+        dt_explicit = 0.2 * dx**2
+        masks = _disc_masks(grid, n)
+        solve = Solve(rtol=1e-6 if dtype == torch.float32 else 1e-8)
+        explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
+        implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
+        cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
+        _mac_diffusion._CAP_CACHE.clear()
+        diffuse_staggered(v, dt, viscosity=NU, method="implicit", fixed=masks, solve=solve)  # first call: PCG
+        t0, c0 = time.perf_counter(), time.process_time()
+        diffuse_staggered(v, dt, viscosity=NU, method="implicit", fixed=masks, solve=solve)  # builds the matrices
+        build = (1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0))
+        surface = max(e[2].surface.numel() for entries in _mac_diffusion._CAP_CACHE.values() for e in entries
+                      if e[2])
+        body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
+                                                                           fixed=m, solve=s))
+        # a tensor viscosity keeps the PCG path (what the first call with a new body or ν dt runs)
+        nu_t = torch.tensor(NU, dtype=dtype)
+        pcg = bench(lambda v=v, h=dt, m=masks, s=solve, nu=nu_t: diffuse_staggered(
+            v, h, viscosity=nu, method="implicit", fixed=m, solve=s), repeat=10)
+        rows.append((n, explicit, implicit, cn, body, build, surface, pcg))
+    lines = [f"One viscosity step of a MAC velocity, {str(dtype).split('.')[-1]}, batch 1, walls, ν dt/dx² = 2, "
+             f"1 thread; {STAT} of the repeats, wall ms (ratio to explicit) / CPU ms of the process:", "",
+             "| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (capacitance) | "
+             "body: one-time build (faces) | implicit, body (PCG) |",
+             "|---|---|---|---|---|---|---|"]
+    for n, e, i, c, b, bu, k, p in rows:
+        def cell(x, e=e):
+            return f"{x[0]:.3f} ({x[0] / e[0]:.2f}x) / {x[1]:.3f}"
+        lines.append(f"| {n}² | {e[0]:.3f} / {e[1]:.3f} | {cell(i)} | {cell(c)} | {cell(b)} | "
+                     f"{bu[0]:.0f} / {bu[1]:.0f} ({k}) | {p[0]:.2f} ({p[0] / e[0]:.1f}x) / {p[1]:.2f} |")
+    return lines
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="+", default=[48, 64, 128, 256])
-    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     ap.add_argument("--write", action="store_true", help="save the tables to benchmarks/results/viscosity.md")
     ap.add_argument("--stat", choices=["min", "median"], default="min", help="statistic of the repeats")
     args = ap.parse_args()
     global STAT
     STAT = args.stat
     torch.set_num_threads(1)
-    dtype = getattr(torch, args.dtype)
-    rows = []
+    lines = []
     with fft.fft_settings(planner_effort="FFTW_MEASURE"):
-        for n in args.sizes:
-            grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
-            g = torch.Generator().manual_seed(0)
-            v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
-                                    for i in range(2)), grid, "wall").with_boundary_faces()
-            dx = grid.dx[0]
-            dt = 2 * dx**2
-            dt_explicit = 0.2 * dx**2
-            x = grid.cell_centers(torch.float64)
-            solid = ((x - 0.5) ** 2).sum(-1) <= 0.2**2
-            masks = []
-            for i in range(2):
-                f = torch.nn.functional.pad(solid.to(torch.float64)[None, None], (1, 1, 1, 1) if i else (1, 1, 1, 1),
-                                            mode="replicate")[0, 0]
-                m = f.narrow(i, 0, n + 1).narrow(1 - i, 1, n) + f.narrow(i, 1, n + 1).narrow(1 - i, 1, n)
-                masks.append(m > 0)
-            solve = Solve(rtol=1e-6 if dtype == torch.float32 else 1e-8)
-            explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
-            implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
-            cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
-            body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
-                                                                               fixed=m, solve=s), repeat=10)
-            old = _old_cg(v, NU * dt, solve)
-            old_ms = bench(old, repeat=5) if old is not None else float("nan")
-            rows.append((n, explicit, implicit, cn, body, old_ms))
-    lines = [f"One viscosity step of a MAC velocity, {args.dtype}, batch 1, walls, ν dt/dx² = 2, 1 thread; "
-             f"{STAT} of the repeats in ms (ratio to explicit):", "",
-             "| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (PCG) | implicit, old CG |",
-             "|---|---|---|---|---|---|"]
-    for n, e, i, c, b, o in rows:
-        old = f"{o:.2f} ({o / e:.1f}x)" if o == o else "n/a"
-        lines.append(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | "
-                     f"{old} |")
-    with fft.fft_settings(planner_effort="FFTW_MEASURE"):
-        lines += bench_steps(args.sizes, dtype)
+        for name in args.dtype:
+            lines += table(args.sizes, getattr(torch, name)) + [""]
+        lines += bench_steps(args.sizes, torch.float32)
     text = "\n".join(lines) + "\n\n" + NOTES + "\n"
     print(text)
     if args.write:
@@ -141,8 +157,8 @@ def main() -> None:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         stamp = time.strftime("%Y-%m-%dT%H:%M:%S")
         with open(path, "w") as fh:
-            fh.write(f"Made by `python benchmarks/bench_viscosity.py --write` ({stamp}, {platform.machine()}, "
-                     f"{os.cpu_count()} cores).\n\n" + text)
+            fh.write(f"Made by `OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py --write` ({stamp}, "
+                     f"{platform.machine()}, {os.cpu_count()} cores).\n\n" + text)
 
 
 def bench_steps(sizes, dtype) -> list[str]:
@@ -161,7 +177,7 @@ def bench_steps(sizes, dtype) -> list[str]:
                    {"integrator": "imex2"}):
             try:
                 row.append(bench(lambda kw=kw, v=v, dt=dt: navier_stokes_step(
-                    v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10))
+                    v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10)[0])
             except Exception:  # noqa: BLE001 - e.g. an explicit scheme beyond its limit
                 row.append(float("nan"))
         lines.append(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")

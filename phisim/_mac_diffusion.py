@@ -198,10 +198,24 @@ class _Component:
         """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
         if isinstance(coef, torch.Tensor):
             return (self.scale / (1.0 - coef * self.lam.to(device))).to(dtype)
-        key = (float(coef), dtype, str(device))
+        key = ("implicit", float(coef), dtype, str(device))
         m = self._mults.get(key)
         if m is None:
             m = (self.scale / (1.0 - float(coef) * self.lam)).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
+    def step_multiplier(self, method: str, alpha: float, dtype, device) -> torch.Tensor:
+        """A whole box step as one normalised multiplier (cached): ``'crank_nicolson'``
+        ``(1 + αλ/2) / (1 - αλ/2)`` or ``'spectral'`` ``e^{αλ}`` (zero boundary values)."""
+        key = (method, float(alpha), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            a = float(alpha)
+            m = torch.exp(a * self.lam) if method == "spectral" else (1 + 0.5 * a * self.lam) / (1 - 0.5 * a * self.lam)
+            m = (self.scale * m).to(dtype=dtype, device=device)
             if len(self._mults) > 8:
                 self._mults.clear()
             self._mults[key] = m
@@ -317,6 +331,12 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
         lam = comp.lam.to(u.device)
         x = comp.restrict(u)
         b = comp.source(u)
+        if mask is None and b is None and method != "implicit" and not isinstance(alpha, torch.Tensor):
+            # Crank-Nicolson and the exact step in a box: one multiplier, one transform pair, no stencil
+            full = comp.solve_box(x, comp.step_multiplier(method, alpha, u.dtype, u.device), u, engine)
+            if full is not None:
+                out.append(full)
+                continue
         if method == "spectral":
             y = comp.apply(x, torch.exp(alpha * lam), engine)
             if b is not None:
