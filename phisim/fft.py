@@ -17,8 +17,9 @@ Engines:
   (Makhoul 1980, "A fast cosine transform in one and multiple dimensions", IEEE TASSP 28(1)),
   so they run on CUDA and are differentiated by torch's autograd.
 * ``'pyfftw'``: FFTW plans made by pyfftw, cached per (transform, shape, dtype, axes, threads,
-  planner effort); the real-to-real kinds are FFTW's own. Results are differentiable through
-  ``torch.autograd.Function`` wrappers whose backward applies the adjoint transform:
+  planner effort); the real-to-real kinds are FFTW's own, except where scipy's pocketfft measured faster
+  (float32, and float64 type-1 kinds: one-axis transforms, no plans; see ``_use_pocket``). Results are
+  differentiable through ``torch.autograd.Function`` wrappers whose backward applies the adjoint transform:
   ``DCT-II^T = DCT-III·diag(2,1,…,1)``, ``DCT-III^T = diag(1/2,1,…,1)·DCT-II``,
   ``DST-II^T = DST-III·diag(1,…,1,2)``, ``DST-III^T = diag(1,…,1,1/2)·DST-II``; the adjoint of
   ``rfftn`` is ``N·irfftn`` with the interior bins of the halved axis halved, the adjoint of
@@ -457,6 +458,12 @@ class _PyfftwR2R(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, kinds, axes):
         ctx.kinds, ctx.axes = kinds, axes
+        if _use_pocket(x.dtype, kinds):  # one-axis pocketfft transforms, the innermost axis first
+            y = None
+            for kind, ax in zip(reversed(kinds), reversed(axes)):
+                fn = _pocket.dct if kind.startswith("dct") else _pocket.dst
+                y = fn(x.detach().numpy() if y is None else y, int(kind[3]), (ax,), 0, y, _SETTINGS.threads)
+            return torch.from_numpy(y)
         plan = _get_plan("r2r", tuple(x.shape), _np_dtype(x.dtype), axes, kinds)
         return torch.from_numpy(plan(_np(x)))
 
@@ -583,12 +590,12 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     """``inverse_r2r(forward_r2r(x * pre) * mult)`` in one pass without autograd, or None.
 
     A fast path for operators applied many times without autograd (preconditioners, exact box solves). The
-    real-to-real kinds run as one-axis pocketfft transforms (scipy's C++ FFT) in place on one array: 2-4x
-    faster than FFTW's REDFT/RODFT kinds at 128²-256² on the development CPU, and free of plans (the same
-    round-off in every process). Without pocketfft two FFTW plans share their buffers; ``kinds`` empty means
-    a real FFT pair (``mult`` on the half spectrum). It returns None when it does not apply (pyfftw missing
-    or not the resolved engine, a non-CPU or grad-requiring tensor, or a dtype other than float32/float64);
-    the caller then composes :func:`r2rn` calls itself.
+    real-to-real kinds run as one-axis pocketfft transforms (scipy's C++ FFT) in place on one array where that
+    measured faster (float32, and float64 with a type-1 kind: 1.2-2.5x faster than FFTW's REDFT/RODFT kinds at
+    128²-256² on the development CPU; no plans, so the same round-off in every process); otherwise two FFTW
+    plans share their buffers. ``kinds`` empty means a real FFT pair (``mult`` on the half spectrum). It
+    returns None when it does not apply (pyfftw missing or not the resolved engine, a non-CPU or grad-requiring
+    tensor, or a dtype other than float32/float64); the caller then composes :func:`r2rn` calls itself.
 
     Args:
         x: Real tensor (float32/float64) on the CPU; any strides.
@@ -617,7 +624,7 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     axes = _norm_axes(x, axes)
     kinds, inverse = tuple(kinds), tuple(inverse)
     m = mult.detach().numpy()
-    if _pocket is not None and kinds:
+    if _use_pocket(x.dtype, kinds + inverse):
         y = _pocket_multiply(x.detach().numpy(), kinds, inverse, axes, m,
                              None if pre is None else pre.detach().numpy(),
                              None if out is None else out.detach().numpy())
@@ -625,6 +632,17 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes, kinds, inverse)
     y = torch.from_numpy(plan(_np(x), m, None if pre is None else _np(pre)))
     return y if out is None else out.copy_(y)
+
+
+def _use_pocket(dtype: torch.dtype, kinds: tuple[str, ...]) -> bool:
+    """Whether pocketfft beats FFTW for these real-to-real kinds (measured on the development CPU, 1 thread).
+
+    float32: always (2-D DCT-II 256²: 0.12 vs 0.28 ms, 128²: 0.03 vs 0.05 ms; 64³: 1.0 vs 1.1 ms). float64: only
+    with a type-1 kind, which FFTW computes slowly (DST-I x DST-II 255x256: 0.74 vs 0.82 ms, 127x128: 0.14 vs 0.17
+    ms); for the other float64 kinds FFTW's plans are as fast or faster (DCT-II 256²: 0.28 vs 0.35 ms; 64³: 1.2 vs
+    2.0 ms).
+    """
+    return _pocket is not None and bool(kinds) and (dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds)
 
 
 def _pocket_r2r(y: np.ndarray, kind: str, axis: int) -> None:
@@ -637,9 +655,8 @@ def _pocket_multiply(a: np.ndarray, kinds, inverse, axes, mult: np.ndarray, pre:
                      out: np.ndarray | None = None) -> np.ndarray:
     """``inverse(forward(a * pre) * mult)`` by one-axis pocketfft transforms in place on ``out`` (or a new array).
 
-    FFTW's real-to-real kinds (REDFT/RODFT) measured 2-4x slower than pocketfft's at 128²-256² on the
-    development CPU (a 2-D DST-I x DST-II of 255x256 float32: 0.42 ms vs 0.17 ms): FFTW computes them with
-    scalar pre/post-processing, pocketfft from a real FFT vectorised across lines.
+    FFTW's real-to-real kinds (REDFT/RODFT) measured up to 2.5x slower than pocketfft's at 128²-256² on the
+    development CPU in float32 (a 2-D DST-I x DST-II of 255x256: 0.42 ms vs 0.17 ms), see :func:`_use_pocket`.
     """
     if out is None:
         out = np.empty(a.shape, dtype=a.dtype)
