@@ -23,10 +23,12 @@ moving lid, an inflow profile, a flux) enter as a constant source ``b``: ``L u =
 backward-Euler or Crank-Nicolson step in a box is one forward transform, a division and one inverse
 transform per component, exact to round-off.
 
-Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability; then
-the θ-scheme is solved by :func:`phisim.linalg.cg` on the free faces, preconditioned with the exact box
-solve. The operator is made symmetric by halving the rows of free boundary faces on open sides (the
-vertex-centred Neumann stencil is symmetric in that weighted inner product).
+Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. When
+the same faces and ``θ ν dt`` come back (fixed-step runs) the θ-scheme is solved directly with a capacitance
+matrix on the body surface (:class:`_CapacitanceSolve`: two box solves and a small LU solve per call);
+otherwise by :func:`phisim.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG
+operator is made symmetric by halving the rows of free boundary faces on open sides (the vertex-centred
+Neumann stencil is symmetric in that weighted inner product).
 """
 
 from __future__ import annotations
@@ -403,6 +405,9 @@ def _phi1(z: torch.Tensor) -> torch.Tensor:
 CAPACITANCE_MAX_FACES = 4096
 _CAP_CACHE: dict = {}  # (geometry, θ ν dt, device) -> [[mask, requests, solve], ...]
 _CAP_CACHE_SIZE = 16  # bodies (masks) held in all
+#: Requests of one (body, θ ν dt) answered by CG before the capacitance matrix is built: ``imex2`` solves twice
+#: per step with the same ν dt/2, so a time step that changes every step (CFL control) never builds one.
+CAPACITANCE_BUILD_AFTER = 2
 
 
 class _CapacitanceSolve:
@@ -481,8 +486,9 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _Capacitance
     """The cached capacitance solve for this component, body and ``coef = θ ν dt``, or None (use CG).
 
     None for a tensor ``coef`` (its gradient needs the CG path), per-sample masks, more than
-    :data:`CAPACITANCE_MAX_FACES` surface faces, and on the first request of a (body, coef): the matrix costs
-    |S| box solves, which pays off only when the same body and time step come back, as in fixed-step runs.
+    :data:`CAPACITANCE_MAX_FACES` surface faces, and on the first :data:`CAPACITANCE_BUILD_AFTER` requests of a
+    (body, coef): the matrix costs |S| box solves (about as many as 5-30 PCG solves), which pays off only when
+    the same body and time step come back, as in fixed-step runs.
     """
     if isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
         return None
@@ -499,7 +505,7 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _Capacitance
         entry = [mask.detach().clone(), 0, None]
         entries.append(entry)
     entry[1] += 1
-    if entry[2] is not None or entry[1] < 2:
+    if entry[2] is not None or entry[1] <= CAPACITANCE_BUILD_AFTER:
         return entry[2] or None
     fixed = comp.restrict(mask).detach()
     surface = _surface(comp, fixed[0])
