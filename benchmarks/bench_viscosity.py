@@ -1,8 +1,9 @@
-"""Cost of one viscosity step of a MAC velocity: explicit vs implicit (median of repeats, ms), Markdown table.
+"""Cost of one viscosity step of a MAC velocity: explicit vs implicit (min of repeats, ms), Markdown tables.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32] [--sizes 48 64 128 256]
-[--write]``; ``--write`` saves the tables to ``benchmarks/results/viscosity.md``, which
-``benchmarks/run.py`` copies into ``docs/BENCHMARKS.md`` (section "Viscosity step").
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32 float64] [--sizes 48 64 128 256]
+[--stat min|median] [--write]``; ``--write`` saves the tables to ``benchmarks/results/viscosity.md``, which
+``benchmarks/run.py`` copies into ``docs/BENCHMARKS.md`` (section "Viscosity step"). Each cell gives the wall
+time and, after the slash, the CPU time of the process for the same statistic.
 
 Cases per resolution (2-D closed box with no-slip walls, batch 1, ``ν dt / dx² = 2``, far beyond the
 explicit limit; the explicit step is timed at its own stable size, the cost per call does not depend on dt):
@@ -10,14 +11,16 @@ explicit limit; the explicit step is timed at its own stable size, the cost per 
 * ``explicit``: forward Euler ``u + ν dt ∇²u`` (one stencil per component), the reference the issue sets:
   an implicit step should cost at most twice as much;
 * ``implicit (spectral)``: :func:`phisim.diffusion.diffuse_staggered`, backward Euler solved exactly by
-  one DST-I/DST-II transform pair per component;
-* ``crank_nicolson``: the same with the explicit half step (one extra stencil);
-* ``implicit, body (PCG)``: backward Euler with the faces of a disc body fixed, CG preconditioned by the
-  exact box solve;
-* ``implicit, old CG``: the unpreconditioned CG of the fluid module before this change, when it is still
-  importable (it is not after the change; its figures are kept in ``docs/BENCHMARKS.md``).
+  one DST-I x DST-II transform pair per component (pocketfft one-axis transforms, in place);
+* ``crank_nicolson``: the same with the explicit half folded into the multiplier;
+* ``implicit, body (capacitance)``: backward Euler with the faces of a disc body fixed, solved directly
+  with the cached capacitance matrix of the body surface (two box solves per component);
+* ``body: one-time build``: the call that builds those matrices (|S| box solves per component; |S| the
+  number of surface faces in brackets), made once per body and ν dt;
+* ``implicit, body (PCG)``: the same step by CG preconditioned with the exact box solve, what the first
+  calls with a new body or ν dt run (timed with a tensor viscosity, which keeps the CG path).
 
-A second table times whole Navier-Stokes steps (float32, walls, ν = 0.01, dt = 0.5 dx): the split step
+A last table times whole Navier-Stokes steps (float32, walls, ν = 0.01, dt = 0.5 dx): the split step
 with explicit and with implicit viscosity, and the second-order integrators ``rk2`` and ``imex2``.
 """
 
