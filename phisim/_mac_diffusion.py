@@ -408,6 +408,9 @@ _CAP_CACHE_SIZE = 16  # bodies (masks) held in all
 #: Requests of one (body, θ ν dt) answered by CG before the capacitance matrix is built: ``imex2`` solves twice
 #: per step with the same ν dt/2, so a time step that changes every step (CFL control) never builds one.
 CAPACITANCE_BUILD_AFTER = 2
+#: Surface faces per CG request before the build: the matrix is built once the CG calls have cost about as
+#: many box solves as the build (|S|), see :func:`_capacitance`.
+CAPACITANCE_FACES_PER_REQUEST = 32
 
 
 class _CapacitanceSolve:
@@ -486,15 +489,17 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _Capacitance
     """The cached capacitance solve for this component, body and ``coef = θ ν dt``, or None (use CG).
 
     None for a tensor ``coef`` (its gradient needs the CG path), per-sample masks, more than
-    :data:`CAPACITANCE_MAX_FACES` surface faces, and on the first :data:`CAPACITANCE_BUILD_AFTER` requests of a
-    (body, coef): the matrix costs |S| box solves (about as many as 5-30 PCG solves), which pays off only when
-    the same body and time step come back, as in fixed-step runs.
+    :data:`CAPACITANCE_MAX_FACES` surface faces, and until the same (body, coef) has been requested more than
+    ``max(CAPACITANCE_BUILD_AFTER, |S| / CAPACITANCE_FACES_PER_REQUEST)`` times. The matrix costs |S| box solves;
+    one PCG solve costs about 30-70 (2-D, 48²-256², per component), so building once the CG calls have spent
+    about as much as the build bounds the total at about twice the better choice in hindsight, and the matrix
+    pays off when the same body and time step keep coming back (fixed-step runs).
     """
     if isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
         return None
     key = (comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first, comp.count, comp.odd,
            float(coef), str(device))
-    entries = _CAP_CACHE.setdefault(key, [])  # [mask, requests, solve or None], compared by content
+    entries = _CAP_CACHE.setdefault(key, [])  # [mask, requests, solve, surface], compared by content
     for entry in entries:
         if torch.equal(entry[0], mask):
             break
@@ -502,15 +507,19 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _Capacitance
         if sum(len(e) for e in _CAP_CACHE.values()) >= _CAP_CACHE_SIZE:
             _CAP_CACHE.clear()
             entries = _CAP_CACHE.setdefault(key, [])
-        entry = [mask.detach().clone(), 0, None]
+        entry = [mask.detach().clone(), 0, None, None]
         entries.append(entry)
     entry[1] += 1
     if entry[2] is not None or entry[1] <= CAPACITANCE_BUILD_AFTER:
         return entry[2] or None
     fixed = comp.restrict(mask).detach()
-    surface = _surface(comp, fixed[0])
+    if entry[3] is None:
+        entry[3] = _surface(comp, fixed[0])
+    surface = entry[3]
     if surface.numel() > CAPACITANCE_MAX_FACES:
         entry[2] = False  # never: use CG
+        return None
+    if entry[1] <= surface.numel() // CAPACITANCE_FACES_PER_REQUEST:
         return None
     entry[2] = _CapacitanceSolve(comp, surface, fixed, float(coef), device, engine)
     return entry[2]

@@ -287,6 +287,26 @@ def test_capacitance_declines_what_it_cannot_do():
         torch.testing.assert_close(y, z, rtol=0, atol=1e-8)
 
 
+def test_capacitance_is_built_once_cg_has_cost_about_as_much(monkeypatch):
+    from phisim import _mac_diffusion
+
+    monkeypatch.setattr(_mac_diffusion, "CAPACITANCE_FACES_PER_REQUEST", 4)
+    grid = Grid((12, 10), bounds=[(0, 1.2), (0, 1)])
+    v = _random_velocity(grid, "wall", batch=1)
+    mask = torch.zeros(grid.face_shape(0), dtype=torch.bool)
+    mask[3:8, 2:7] = True  # surface: the faces of the block's rim
+    _mac_diffusion._CAP_CACHE.clear()
+    calls = 0
+    while not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries):
+        diffuse_staggered(v, 0.05, viscosity=1.0, fixed=(mask, None))
+        calls += 1
+        assert calls < 50
+    (entry,) = [e for entries in _mac_diffusion._CAP_CACHE.values() for e in entries]
+    k = entry[2].surface.numel()
+    assert k == 5 * 5 - 3 * 3  # the rim of a 5 x 5 block of faces
+    assert calls == max(_mac_diffusion.CAPACITANCE_BUILD_AFTER, k // 4) + 1
+
+
 def test_gradcheck_capacitance_path():
     from phisim import _mac_diffusion
 
