@@ -7,7 +7,9 @@ part (the domain mean of ``v0`` against ``u = (c - com(m0)) / t``); the correlat
 strength (:func:`inverse.fluid_inverse.vortex_strength`) with the true one, and the slope of the
 least-squares fit ``s_pred ~ a s_true``. Also the running means of the training metric at a few iterations.
 
-Run:  python examples/e5_diagnose.py --resolution 32 out/e5_delta5:pg out/e5_lr1e-3_pg:pg --out e5_diag.json
+The grid comes from the checkpoints (all runs given must share it); ``--resolution``, when given, must agree.
+
+Run:  python examples/e5_diagnose.py out/e5_delta5:pg out/e5_lr1e-3_pg:pg --out e5_diag.json
 """
 
 from __future__ import annotations
@@ -21,7 +23,30 @@ import torch
 
 from inverse.fluid_inverse import FluidProblem, vortex_strength
 from inverse.train import batch_generator
+from phisim.errors import ParameterError
 from phisim.io import read_training
+
+
+def _checkpoint(run: str) -> Path:
+    folder, _, method = run.partition(":")
+    return Path(folder) / f"fluid_inverse.h5.{method}.ckpt"
+
+
+def run_resolution(runs: list[str], requested: int | None) -> int:
+    """The cells per axis the runs were trained on (read from their checkpoints); all must agree."""
+    found = {}
+    for run in runs:
+        settings = torch.load(_checkpoint(run), map_location="cpu", weights_only=False).get("settings") or {}
+        res = settings.get("resolution")
+        if res is not None:
+            found[run] = int(res[0])
+    sizes = set(found.values()) | ({requested} if requested is not None else set())
+    if len(sizes) > 1:
+        raise ParameterError(f"the runs were trained on different grids ({found}, --resolution {requested}); "
+                             "diagnose runs of one resolution at a time")
+    if not sizes:
+        raise ParameterError("the checkpoints do not record their resolution; pass --resolution")
+    return sizes.pop()
 
 
 def diagnose(problem: FluidProblem, ckpt: Path, batch) -> dict[str, float]:
@@ -51,18 +76,19 @@ def main(argv: list[str] | None = None) -> dict:
     """Command-line entry point; prints and optionally writes the diagnosis as JSON."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", nargs="+", help="DIR:METHOD")
-    ap.add_argument("--resolution", type=int, default=32)
+    ap.add_argument("--resolution", type=int, default=None, help="cells per axis (default: from the checkpoints)")
     ap.add_argument("--samples", type=int, default=64)
     ap.add_argument("--window", type=int, default=64)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.manual_seed(0)
+    args.resolution = run_resolution(args.runs, args.resolution)
     problem = FluidProblem(resolution=(args.resolution, args.resolution))
     batch = problem.sample(args.samples, batch_generator(7919, 10**9))
     result = {}
     for run in args.runs:
         folder, _, method = run.partition(":")
-        entry = diagnose(problem, Path(folder) / f"fluid_inverse.h5.{method}.ckpt", batch)
+        entry = diagnose(problem, _checkpoint(run), batch)
         curve = read_training(Path(folder) / "fluid_inverse.h5")[method]["metric"]
         csum = np.cumsum(np.insert(curve, 0, 0.0))
         entry["train_running_mean"] = {

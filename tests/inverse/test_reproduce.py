@@ -143,3 +143,33 @@ def test_headline_pg_ahead_of_adam(case):
     ratio = _ratio_adam_over_pg(name, settings, iterations, batch, lo)
     assert ratio > 1.0, f"{case}: PG is no longer ahead of Adam (Adam / PG = {ratio:.4f})"
     assert ratio == pytest.approx(pinned, rel=rel), f"{case}: Adam / PG = {ratio:.6f}, pinned {pinned}"
+
+
+def test_seed_table_ratios_of_running_means(tmp_path):
+    import sys
+
+    from phisim.errors import ParameterError
+    from phisim.traininglog import TrainingLog
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    spec = importlib.util.spec_from_file_location("seed_table", ROOT / "examples" / "seed_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    runs = []
+    for seed, scale in ((0, 2.0), (1, 4.0)):
+        path = tmp_path / f"s{seed}.h5"
+        for name, factor in (("adam", scale), ("pg", 1.0)):
+            with TrainingLog(path, name) as log:
+                for it in range(10):
+                    log.append(it, metric=factor * (10.0 + it))
+        runs.append(path)
+    out = mod.ratios(runs, at=[4, 10], windows=[1, 4])
+    # window 1 at iteration 4: entry 3 -> 2*13/13 and 4*13/13; window 4 at 10: mean of entries 6..9
+    assert out[1][4]["per_seed"][0][2] == pytest.approx(2.0) and out[1][4]["mean"] == pytest.approx(3.0)
+    assert out[4][10]["per_seed"][1][:2] == pytest.approx((4 * 17.5, 17.5))
+    assert out[4][10]["min"] == pytest.approx(2.0) and out[4][10]["max"] == pytest.approx(4.0)
+    assert "| 4 | 10 |" in mod.markdown(out, runs)
+    with pytest.raises(ParameterError, match="fewer than 11"):
+        mod.ratios(runs, at=[11], windows=[1])
+    with pytest.raises(ParameterError, match="no curve 'hig'"):
+        mod.ratios(runs, at=[1], windows=[1], method="hig")

@@ -30,11 +30,14 @@ def _weights(batch, res, kinds, seed):
     return out
 
 
-@pytest.mark.parametrize("kinds", KINDS)
+KINDS_3D = (("neumann", "dirichlet"), ("periodic", "periodic"), ("neumann", "neumann"))
+
+
+@pytest.mark.parametrize("kinds", KINDS + [KINDS_3D])
 @pytest.mark.parametrize("batch", [1, 3])
 def test_fixed_weight_stencil_equals_generic_operator(kinds, batch):
-    res = (9, 7)
-    op = MaskedPoisson(_weights(batch, res, kinds, 1), (0.7, 1.3), kinds)
+    res = (9, 7) if len(kinds) == 2 else (5, 4, 6)
+    op = MaskedPoisson(_weights(batch, res, kinds, 1), (0.7, 1.3, 1.1)[: len(res)], kinds)
     p = torch.randn(batch, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     generic = op._apply(p, *op.weights)
     torch.testing.assert_close(op._apply_fixed(p), generic, rtol=1e-13, atol=1e-13)
@@ -75,3 +78,69 @@ def test_closed_box_projection_removes_the_region_mean_only():
     torch.testing.assert_close(means, torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-13)
     torch.testing.assert_close(out[~act], t[~act])  # inactive cells are not touched
     torch.testing.assert_close(op.project(out), out)  # a projector
+
+
+def _disc_and_box_operator(n=24):
+    from phisim.boundary import Boundary
+    from phisim.fluid import Body, Box, Sphere, solid_layout
+    from phisim.fluid.projection import _operator, _pressure_kinds
+    from phisim.grid import Grid
+
+    grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+    boundary = Boundary.create({"x": ("wall", "open"), "y": "wall"}, 2)
+    bodies = [Body(Sphere((0.3, 0.45), 0.17)), Body(Box((0.55, 0.25), (0.8, 0.7)))]
+    layout = solid_layout(bodies, grid, boundary, 0.0, torch.float64)
+    return _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
+
+
+def test_leaves_are_weak_cells_that_touch_no_other_leaf():
+    op = _disc_and_box_operator()
+    leaves = op._leaves()
+    assert leaves is not None
+    leaf_idx, inv_d, src, dst, frac, mask = leaves
+    w = tuple(wi.detach() for wi in op.weights)
+    diag = op._diagonal(w)[0].flatten()
+    d0 = op._diagonal(tuple(torch.ones_like(wi) for wi in w))[0].flatten()
+    assert len(leaf_idx) > 0
+    assert bool((diag[leaf_idx] <= 0.2 * d0[leaf_idx]).all()) and bool(op.active[0].flatten()[leaf_idx].all())
+    assert not bool(mask.flatten()[dst].any())  # a leaf's neighbours are never leaves
+    torch.testing.assert_close(inv_d, 1.0 / diag[leaf_idx])
+    # the couplings of each leaf sum to its diagonal (no Dirichlet face here): fractions sum to 1 per leaf
+    sums = torch.zeros_like(diag).index_add_(0, src, frac)
+    torch.testing.assert_close(sums[leaf_idx], torch.ones_like(inv_d))
+
+
+def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_the_range():
+    op = _disc_and_box_operator()
+    assert op._leaves() is not None
+    gen = torch.Generator().manual_seed(8)
+    n = op.resolution[0] * op.resolution[1]
+    basis = op.project(torch.eye(n, dtype=torch.float64).view(n, *op.resolution))  # rows span the range
+    M = op._precondition(basis).reshape(n, n)  # M[k] = M e_k (projected), so M @ basis^T is M on the range
+    act = op.active[0].flatten()
+    Mr = M[act][:, act]
+    torch.testing.assert_close(Mr, Mr.T, rtol=1e-10, atol=1e-12)
+    r = op.project(torch.randn(5, *op.resolution, dtype=torch.float64, generator=gen) * op.active)
+    quad = (r * op._precondition(r)).flatten(1).sum(1)
+    assert bool((quad > 0).all())
+    # and it is a good preconditioner: the preconditioned operator's spectrum on the range is clustered
+    b = op.project(torch.randn(1, *op.resolution, dtype=torch.float64, generator=gen) * op.active)
+    from phisim.linalg import Solve
+
+    _, info = op.solve(b, solve=Solve(rtol=1e-8))
+    _, info_plain = op.solve(b, solve=Solve(rtol=1e-8), preconditioned=False)
+    assert int(info.iterations[0]) * 2 < int(info_plain.iterations[0])
+
+
+def test_scatter_add_in_rounds_equals_index_add():
+    from phisim.poisson_masked import _scatter_add
+
+    gen = torch.Generator().manual_seed(9)
+    index = torch.randint(0, 7, (40,), generator=gen)
+    values = torch.randn(3, 40, dtype=torch.float64, generator=gen)
+    out = torch.randn(3, 7, dtype=torch.float64, generator=gen)
+    ref = out.clone().index_add_(1, index, values)
+    rounds = _scatter_add(out.clone(), index, values, in_rounds=True)
+    torch.testing.assert_close(rounds, ref, rtol=1e-14, atol=1e-14)
+    # each round adds one value per index, in the order the values come: bit for bit on a second call
+    assert torch.equal(rounds, _scatter_add(out.clone(), index, values, in_rounds=True))

@@ -1,0 +1,90 @@
+"""Adam / PG ratios of several seeds at given iterations, from the training logs that reproduce.py writes.
+
+Each ``--runs`` entry is a training log (``<out>/<exp>.h5``) of one seed holding a reference method (Adam)
+and the compared method (PG). For every iteration asked for and every window, the script prints the running
+mean (trailing, over ``window`` mini-batches; iteration ``n`` is the ``n``-th update, entry ``n - 1``) of both
+methods per seed, the ratio, and the mean and range of the ratio over the seeds, as a Markdown table; with
+``--json`` it also writes them.
+
+Run:  python examples/seed_table.py --runs data/results/e3_64x128/e3.h5 data/results/e3_64x128_s1/e3.h5 \\
+          data/results/e3_64x128_s2/e3.h5 --at 60 100 --windows 16 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from reproduce import running_average  # noqa: E402
+
+from phisim.errors import ParameterError  # noqa: E402
+from phisim.io import read_training  # noqa: E402
+
+
+def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str = "adam",
+           method: str = "pg") -> dict:
+    """``{window: {iteration: {"per_seed": [(ref, method, ratio)], "mean", "min", "max"}}}`` (see the module doc).
+
+    Raises:
+        ParameterError: A log lacks one of the methods or is shorter than an iteration asked for.
+    """
+    curves = []
+    for run in runs:
+        logs = read_training(run)
+        for name in (reference, method):
+            if name not in logs:
+                raise ParameterError(f"{run} has no curve '{name}' (it has {sorted(logs)})")
+        curves.append((logs[reference]["metric"], logs[method]["metric"]))
+    out: dict = {}
+    for w in windows:
+        out[w] = {}
+        for n in at:
+            rows = []
+            for run, (ref, m) in zip(runs, curves):
+                if min(len(ref), len(m)) < n:
+                    raise ParameterError(f"{run} holds {min(len(ref), len(m))} iterations, fewer than {n}")
+                a, b = running_average(ref, w)[n - 1], running_average(m, w)[n - 1]
+                rows.append((float(a), float(b), float(a / b)))
+            r = np.array([x[2] for x in rows])
+            out[w][n] = {"per_seed": rows, "mean": float(r.mean()), "min": float(r.min()), "max": float(r.max())}
+    return out
+
+
+def markdown(result: dict, runs: list[Path]) -> str:
+    """The table of :func:`ratios` in Markdown."""
+    lines = ["| window | iteration | " + " | ".join(f"seed log {i}: Adam / PG" for i in range(len(runs)))
+             + " | mean ratio (min-max) |", "|---|---:|" + "---|" * len(runs) + "---|"]
+    for w, by_it in result.items():
+        for n, v in by_it.items():
+            cells = [f"{a:,.0f} / {b:,.0f} = {r:.2f}" for a, b, r in v["per_seed"]]
+            spread = f"**{v['mean']:.2f}** ({v['min']:.2f}-{v['max']:.2f})"
+            lines.append(f"| {w} | {n} | " + " | ".join(cells) + f" | {spread} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Command-line entry point."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=Path, nargs="+", required=True)
+    ap.add_argument("--at", type=int, nargs="+", required=True)
+    ap.add_argument("--windows", type=int, nargs="+", default=[16, 64])
+    ap.add_argument("--reference", default="adam")
+    ap.add_argument("--method", default="pg")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    result = ratios(args.runs, args.at, args.windows, args.reference, args.method)
+    print("runs: " + ", ".join(str(r) for r in args.runs))
+    print(markdown(result, args.runs))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"runs": [str(r) for r in args.runs], "ratios": result}, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
