@@ -257,6 +257,27 @@ def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
         torch.testing.assert_close(a.double(), b, rtol=0, atol=2e-5 * float(b.abs().max()))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_capacitance_with_the_torch_engine_matches_pyfftw(dtype):
+    # the composed, differentiable transforms (the path accelerators take) give the same direct solve
+    from phisim import _mac_diffusion
+
+    grid = Grid((9, 8), bounds=[(0, 0.9), (0, 0.8)])
+    v = _random_velocity(grid, "wall", batch=2)
+    v = v.with_values(tuple(c.to(dtype) for c in v.values))
+    masks = _body_masks(grid)
+    outs = {}
+    for engine in ("torch", None):
+        _mac_diffusion._CAP_CACHE.clear()
+        for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
+            outs[engine] = diffuse_staggered(v, 0.03, viscosity=1.0, method="crank_nicolson", fixed=masks,
+                                             engine=engine)
+        assert any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries)
+    tol = 1e-12 if dtype == F64 else 2e-6
+    for a, b in zip(outs["torch"].values, outs[None].values):
+        torch.testing.assert_close(a, b, rtol=0, atol=tol * float(b.abs().max()))
+
+
 def test_capacitance_declines_what_it_cannot_do():
     from phisim import _mac_diffusion
 
