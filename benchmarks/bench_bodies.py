@@ -2,9 +2,13 @@
 
 The floor of one iteration is one preconditioner transform round trip (the spectral inverse of the box, as
 one fused FFTW pass where available) plus one application of the weighted stencil; an iteration also does a
-few vector updates, two dot products, the null-space projection and the leaf elimination's gathers. Measured at 128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32.
+few vector updates, two dot products, the null-space projection and the leaf elimination's gathers. Measured at
+128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32.
 
-Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--json out.json]
+On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU-only) and every timed call is
+bracketed by CUDA synchronisations.
+
+Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--device cpu] [--json out.json]
 """
 
 from __future__ import annotations
@@ -18,37 +22,55 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from timing import synchronize  # noqa: E402
 
 from phisim.boundary import Boundary  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
+from phisim.fft import r2r_multiply  # noqa: E402
 from phisim.fluid import Body, Box, Sphere, solid_layout  # noqa: E402
 from phisim.fluid.projection import _operator, _pressure_kinds  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
 from phisim.linalg import Solve  # noqa: E402
-from phisim.fft import r2r_multiply  # noqa: E402
 from phisim.poisson import _TRANSFORM, _apply_multiplier, _layout, _transform_scale  # noqa: E402
 
 
-def _best(fn, repeat: int, number: int) -> float:
+def _best(fn, repeat: int, number: int, device="cpu") -> float:
     fn()
     best = float("inf")
     for _ in range(repeat):
+        synchronize(device)
         t = time.perf_counter()
         for _ in range(number):
             fn()
+        synchronize(device)
         best = min(best, (time.perf_counter() - t) / number)
     return best
 
 
-def measure(n: int, dtype, repeat: int) -> dict:
+def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
+    """Floor, per-iteration cost and whole solve of the masked pressure Poisson problem on ``n x n`` cells.
+
+    Args:
+        n: Cells per axis.
+        dtype: Field dtype.
+        repeat: Timed repeats (the best is kept).
+        device: Torch device of the fields (the random right-hand side is drawn on the CPU and moved).
+
+    Returns:
+        The row: sizes, times in ms, the ratio iteration / floor, CG iterations to the tolerance, the device.
+    """
+    device = check_device(device)
     grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
     boundary = Boundary.create({"x": ("wall", "open"), "y": "wall"}, 2)
     bodies = [Body(Sphere((0.3, 0.45), 0.1)), Body(Box((0.55, 0.2), (0.65, 0.35))),
               Body(Box((0.6, 0.6), (0.75, 0.7)))]
-    layout = solid_layout(bodies, grid, boundary, 0.0, dtype)
+    layout = solid_layout(bodies, grid, boundary, 0.0, dtype, device)
     op = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
     g = torch.Generator().manual_seed(0)
-    rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(dtype) * op.active.to(dtype)
-    x = torch.randn_like(rhs)
+    rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(device=device, dtype=dtype) * op.active.to(dtype)
+    x = torch.randn(rhs.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
 
     r2r, per = _layout(op.kinds)
     fwd = tuple(_TRANSFORM[op.kinds[a]][0] for a in r2r)
@@ -64,7 +86,7 @@ def measure(n: int, dtype, repeat: int) -> dict:
     tol = Solve(rtol=1e-6 if dtype == torch.float64 else 1e-5, raise_on_failure=False, refine=False)
     _, info = op.solve(rhs, solve=tol)
     iters = int(info.iterations[0])
-    t_floor = _best(floor, repeat, 20)
+    t_floor = _best(floor, repeat, 20, device)
     # per iteration: the difference of two solves stopped after k1 and k2 iterations (fixed costs cancel)
     tight = 1e-12 if dtype == torch.float64 else 2e-7
     k1, k2 = 4, 14
@@ -74,27 +96,35 @@ def measure(n: int, dtype, repeat: int) -> dict:
         return lambda: op.solve(rhs, solve=s)
 
     with torch.no_grad():
-        per_iter = (_best(capped(k2), repeat, 3) - _best(capped(k1), repeat, 3)) / (k2 - k1)
-        t_solve = _best(lambda: op.solve(rhs, solve=tol), repeat, 1)
+        per_iter = (_best(capped(k2), repeat, 3, device) - _best(capped(k1), repeat, 3, device)) / (k2 - k1)
+        t_solve = _best(lambda: op.solve(rhs, solve=tol), repeat, 1, device)
     return {"n": n, "dtype": str(dtype).replace("torch.", ""), "floor_ms": 1e3 * t_floor,
             "iteration_ms": 1e3 * per_iter, "ratio": per_iter / t_floor, "iterations_to_rtol": iters,
-            "solve_ms": 1e3 * t_solve}
+            "solve_ms": 1e3 * t_solve, "device": str(device)}
 
 
 def main(argv=None) -> int:
+    """Command-line entry point: prints one line per size and dtype, optionally writes the rows as JSON.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
+    """
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
+    device = check_device(args.device)
     torch.set_num_threads(args.threads)
     rows = []
     for n in args.sizes:
         for dtype in (torch.float64, torch.float32):
-            r = measure(n, dtype, args.repeat)
+            r = measure(n, dtype, args.repeat, device)
             rows.append(r)
-            print(f"{n:4d}^2 {r['dtype']:8s} floor {r['floor_ms']:.3f} ms  iteration {r['iteration_ms']:.3f} ms  "
+            print(f"{n:4d}^2 {r['dtype']:8s} {r['device']} floor {r['floor_ms']:.3f} ms  "
+                  f"iteration {r['iteration_ms']:.3f} ms  "
                   f"ratio {r['ratio']:.2f}  iterations to rtol {r['iterations_to_rtol']}  "
                   f"whole solve {r['solve_ms']:.1f} ms", flush=True)
     if args.json:

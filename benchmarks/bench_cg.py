@@ -26,6 +26,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from phisim.checks import check_device  # noqa: E402
 from phisim.errors import SolveError  # noqa: E402
 from phisim.linalg import Solve, cg  # noqa: E402
 
@@ -128,6 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    check_device(args.device)
     torch.set_num_threads(args.threads)
     try:
         results = [run_case(c, args.repeats, args.device) for c in cases(tuple(args.sizes))]

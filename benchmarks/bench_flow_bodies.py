@@ -33,6 +33,9 @@ Run (PhiFlow in ``benchmarks/.phiflow-venv``, see ``benchmarks/setup_phiflow.sh`
 
     python benchmarks/bench_flow_bodies.py [--sizes 128 256] [--rounds 3] [--doc]
 
+``--device cuda`` runs the two phisim sides on a GPU (inputs built on the CPU and moved, every timed step
+bracketed by CUDA synchronisations); the PhiFlow sides always run on the CPU (its venv has a CPU-only torch).
+
 ``--doc`` writes the table into ``docs/BENCHMARKS.md`` (between the ``flow-bodies`` markers); results go to
 ``benchmarks/results/flow_bodies.json``. One measurement: ``--child SIDE --scene S --size N``.
 """
@@ -76,8 +79,10 @@ def scene(name: str, n: int) -> dict:
     return p
 
 
-def _time_steps(step, state, steps: int, repeat: int):
+def _time_steps(step, state, steps: int, repeat: int, sync=lambda: None):
     """Time ``steps`` consecutive steps from ``state``, ``repeat`` times from the same start.
+
+    ``sync`` waits for queued device work (CUDA) and runs before each clock reading.
 
     Returns the state after the steps and, per step, the lowest wall and CPU (process) time over the passes.
     """
@@ -87,8 +92,10 @@ def _time_steps(step, state, steps: int, repeat: int):
     for _ in range(repeat):
         state = start
         for k in range(steps):
+            sync()
             c0, t0 = time.process_time(), time.perf_counter()
             state = step(state)
+            sync()
             wall[k] = min(wall[k], time.perf_counter() - t0)
             cpu[k] = min(cpu[k], time.process_time() - c0)
     return state, wall, cpu
@@ -99,7 +106,8 @@ def _time_steps(step, state, steps: int, repeat: int):
 # ------------------------------------------------------------------------------------------------------------
 
 
-def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase: bool) -> dict:
+def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase: bool,
+                device: str = "cpu") -> dict:
     import torch
 
     sys.path.insert(0, ROOT)
@@ -109,6 +117,7 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
     from phisim import CenteredGrid, Grid, Open, StaggeredGrid
     from phisim.advection import maccormack, semi_lagrangian
     from phisim.boundary import Inflow
+    from phisim.checks import check_device
     from phisim.differential import divergence
     from phisim.fluid import Body, Box, Obstacle, Sphere, buoyancy, make_incompressible, navier_stokes_step
     from phisim.linalg import Solve
@@ -123,6 +132,8 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
         return out
 
     MaskedPoisson.solve = recording
+    dev = check_device(device)
+    sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
     dtype = torch.float64
     p = scene(name, n)
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
@@ -130,9 +141,9 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
     dt = p["dt"]
     if name == "plume_boxes":
         init = inputs.smoke_initial((n, n), 1, dtype="float64")
-        smoke = CenteredGrid(torch.as_tensor(init["smoke"]), grid, "neumann")
-        source = torch.as_tensor(init["inflow"])
-        v = StaggeredGrid([torch.as_tensor(c) for c in init["velocity"]], grid, "wall")
+        smoke = CenteredGrid(torch.as_tensor(init["smoke"]).to(dev), grid, "neumann")
+        source = torch.as_tensor(init["inflow"]).to(dev)
+        v = StaggeredGrid([torch.as_tensor(c).to(dev) for c in init["velocity"]], grid, "wall")
         solids = [Obstacle.box(lo, hi) if staircase else Body(Box(lo, hi)) for lo, hi in p["boxes"]]
 
         def step(state):
@@ -149,7 +160,7 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
         boundary = {"x": (Inflow((u, 0.0)), Open()), "y": "wall"}
         v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], u),
                                                                torch.zeros_like(x[..., 0])], -1),
-                                        grid, boundary, dtype=dtype)
+                                        grid, boundary, dtype=dtype, device=dev)
         solids = (Obstacle.sphere(p["center"], p["radius"]) if staircase
                   else Body(Sphere(p["center"], p["radius"])))
 
@@ -163,7 +174,7 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
     for _ in range(warm):
         state = step(state)
     infos.clear()
-    state, times, cpu = _time_steps(step, state, steps, repeat)
+    state, times, cpu = _time_steps(step, state, steps, repeat, sync)
     its = [int(i.iterations.max()) for i in infos[:steps]]
     vel = state[1]
     div = divergence(vel).values
@@ -171,7 +182,7 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
              "rms_div": float(div.pow(2).mean().sqrt())}
     if name == "plume_boxes":
         stats["smoke_sum"] = float(state[0].values.sum())
-    return {"times_s": times, "cpu_s": cpu, "iterations": its, "stats": stats}
+    return {"times_s": times, "cpu_s": cpu, "iterations": its, "stats": stats, "device": str(dev)}
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -292,26 +303,31 @@ def _load() -> str:
         return "?"
 
 
-def child(side: str, name: str, n: int, warm: int, steps: int, repeat: int) -> dict:
-    """One measurement in this process (the child); returns the JSON-able result."""
+def child(side: str, name: str, n: int, warm: int, steps: int, repeat: int, device: str = "cpu") -> dict:
+    """One measurement in this process (the child); returns the JSON-able result.
+
+    ``device`` places the phisim sides; the PhiFlow sides run on the CPU.
+    """
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
 
     torch.set_num_threads(1)
     if side.startswith("phisim"):
-        res = _run_phisim(name, n, warm, steps, repeat, staircase=side == "phisim_obstacle")
+        res = _run_phisim(name, n, warm, steps, repeat, staircase=side == "phisim_obstacle", device=device)
     else:
         import warnings
 
         warnings.filterwarnings("ignore")
         res = _run_phiflow(name, n, warm, steps, repeat, jit=side == "phiflow_jit")
+        res["device"] = "cpu"
     t = res["times_s"]
     res.update(median_s=statistics.median(t), min_s=min(t), median_cpu_s=statistics.median(res["cpu_s"]))
     return res
 
 
-def drive(side: str, name: str, n: int, warm: int, steps: int, repeat: int, timeout: float) -> dict:
-    """Run one measurement in a child process (phisim: this interpreter; PhiFlow: its venv)."""
+def drive(side: str, name: str, n: int, warm: int, steps: int, repeat: int, timeout: float,
+          device: str = "cpu") -> dict:
+    """Run one measurement in a child process (phisim: this interpreter, on ``device``; PhiFlow: its venv, CPU)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     py = sys.executable
     if side.startswith("phiflow"):
@@ -322,6 +338,8 @@ def drive(side: str, name: str, n: int, warm: int, steps: int, repeat: int, time
         env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [py, os.path.abspath(__file__), "--child", side, "--scene", name, "--size", str(n),
            "--warm", str(warm), "--steps", str(steps), "--repeat", str(repeat)]
+    if not side.startswith("phiflow"):
+        cmd += ["--device", device]
     base = {"side": side, "scene": name, "n": n, "load_before": _load()}
     t0 = time.perf_counter()
     try:
@@ -460,7 +478,8 @@ def section(data: dict) -> str:
         "",
     ] + table(data, "median_s") + [
         "",
-        f"- made by `{data['command']}` ({data['date']}, {data['machine']}); {data['rounds']} rounds, sides "
+        f"- made by `{data['command']}` ({data['date']}, {data['machine']}, phisim on "
+        f"{data.get('device', 'cpu')}, PhiFlow on the CPU); {data['rounds']} rounds, sides "
         f"interleaved in each round, {data['warm']} untimed + {data['steps']} timed steps per sample, the timed "
         f"steps run {data.get('repeat', 1)} times from the same state (lowest time per step), each sample in a "
         "fresh process.",
@@ -513,10 +532,18 @@ def main(argv=None) -> int:
     ap.add_argument("--child", choices=SIDES)
     ap.add_argument("--scene", choices=SCENES)
     ap.add_argument("--size", type=int)
+    ap.add_argument("--device", default="cpu",
+                    help="torch device of the phisim sides: cpu, cuda or cuda:N (default cpu); the PhiFlow sides "
+                    "always run on the CPU")
     a = ap.parse_args(argv)
     if a.child:
-        print(json.dumps(child(a.child, a.scene, a.size, a.warm, a.steps, a.repeat)), flush=True)
+        print(json.dumps(child(a.child, a.scene, a.size, a.warm, a.steps, a.repeat, a.device)), flush=True)
         return 0
+    if not a.doc_only and any(s.startswith("phisim") for s in a.sides):
+        sys.path.insert(0, ROOT)
+        from phisim.checks import check_device
+
+        check_device(a.device)  # a bad device fails here, not in every child
     if a.doc_only:
         write_doc(json.load(open(a.out)))
         return 0
@@ -525,12 +552,18 @@ def main(argv=None) -> int:
     data = {"command": "python benchmarks/" + " ".join([os.path.basename(__file__)] + (argv or sys.argv[1:])),
             "date": _dt.datetime.now().isoformat(timespec="seconds"),
             "machine": f"{platform.machine()} {os.cpu_count()} cores, {platform.system()}",
-            "sizes": a.sizes, "rounds": a.rounds, "warm": a.warm, "steps": a.steps, "repeat": a.repeat, "tol": TOL,
+            "device": a.device, "sizes": a.sizes,
+            "rounds": a.rounds, "warm": a.warm, "steps": a.steps, "repeat": a.repeat, "tol": TOL,
             "uptime_before": _uptime(), "results": []}
+    if a.device.startswith("cuda") and any(s.startswith("phisim") for s in a.sides):
+        import torch
+
+        data["machine"] += f", GPU {torch.cuda.get_device_name(a.device)}"
     if a.append and os.path.exists(a.out):
         old = json.load(open(a.out))
-        if (old["warm"], old["steps"], old.get("repeat"), old["tol"]) != (a.warm, a.steps, a.repeat, TOL):
-            raise SystemExit("--append needs the saved run's --warm, --steps, --repeat and tolerance")
+        if (old["warm"], old["steps"], old.get("repeat"), old["tol"], old.get("device", "cpu")) != (
+                a.warm, a.steps, a.repeat, TOL, a.device):
+            raise SystemExit("--append needs the saved run's --warm, --steps, --repeat, device and tolerance")
         data.update(results=old["results"], rounds=old["rounds"] + a.rounds, uptime_before=old["uptime_before"],
                     command=old["command"] + "`, then `" + data["command"],
                     sizes=sorted(set(old["sizes"]) | set(a.sizes)))
@@ -539,7 +572,7 @@ def main(argv=None) -> int:
             for n in a.sizes:
                 order = a.sides[k % len(a.sides):] + a.sides[: k % len(a.sides)]
                 for side in order:
-                    r = drive(side, name, n, a.warm, a.steps, a.repeat, a.timeout)
+                    r = drive(side, name, n, a.warm, a.steps, a.repeat, a.timeout, a.device)
                     data["results"].append(r)
                     msg = r.get("error") or (f"median {_ms(r['median_s'])}, cpu {_ms(r['median_cpu_s'])}, iterations "
                                              f"{r.get('iterations')}")

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from inverse.hig import HIG
+from phisim.checks import check_device
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,7 +65,7 @@ def bench(batch: int, width: int, args: argparse.Namespace) -> dict[str, float]:
         ``n_theta``, ``rows`` and median seconds for ``jacobian``, ``svd``, ``apply``, ``total``.
     """
     osc = _oscillators()
-    device, dtype = torch.device(args.device), getattr(torch, args.dtype)
+    device, dtype = check_device(args.device), getattr(torch, args.dtype)
     net = make_net(width, dtype, device)
     opt = HIG(net, physics=lambda c, s0: osc.simulate(c, s0), lr=1e-6, rcond=1e-10, timing=True)
     gen = torch.Generator().manual_seed(1)
@@ -112,6 +113,7 @@ def main(argv: list[str] | None = None) -> str:
         The markdown text.
     """
     args = parse_args(argv)
+    check_device(args.device)  # a bad device fails before any case runs
     rows = []
     for width in args.widths:
         for batch in args.batch_sizes:

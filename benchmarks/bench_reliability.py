@@ -11,7 +11,10 @@ Measures, on this machine, one thread:
 * ``kills``: a tight append loop SIGKILLed at random moments, with and without the journal: files that
   do not yield every completed frame with the right values.
 
-Run: ``python benchmarks/bench_reliability.py [--kills 100] [--out benchmarks/results/reliability.json]``
+``--device`` applies to the ``float32`` part (the masked solve runs there, synchronised around every call); the
+planner (FFTW), the journal (HDF5 on disk) and the kills measure CPU-side machinery and always run on the CPU.
+
+Run: ``python benchmarks/bench_reliability.py [--kills 100] [--device cpu] [--out benchmarks/results/reliability.json]``
 """
 
 from __future__ import annotations
@@ -77,17 +80,27 @@ def bench_planner() -> list[dict]:
     return rows
 
 
-def bench_float32() -> list[dict]:
+def bench_float32(sizes=(64, 128, 256, 512), device="cpu") -> list[dict]:
+    """Masked Poisson solves with float32 and float64 fields on ``device`` (inputs built on the CPU, then moved).
+
+    Args:
+        sizes: Cells per axis.
+        device: Torch device of the solves.
+
+    Returns:
+        One row per size and dtype (time, iterations, refinements, residuals, status, device).
+    """
     import torch
 
     import phisim as ps
 
+    device = ps.check_device(device)
     rows = []
-    for n in (64, 128, 256, 512):
+    for n in sizes:
         ax = (torch.arange(n, dtype=torch.float64) + 0.5) / n
         gx, gy = torch.meshgrid(ax, ax, indexing="ij")
-        rhs = (torch.cos(math.pi * gx) * torch.cos(2 * math.pi * gy))[None]
-        mask = ((gx - 0.4) ** 2 + (gy - 0.4) ** 2) > 0.12**2
+        rhs = (torch.cos(math.pi * gx) * torch.cos(2 * math.pi * gy))[None].to(device)
+        mask = (((gx - 0.4) ** 2 + (gy - 0.4) ** 2) > 0.12**2).to(device)
         for dtype in (torch.float32, torch.float64):
             r = rhs.to(dtype)
 
@@ -95,12 +108,12 @@ def bench_float32() -> list[dict]:
                 return ps.masked_poisson_solve(r, mask, 1.0, "neumann", incompatible="project", return_info=True)
 
             _, info = solve()
-            t = time_fn(solve, repeats=3, warmup=0, max_total_s=20)
+            t = time_fn(solve, repeats=3, warmup=0, max_total_s=20, device=device)
             floor = None if info.precision_floor is None else float(info.precision_floor[0])
             rows.append({"n": n, "dtype": str(dtype).replace("torch.", ""), "median_s": t["median_s"],
                          "iterations": int(info.iterations[0]), "refinements": info.refinements,
                          "residual": float(info.residual[0]), "tolerance": float(info.tolerance[0]),
-                         "precision_floor": floor, "status": info.status[0]})
+                         "precision_floor": floor, "status": info.status[0], "device": str(device)})
     return rows
 
 
@@ -192,7 +205,9 @@ def markdown(res: dict) -> list[str]:
                       "the file (bit-identical results, `tests/phisim/test_reproducible.py`)."]
         lines.append("")
     if res.get("float32"):
-        lines += ["### Masked Poisson (closed box, ball obstacle), default settings: float32 fields vs float64", "",
+        where = res["float32"][0].get("device", "cpu")
+        lines += ["### Masked Poisson (closed box, ball obstacle), default settings: float32 fields vs float64"
+                  + ("" if where == "cpu" else f" (device {where})"), "",
                   "| grid | dtype | median | CG iterations | refinements | true residual | reported tolerance | "
                   "rounding floor | status |", "|---|---|---|---|---|---|---|---|---|"]
         for r in res["float32"]:
@@ -240,20 +255,34 @@ def markdown(res: dict) -> list[str]:
 
 
 def main(argv=None) -> dict:
-    """Run every part; print a JSON summary and write it to ``--out``."""
+    """Run every part; print a JSON summary and write it to ``--out``.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
+    """
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--kills", type=int, default=100)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "reliability.json")
     p.add_argument("--planner-child", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--parts", nargs="+", default=["planner", "float32", "journal", "kills"])
+    p.add_argument("--parts", nargs="+", default=["planner", "float32", "journal", "kills"],
+                   choices=["planner", "float32", "journal", "kills"])
+    p.add_argument("--device", default="cpu",
+                   help="torch device of the float32 part: cpu, cuda or cuda:N (default cpu); the planner, journal "
+                   "and kills parts always run on the CPU")
+    p.add_argument("--float32-sizes", type=int, nargs="+", default=[64, 128, 256, 512],
+                   help="cells per axis of the float32 part")
     args = p.parse_args(argv)
     set_threads(1)
     if args.planner_child:
         print(json.dumps(_planner_child(args.planner_child)))
         return {}
+    from phisim.checks import check_device
+
+    check_device(args.device)  # a bad device fails before any part runs
     out = json.loads(args.out.read_text()) if args.out.exists() else {}  # parts not re-run are kept
     for part in args.parts:
-        out[part] = {"planner": bench_planner, "float32": bench_float32, "journal": bench_journal,
+        out[part] = {"planner": bench_planner, "float32": lambda: bench_float32(args.float32_sizes, args.device),
+                     "journal": bench_journal,
                      "kills": lambda: bench_kills(args.kills)}[part]()
         print(json.dumps({part: out[part]}, indent=1), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)

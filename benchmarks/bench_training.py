@@ -31,6 +31,7 @@ import torch
 from inverse.physgrad import physical_update
 from inverse.problems import get_problem
 from inverse.train import _step, batch_generator, make_optimizer
+from phisim.checks import check_device
 
 
 def _sync(device: torch.device) -> None:
@@ -58,7 +59,7 @@ def bench(method_name: str, solver: str, args: argparse.Namespace) -> dict[str, 
         Medians of ``data``, ``physics``, ``network``, ``iteration`` (seconds), the physics share, and
         ``iteration_check`` (the measured complete iteration over the sum of the three phases).
     """
-    device = torch.device(args.device)
+    device = check_device(args.device)
     res = (args.resolution, args.resolution)
     problem = get_problem("poisson", resolution=res, solver=solver, data_solver=args.data_solver)
     method = problem.method(method_name)
@@ -117,9 +118,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--warmup", type=int, default=1)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--out", type=Path, default=None, help="markdown file to write (JSON next to it)")
     args = p.parse_args(argv)
+    check_device(args.device)  # a bad device fails before any case runs
     torch.set_num_threads(args.threads)
     results = {}
     lines = [

@@ -836,7 +836,12 @@ def write_doc(base: str, path: str) -> None:
         if os.path.exists(os.path.join(HERE, f))
     ]
     if others:
-        parts += ["## Other benchmark scripts", ""] + [f"- `benchmarks/{f}`" for f in others] + [""]
+        parts += ["## Other benchmark scripts", "",
+                  "Each takes `--device` (`cpu`, the default, `cuda` or `cuda:N`; CUDA is synchronised around every "
+                  "timed region and the device is recorded with the results). CPU-only parts stay on the CPU: the "
+                  "scipy/numpy floors of `bench_spectral.py`, the planner, journal and kill parts of "
+                  "`bench_reliability.py`, the PhiFlow sides of `bench_flow_bodies.py`.", ""]
+        parts += [f"- `benchmarks/{f}`" for f in others] + [""]
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as fh:
         fh.write("\n".join(parts))
@@ -870,6 +875,10 @@ def main(argv: list[str] | None = None) -> int:
         "--doc", default=None, help="document path (default docs/BENCHMARKS.md; quick: <out>/BENCHMARKS.md)"
     )
     args = ap.parse_args(argv)
+    if not args.doc_only:
+        from phisim.checks import check_device
+
+        check_device(args.device)  # a bad device fails before any suite runs
     if args.out is None:
         args.out = tempfile.mkdtemp(prefix="phisim-bench-") if args.quick else RESULTS
     doc = args.doc or (os.path.join(args.out, "BENCHMARKS.md") if args.quick else DOC)

@@ -35,8 +35,20 @@ def _sync_fn(device: Any) -> Callable[[], None]:
     if device is not None and str(device).startswith("cuda"):
         import torch
 
-        return torch.cuda.synchronize
+        return lambda: torch.cuda.synchronize(device)
     return lambda: None
+
+
+def synchronize(device: Any) -> None:
+    """Wait until the work queued on ``device`` has finished (CUDA); a no-op for the CPU and ``None``.
+
+    Call it before reading a clock around GPU work: kernels run asynchronously, so without it a timer
+    measures only the launches.
+
+    Args:
+        device: a torch device or its name.
+    """
+    _sync_fn(device)()
 
 
 def time_fn(

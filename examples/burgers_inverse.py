@@ -17,7 +17,8 @@ Run from the command line::
 
     phisim compare examples/burgers_inverse.py:burgers_problem adam pg_inverse_gradient --iterations 200
 
-or from Python: ``python examples/burgers_inverse.py --iterations 200``.
+or from Python: ``python examples/burgers_inverse.py --iterations 200 [--device cuda]``. The data are drawn on
+the CPU and moved to ``--device``, so every device trains on the same samples.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from inverse.custom import make_problem
 from inverse.nets import MLP
 from inverse.train import train
 from phisim.advection import advect
+from phisim.checks import check_device
 from phisim.diffusion import diffuse
 from phisim.field import CenteredGrid
 from phisim.grid import Grid
@@ -135,19 +137,22 @@ def burgers_problem(resolution: int = 32, steps: int = 8, dt: float = 0.1, visco
     )
 
 
-def evaluate(problem, network: nn.Module, samples: int = 256, seed: int = 123) -> dict:
+def evaluate(problem, network: nn.Module, samples: int = 256, seed: int = 123, device=None) -> dict:
     """Held-out x L1 and y loss per sample of ``network`` (eval mode) and of the identity guess ``x = y*``.
 
     Args:
         problem: The Burgers problem.
         network: A trained network.
         samples: Held-out samples.
-        seed: Seed of their generator.
+        seed: Seed of their generator (a CPU generator; the samples are then moved to ``device``).
+        device: Device of the samples (default: the network's).
 
     Returns:
         ``{'metric', 'loss', 'identity_metric', 'identity_loss'}`` (means over the samples).
     """
-    b = problem.sample(samples, torch.Generator().manual_seed(seed))
+    if device is None:
+        device = next(network.parameters()).device
+    b = problem.sample(samples, torch.Generator().manual_seed(seed), device=device)
     network.eval()
     with torch.no_grad():
         x = network(b.inputs)
@@ -165,7 +170,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     Returns:
         ``{method: {'train_metric', 'heldout_metric', 'heldout_loss', 'seconds'}}`` plus the identity baseline
-        (the table of ``docs/TUTORIAL_custom_physics.md``).
+        (the table of ``docs/TUTORIAL_custom_physics.md``) and the ``device``.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
     """
     import time
 
@@ -175,16 +183,19 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--rcond", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = p.parse_args(argv)
+    device = check_device(args.device)
     problem = burgers_problem(resolution=args.resolution, batch_size=args.batch_size, rcond=args.rcond)
     out = {}
     for method in ("adam", "pg_inverse_gradient"):
         t = time.perf_counter()
-        r = train(problem, method, iterations=args.iterations, seed=args.seed)
-        ev = evaluate(problem, r.model)
+        r = train(problem, method, iterations=args.iterations, seed=args.seed, device=device)
+        ev = evaluate(problem, r.model, device=device)
         out[method] = {"train_metric": r.final("metric"), "heldout_metric": ev["metric"],
                        "heldout_loss": ev["loss"], "seconds": time.perf_counter() - t}
         out["identity"] = {"heldout_metric": ev["identity_metric"], "heldout_loss": ev["identity_loss"]}
+    out["device"] = str(device)
     print(json.dumps(out))
     return out
 

@@ -12,7 +12,8 @@ above and below, an outflow on the right. ``Re = U_mean D / nu`` with ``U_mean =
 * case ``'2D-2'`` (periodic, ``U_m = 1.5``, Re = 100): maximum drag and lift coefficients and the Strouhal
   number ``St = D f / U_mean``.
 
-Run ``python examples/cylinder_benchmark.py 2D-1 --ny 41 82`` (or ``2D-2``); results are printed as JSON.
+Run ``python examples/cylinder_benchmark.py 2D-1 --ny 41 82`` (or ``2D-2``; ``--device cuda`` runs on a GPU);
+results are printed as JSON, with the device they ran on.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.fluid import Body, FluidState, Sphere, body_forces, probe_pressure, step  # noqa: E402
 
 H, L, D, CENTER, NU = 0.41, 2.2, 0.1, (0.2, 0.2), 1e-3
@@ -43,8 +45,8 @@ REFERENCE = {
 }
 
 
-def setup(case: str, ny: int, dtype=torch.float64):
-    """Grid, boundary, body and initial state of a case with ``ny`` cells across the channel."""
+def setup(case: str, ny: int, dtype=torch.float64, device="cpu"):
+    """Grid, boundary, body and initial state (on ``device``) of a case with ``ny`` cells across the channel."""
     um = 0.3 if case == "2D-1" else 1.5
     dx = H / ny
     nx = int(round(L / dx))
@@ -56,15 +58,16 @@ def setup(case: str, ny: int, dtype=torch.float64):
 
     boundary = {"x": (Inflow(profile), Open()), "y": "wall"}
     body = Body(Sphere(CENTER, D / 2), name="cylinder")
-    v = StaggeredGrid.from_function(profile, grid, boundary, dtype=dtype)
+    v = StaggeredGrid.from_function(profile, grid, boundary, dtype=dtype, device=device)
     return grid, body, FluidState(v), um
 
 
 def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
         record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None,
-        integrator: str = "split"):
-    """Simulate a case; returns the force history and the final state."""
-    grid, body, state, um = setup(case, ny, dtype)
+        integrator: str = "split", device="cpu"):
+    """Simulate a case on ``device``; returns the force history, the final state and the run's settings."""
+    device = check_device(device)
+    grid, body, state, um = setup(case, ny, dtype, device)
     umean = 2 * um / 3
     dx = grid.dx[0]
     if dt is None:
@@ -75,7 +78,7 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     dt = t_end / n
     hist = []
     t0 = _time.perf_counter()
-    front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype)
+    front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype, device=device)
     for _ in range(n):
         state = step(state, dt, viscosity=NU, advection=advection, obstacles=body, viscosity_scheme=viscosity_scheme,
                      integrator=integrator)
@@ -85,9 +88,11 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
             pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body)[0]
             cp = 2 * f.pressure[0] / (umean**2 * D)
             hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1])))
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
     wall = _time.perf_counter() - t0
     return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny,
-                                   "integrator": integrator}
+                                   "integrator": integrator, "device": str(device)}
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
@@ -115,13 +120,15 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON file for the results")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on small grids)")
     ap.add_argument("--integrator", default="split", help="time integrator of phisim.fluid.step")
+    ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
+    device = check_device(args.device)
     torch.set_num_threads(args.threads)
     t_end = args.t_end or (6.0 if args.case == "2D-1" else 8.0)
     rec = args.record_from if args.record_from is not None else (t_end - 1.0 if args.case == "2D-1" else t_end - 4.0)
     results = []
     for ny in args.ny:
-        hist, state, meta = run(args.case, ny, t_end, record_from=rec, integrator=args.integrator)
+        hist, state, meta = run(args.case, ny, t_end, record_from=rec, integrator=args.integrator, device=device)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure")

@@ -9,7 +9,8 @@ least-squares fit ``s_pred ~ a s_true``. Also the running means of the training 
 
 The grid comes from the checkpoints (all runs given must share it); ``--resolution``, when given, must agree.
 
-Run:  python examples/e5_diagnose.py out/e5_delta5:pg out/e5_lr1e-3_pg:pg --out e5_diag.json
+Run:  python examples/e5_diagnose.py out/e5_delta5:pg out/e5_lr1e-3_pg:pg --out e5_diag.json [--device cuda]
+(the held-out batch is drawn on the CPU and moved, so every device diagnoses the same samples).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import torch
 
 from inverse.fluid_inverse import FluidProblem, vortex_strength
 from inverse.train import batch_generator
+from phisim.checks import check_device
 from phisim.errors import ParameterError
 from phisim.io import read_training
 
@@ -50,9 +52,9 @@ def run_resolution(runs: list[str], requested: int | None) -> int:
 
 
 def diagnose(problem: FluidProblem, ckpt: Path, batch) -> dict[str, float]:
-    """Prior-parameter recovery of the network stored in ``ckpt`` on ``batch`` (see the module docstring)."""
+    """Prior-parameter recovery of the network stored in ``ckpt`` on ``batch`` (on ``batch``'s device)."""
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    net = problem.make_network().to(problem.dtype)
+    net = problem.make_network().to(device=batch.inputs.device, dtype=problem.dtype)
     net.load_state_dict(state["model"])
     net.eval()
     with torch.no_grad():
@@ -62,7 +64,7 @@ def diagnose(problem: FluidProblem, ckpt: Path, batch) -> dict[str, float]:
         s_true = vortex_strength(batch.x_true.to(v.dtype), problem.grid, problem.sigma)
         s_pred = vortex_strength(v, problem.grid, problem.sigma)
         metric = float(problem.metric(v, batch).mean())
-    s_t, s_p = s_true.double().numpy(), s_pred.double().numpy()
+    s_t, s_p = s_true.double().cpu().numpy(), s_pred.double().cpu().numpy()
     return {
         "iteration": int(state["iteration"]),
         "metric": metric,
@@ -80,11 +82,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--samples", type=int, default=64)
     ap.add_argument("--window", type=int, default=64)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
+    device = check_device(args.device)
     torch.manual_seed(0)
     args.resolution = run_resolution(args.runs, args.resolution)
     problem = FluidProblem(resolution=(args.resolution, args.resolution))
-    batch = problem.sample(args.samples, batch_generator(7919, 10**9))
+    batch = problem.sample(args.samples, batch_generator(7919, 10**9), device=device)
     result = {}
     for run in args.runs:
         folder, _, method = run.partition(":")

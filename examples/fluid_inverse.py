@@ -28,6 +28,7 @@ import torch
 
 from inverse.fluid_inverse import FluidProblem
 from inverse.train import batch_generator, train
+from phisim.checks import check_device
 from phisim.plot import new_figure, plot_curves, plot_field, plot_vector_field, save_figure
 
 METHODS = ("adam", "pg")
@@ -153,11 +154,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--validation-size", type=int, default=32)
     ap.add_argument("--checkpoint-every", type=int, default=25)
     ap.add_argument("--resume", action="store_true", help="continue from the checkpoints in --out")
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     ap.add_argument("--lr", type=float, default=0.005, help="Adam learning rate of both methods (E5: 0.005)")
     ap.add_argument("--delta-factor", type=float, default=1.0,
                     help="factor on the local inverse's vortex-strength update (1: the reference's)")
     args = ap.parse_args(argv)
+    check_device(args.device)  # a bad device fails before anything is written
 
     problem = FluidProblem(resolution=(args.resolution, args.resolution), batch_size=args.batch_size,
                            lr=args.lr, delta_factor=args.delta_factor)

@@ -11,6 +11,9 @@ Methods: HIG (SGD lr 1, batch 32, rcond 1e-10), Adam (lr 1e-3, batch 256), Gauss
 batch 32, rcond 1e-10). Each trains from the same initial network on the same 4096 random states for
 ``--epochs`` epochs or until ``--max-time`` seconds of training have passed.
 
+``--device`` (``cpu``, ``cuda``, ``cuda:N``) places the network, the data and the physics; the data and the
+initial weights are drawn on the CPU and moved, so every device starts from the same numbers.
+
 Outputs (in ``--out``): ``hig_oscillators.h5`` with ``/training/<method>/{epoch, time, loss}`` and
 ``hig_oscillators.png`` (loss per sample over wall-clock time).
 
@@ -33,6 +36,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from inverse.hig import HIG  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.errors import PhisimError  # noqa: E402
 
 N_OSC = 2
@@ -186,12 +190,13 @@ def loss_per_sample(y: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return (y - targets).pow(2).sum(dim=1)
 
 
-def make_net(seed: int, dtype: torch.dtype) -> torch.nn.Sequential:
+def make_net(seed: int, dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.nn.Sequential:
     """The control network ``4 -> 3 x 20 tanh -> 24``.
 
     Args:
-        seed: Seed of the initialisation.
+        seed: Seed of the initialisation (drawn on the CPU, so the weights are the same on every device).
         dtype: Parameter dtype.
+        device: Device the network is moved to.
 
     Returns:
         The network.
@@ -206,7 +211,7 @@ def make_net(seed: int, dtype: torch.dtype) -> torch.nn.Sequential:
         torch.nn.Linear(20, 20),
         torch.nn.Tanh(),
         torch.nn.Linear(20, N_STEPS),
-    ).to(dtype)
+    ).to(device=device, dtype=dtype)
 
 
 def evaluate(net: torch.nn.Module, data: torch.Tensor) -> float:
@@ -228,13 +233,14 @@ def train(method: str, data: torch.Tensor, args: argparse.Namespace) -> dict[str
 
     Args:
         method: ``"hig"``, ``"adam"`` or ``"gn"``.
-        data: ``(N, 2n)`` training states.
+        data: ``(N, 2n)`` training states (their device and dtype are the training's).
         args: Parsed options.
 
     Returns:
         Curves ``epoch``, ``time`` (training seconds) and ``loss`` (per sample, whole training set).
     """
-    net = make_net(args.seed, data.dtype)
+    net = make_net(args.seed, data.dtype, data.device)
+    sync = torch.cuda.synchronize if data.device.type == "cuda" else (lambda: None)
     if method == "adam":
         opt = torch.optim.Adam(net.parameters(), lr=args.adam_lr)
         batch = args.adam_batch_size
@@ -247,6 +253,7 @@ def train(method: str, data: torch.Tensor, args: argparse.Namespace) -> dict[str
     curves = {"epoch": [0], "time": [0.0], "loss": [evaluate(net, data)]}
     elapsed = 0.0
     for epoch in range(1, args.epochs + 1):
+        sync()
         t0 = time.perf_counter()
         failed = False
         for start in range(0, data.shape[0] - batch + 1, batch):
@@ -262,6 +269,7 @@ def train(method: str, data: torch.Tensor, args: argparse.Namespace) -> dict[str
                     print(f"{LABELS[method]} stopped in epoch {epoch}: {err}", flush=True)
                     failed = True
                     break
+        sync()  # queued GPU work belongs to this epoch's training time
         elapsed += time.perf_counter() - t0
         loss = evaluate(net, data)
         curves["epoch"].append(epoch)
@@ -281,6 +289,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
     Returns:
         The parsed options.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
     """
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--epochs", type=int, default=10_000, help="maximum epochs per method")
@@ -295,9 +306,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--adam-lr", type=float, default=1e-3)
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = p.parse_args(argv)
     if args.epochs < 1 or args.n_train < max(args.hig_batch_size, args.adam_batch_size):
         p.error("--epochs must be >= 1 and --n-train at least the largest batch size")
+    args.device = str(check_device(args.device))
     return args
 
 
@@ -314,10 +327,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     args.out.mkdir(parents=True, exist_ok=True)
     dtype = getattr(torch, args.dtype)
     gen = torch.Generator().manual_seed(args.seed + 1)
-    data = torch.rand(args.n_train, 2 * N_OSC, generator=gen, dtype=torch.float64).to(dtype)
+    data = torch.rand(args.n_train, 2 * N_OSC, generator=gen, dtype=torch.float64).to(device=args.device, dtype=dtype)
     results = {m: train(m, data, args) for m in args.methods}
     with h5py.File(args.out / "hig_oscillators.h5", "w") as f:
         f.attrs["dataset_name"] = "hig_oscillators"
+        f.attrs["device"] = args.device
         f.create_dataset("extras/config", data=json.dumps({k: str(v) for k, v in vars(args).items()}))
         for m, r in results.items():
             g = f.create_group(f"training/{m}")

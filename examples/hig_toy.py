@@ -10,6 +10,9 @@ network on the same stream of mini-batches and records
   (per neuron, averaged over the 7 neurons): a saturated neuron has a spread near zero,
 * the path in y-space (``P(f(x0))``) of one sample ``x0``.
 
+``--device`` (``cpu``, ``cuda``, ``cuda:N``) places the network and the data; the mini-batches and the initial
+weights are drawn on the CPU and moved, so every device trains from the same numbers.
+
 Outputs (in ``--out``): ``hig_toy_lambda<lam>.h5`` with ``/training/<method>/{iteration, loss,
 act_mean, act_std, y_path}`` and ``hig_toy_lambda<lam>.png`` (three panels).
 
@@ -32,6 +35,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from inverse.hig import HIG, squared_error  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 
 METHODS = ("adam", "gn", "hig")
 COLORS = {"adam": "tab:blue", "gn": "tab:red", "hig": "tab:green"}
@@ -50,18 +54,21 @@ def target(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.sin(6 * x), torch.cos(9 * x)], dim=1)
 
 
-def make_net(seed: int, dtype: torch.dtype) -> torch.nn.Sequential:
+def make_net(seed: int, dtype: torch.dtype, device: torch.device | str = "cpu") -> torch.nn.Sequential:
     """The toy network ``1 -> 7 tanh -> 2`` (PyTorch default initialisation).
 
     Args:
-        seed: Seed of the initialisation.
+        seed: Seed of the initialisation (drawn on the CPU, so the weights are the same on every device).
         dtype: Parameter dtype.
+        device: Device the network is moved to.
 
     Returns:
         The network.
     """
     torch.manual_seed(seed)
-    return torch.nn.Sequential(torch.nn.Linear(1, 7), torch.nn.Tanh(), torch.nn.Linear(7, 2)).to(dtype)
+    return torch.nn.Sequential(torch.nn.Linear(1, 7), torch.nn.Tanh(), torch.nn.Linear(7, 2)).to(
+        device=device, dtype=dtype
+    )
 
 
 def train(method: str, lam: float, args: argparse.Namespace) -> dict[str, np.ndarray]:
@@ -75,17 +82,17 @@ def train(method: str, lam: float, args: argparse.Namespace) -> dict[str, np.nda
     Returns:
         Curves: ``iteration``, ``loss``, ``act_mean``, ``act_std``, ``y_path`` (``(n_records, 2)``), ``time``.
     """
-    dtype = getattr(torch, args.dtype)
-    net = make_net(args.seed, dtype)
-    scale = torch.tensor([1.0, lam], dtype=dtype)
+    dtype, device = getattr(torch, args.dtype), torch.device(args.device)
+    net = make_net(args.seed, dtype, device)
+    scale = torch.tensor([1.0, lam], dtype=dtype, device=device)
 
     def physics(out: torch.Tensor) -> torch.Tensor:
         return out * scale
 
     gen = torch.Generator().manual_seed(args.seed + 1)  # same batch stream for every method
-    xv = torch.linspace(-1, 1, 512, dtype=dtype)[:, None]
+    xv = torch.linspace(-1, 1, 512, dtype=dtype)[:, None].to(device)  # built on the CPU: the same on every device
     tv = target(xv)
-    x0 = torch.tensor([[args.sample_x]], dtype=dtype)
+    x0 = torch.tensor([[args.sample_x]], dtype=dtype, device=device)
     if method == "adam":
         opt = torch.optim.Adam(net.parameters(), lr=args.adam_lr)
     elif method == "gn":
@@ -108,7 +115,7 @@ def train(method: str, lam: float, args: argparse.Namespace) -> dict[str, np.nda
 
     record(0)
     for it in range(1, args.iterations + 1):
-        x = torch.rand(args.batch_size, 1, generator=gen, dtype=torch.float64).to(dtype) * 2 - 1
+        x = torch.rand(args.batch_size, 1, generator=gen, dtype=torch.float64).to(device=device, dtype=dtype) * 2 - 1
         t = target(x)
         if method == "adam":
             opt.zero_grad()
@@ -165,6 +172,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
     Returns:
         The parsed options.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
     """
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--iterations", type=int, default=3000, help="training steps per method")
@@ -181,9 +191,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--sample-x", type=float, default=0.3, help="x of the sample whose y-path is drawn")
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = p.parse_args(argv)
     if args.iterations < 1 or args.batch_size < 1 or args.records < 1:
         p.error("--iterations, --batch-size and --records must be >= 1")
+    args.device = str(check_device(args.device))
     return args
 
 
@@ -215,6 +227,7 @@ def main(argv: list[str] | None = None) -> dict[float, dict[str, float]]:
         with h5py.File(args.out / f"{stem}.h5", "w") as f:
             f.attrs["dataset_name"] = "hig_toy"
             f.attrs["lambda"] = lam
+            f.attrs["device"] = args.device
             f.create_dataset("extras/config", data=json.dumps({k: str(v) for k, v in vars(args).items()}))
             f.create_dataset("extras/sample_target", data=sample_target)
             for m, r in results.items():

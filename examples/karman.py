@@ -40,6 +40,7 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim.boundary import Inflow, Open  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.differential import curl  # noqa: E402
 from phisim.field import StaggeredGrid  # noqa: E402
 from phisim.fluid import Body, FluidState, Sphere, body_forces, cfl_dt, solid_layout, step  # noqa: E402
@@ -62,7 +63,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--cfl", type=float, default=0.5)
     p.add_argument("--out", type=Path, default=Path("out/karman"))
     p.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest at these sizes)")
     args = p.parse_args(argv)
     if args.ny < 8 or args.t_end <= 0 or args.interval <= 0:
@@ -72,7 +73,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def setup(args):
     """Grid, boundary, body, initial state and the mean inflow speed."""
-    dtype, device = getattr(torch, args.dtype), torch.device(args.device)
+    dtype, device = getattr(torch, args.dtype), check_device(args.device)
     dx = H / args.ny
     nx = int(round(LENGTH / dx))
     um = args.umax

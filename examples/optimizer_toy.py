@@ -15,6 +15,9 @@ The three PG-type methods run through :func:`inverse.physgrad.physical_gradient_
 Prints the final ``x`` and its distance to the optimum ``(0, 0)`` per method and writes
 ``optimizer_toy.png`` (trajectories in x space over the contours of L, and in y space) into ``--out``.
 
+``--device`` (``cpu``, ``cuda``, ``cuda:N``) places x and the physics (the L-BFGS-B inverse works on a float64
+CPU copy, as scipy does, and hands its result back on the device).
+
 Run:  python examples/optimizer_toy.py --out out/optimizer_toy
 """
 
@@ -40,6 +43,7 @@ from inverse.local_solvers import (  # noqa: E402
 )
 from inverse.operators import PhysicsOperator, SquareToy  # noqa: E402
 from inverse.physgrad import physical_gradient_loss  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 
 METHODS = ("gd", "newton", "pg", "ig", "pg_lbfgsb")
 LABELS = {
@@ -67,18 +71,20 @@ def _pg_run(
     return path
 
 
-def run(iterations: int = 10, start: Sequence[float] = (3.0, 3.0)) -> dict[str, np.ndarray]:
+def run(iterations: int = 10, start: Sequence[float] = (3.0, 3.0), device: torch.device | str = "cpu"
+        ) -> dict[str, np.ndarray]:
     """Runs all methods of E1 on ``y = (x1, x2²)``, ``L = y1² + y2²``.
 
     Args:
         iterations: Number of iterations per method.
         start: The initial ``x``.
+        device: Device of ``x`` and of the physics.
 
     Returns:
         ``{method: trajectory}``, each of shape ``(iterations + 1, 2)`` in x space (float64).
     """
     op = SquareToy()
-    x0 = torch.tensor([list(start)], dtype=torch.float64)
+    x0 = torch.tensor([list(start)], dtype=torch.float64, device=check_device(device))
     zero = torch.zeros_like(x0)
     paths: dict[str, list[torch.Tensor]] = {}
 
@@ -96,7 +102,7 @@ def run(iterations: int = 10, start: Sequence[float] = (3.0, 3.0)) -> dict[str, 
     paths["pg"] = _pg_run(op, x0, iterations, eta=0.3)
     paths["ig"] = _pg_run(SolverOperator(op, InverseGradientSolver()), x0, iterations, eta=0.3)
     paths["pg_lbfgsb"] = _pg_run(SolverOperator(op, LBFGSBSolver(max_iter=100)), x0, iterations, eta=0.3)
-    return {k: torch.cat(v).numpy() for k, v in paths.items()}
+    return {k: torch.cat(v).cpu().numpy() for k, v in paths.items()}
 
 
 def plot(trajectories: dict[str, np.ndarray], path: Path) -> None:
@@ -131,19 +137,25 @@ def main(argv: Sequence[str] | None = None) -> dict[str, dict[str, object]]:
     """Command-line entry point: runs E1, prints the final x and distances, writes the figure.
 
     Args:
-        argv: Command-line arguments (``--iterations``, ``--out``); None reads ``sys.argv``.
+        argv: Command-line arguments (``--iterations``, ``--out``, ``--device``); None reads ``sys.argv``.
 
     Returns:
         ``{method: {"x": final x (2,), "distance": |x − 0|, "trajectory": (n, 2) array}}``.
+
+    Raises:
+        ParameterError: For an unknown device or one this machine does not have.
     """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--out", type=Path, default=Path("out/optimizer_toy"))
+    parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = parser.parse_args(argv)
+    device = check_device(args.device)
     args.out.mkdir(parents=True, exist_ok=True)
 
-    trajectories = run(args.iterations)
+    trajectories = run(args.iterations, device=device)
     results: dict[str, dict[str, object]] = {}
+    print(f"device {device}")
     print(f"{'method':<32s} {'final x':>24s} {'distance':>10s}")
     for name in METHODS:
         traj = trajectories[name]

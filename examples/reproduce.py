@@ -54,6 +54,7 @@ from inverse.local_solvers import GradientStepSolver  # noqa: E402
 from inverse.operators import Heat  # noqa: E402
 from inverse.problems import Problem, get_problem  # noqa: E402
 from inverse.train import batch_generator, train  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.errors import PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
 from phisim.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
@@ -119,9 +120,11 @@ def _method_key(method: str, seed: int, seeds: Sequence[int]) -> str:
 
 
 def _problem(exp: str, resolution: int | None, sgd_lr: float | None = None, solver: str | None = None,
-             data_solver: str | None = None) -> Problem:
+             data_solver: str | None = None, boundary: str | None = None) -> Problem:
     spec = EXPERIMENTS[exp]
     settings = {}
+    if boundary is not None and spec["problem"] == "poisson":
+        settings["boundary"] = boundary
     if solver is not None and spec["problem"] == "poisson":
         settings["solver"] = solver
     if data_solver is not None and spec["problem"] == "poisson":
@@ -137,7 +140,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
                      seeds: Sequence[int], out: Path, methods: Sequence[str] | None = None,
                      max_iterations: dict[str, int] | None = None, sgd_lr: float | None = None,
                      solver: str | None = None, device: str = "cpu", checkpoint_every: int = 0,
-                     resume: bool = False, data_solver: str | None = None) -> dict:
+                     resume: bool = False, data_solver: str | None = None, boundary: str | None = None) -> dict:
     """Train every method of a network experiment on the same data stream and save curves and weights.
 
     Args:
@@ -157,6 +160,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
         resume: Continue each run from its checkpoint when there is one.
         data_solver: E3's data solve (``'spectral'``, the default, or ``'cg'``, which the runs before the
             spectral default used; needed to reproduce their curves bit for bit).
+        boundary: E3's Dirichlet convention, ``'face'`` (default) or ``'ghost'`` (the reference code's).
 
     Returns:
         ``{key: {'method', 'seed', 'iterations', 'seconds', 'diverged'}}`` per run; ``diverged`` holds the
@@ -164,7 +168,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
     """
     spec = EXPERIMENTS[exp]
     methods = list(spec["methods"] if methods is None else methods)
-    problem = _problem(exp, resolution, sgd_lr, solver, data_solver)
+    problem = _problem(exp, resolution, sgd_lr, solver, data_solver, boundary)
     unknown = [m for m in methods if m not in problem.methods]
     assert not unknown, f"{exp}: unknown methods {unknown}; choose from {sorted(problem.methods)}"
     caps = dict(max_iterations or {})
@@ -440,12 +444,12 @@ def run_network_experiment(exp: str, args: argparse.Namespace) -> dict:
                                 max_iterations=_parse_caps(args.max_iterations), sgd_lr=args.sgd_lr,
                                 solver=args.poisson_solver, device=args.device,
                                 checkpoint_every=args.checkpoint_every, resume=args.resume,
-                                data_solver=args.poisson_data_solver)
+                                data_solver=args.poisson_data_solver, boundary=args.poisson_boundary)
     curves = read_training(out / f"{exp}.h5")
     assert curves, f"{out / f'{exp}.h5'} holds no training curves"
     longest = max(len(c["metric"]) for c in curves.values())
     window = min(spec["window"] if args.window is None else args.window, longest)
-    problem = _problem(exp, args.resolution, data_solver=args.poisson_data_solver)
+    problem = _problem(exp, args.resolution, data_solver=args.poisson_data_solver, boundary=args.poisson_boundary)
     size = "" if spec["problem"] == "sine" else f", {problem.resolution[0]}x{problem.resolution[1]}"
     batch_size = problem.batch_size if args.batch_size is None else args.batch_size
     title = f"{exp.upper()} {spec['problem']}{size}, batch {batch_size}"
@@ -517,6 +521,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="E3 training-path solve: plain CG (default, as specified) or spectral-preconditioned CG")
     p.add_argument("--poisson-data-solver", choices=["cg", "spectral"], default=None,
                    help="E3 data solve: exact spectral (default) or CG (as the runs made before that default)")
+    p.add_argument("--poisson-boundary", choices=["face", "ghost"], default=None,
+                   help="E3: zero Dirichlet value on the cell faces (phisim's convention, default) or in the ghost "
+                        "cells (the reference code's)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cuda")
     p.add_argument("--checkpoint-every", type=int, default=0,
                    help="write a checkpoint next to <exp>.h5 every N iterations (0: none)")
@@ -529,6 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> dict:
     """Command-line entry point; returns ``{experiment: summary}``."""
     args = build_parser().parse_args(argv)
+    check_device(args.device)  # a bad device fails before anything is written
     args.out.mkdir(parents=True, exist_ok=True)
     exps = ["e2", "e3", "e4", "e4-opt"] if args.experiment == "all" else [args.experiment]
     results = {}

@@ -48,6 +48,7 @@ from tqdm import tqdm  # noqa: E402
 
 from phisim.advection import SCALAR_SCHEMES  # noqa: E402
 from phisim.boundary import Boundary  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.field import CenteredGrid, StaggeredGrid  # noqa: E402
 from phisim.fluid import (  # noqa: E402
     INTEGRATORS,
@@ -130,7 +131,7 @@ def setup(args: argparse.Namespace):
     of radius ``0.1 * width`` at height ``0.45 * height``, shifted sideways so the plume splits unevenly.
     """
     n = args.resolution
-    dtype, device = DTYPES[args.dtype], torch.device(args.device)
+    dtype, device = DTYPES[args.dtype], check_device(args.device)
     if args.dim == 2:
         res = (n, int(1.5 * n))
     else:

@@ -36,6 +36,8 @@ __all__ = [
     "Poisson",
     "Heat",
     "check_finite",
+    "ghost_dirichlet_laplacian",
+    "ghost_dirichlet_solve",
 ]
 
 
@@ -406,6 +408,10 @@ class Poisson(PhysicsOperator):
         solve: CG settings (default ``Solve(rtol=1e-5)`` as in E3).
         preconditioner: ``None`` (plain CG, as the reference) or ``"spectral"`` (the exact fast solver as
             preconditioner: converges in one iteration).
+        convention: Where the zero Dirichlet value sits: ``"face"`` (phisim's convention, on the cell faces:
+            ghost ``-u``) or ``"ghost"`` (the reference code's, in the ghost cell: ghost ``0``, a stencil whose
+            boundary cells lose the ``-1`` of the face convention; eigenvectors of DST type I). ``"ghost"``
+            needs zero Dirichlet on every side.
         compute_dtype: dtype the solve and the inverse run in (default float64; results are cast back to
             the input's dtype and gradients flow through the casts). A float32 CG cannot reach
             ``rtol = 1e-5`` on 64×64 grids (its precision floor); None computes in the input dtype.
@@ -422,9 +428,15 @@ class Poisson(PhysicsOperator):
         solve: Solve | None = None,
         preconditioner: str | None = None,
         compute_dtype: torch.dtype | None = torch.float64,
+        convention: str = "face",
     ):
         if preconditioner not in (None, "spectral"):
             raise ParameterError(f"preconditioner must be None or 'spectral', got {preconditioner!r}")
+        if convention not in ("face", "ghost"):
+            raise ParameterError(f"convention must be 'face' or 'ghost', got {convention!r}")
+        if convention == "ghost" and kinds != "dirichlet":
+            raise ParameterError("convention='ghost' is the zero-Dirichlet-everywhere box of E3: use kinds='dirichlet'")
+        self.convention = convention
         solve = Solve(rtol=1e-5) if solve is None else solve
         if not isinstance(solve, Solve):
             raise ParameterError(f"solve must be a phisim.linalg.Solve, got {type(solve).__name__}")
@@ -445,11 +457,13 @@ class Poisson(PhysicsOperator):
         x = x.to(self.compute_dtype or dtype)
 
         def neg_laplace(u: torch.Tensor) -> torch.Tensor:
-            return -stencil_laplacian(u, self.dx, self.kinds)
+            return -self._laplace(u)
 
         pre = None
         if self.preconditioner == "spectral":
             def pre(r: torch.Tensor) -> torch.Tensor:
+                if self.convention == "ghost":
+                    return -ghost_dirichlet_solve(r, self.dx)
                 return -spectral_poisson_solve(r, self.dx, self.kinds, incompatible="project")
 
         project = remove_mean if singular else None
@@ -459,9 +473,64 @@ class Poisson(PhysicsOperator):
     def _local_inverse(
         self, y_target: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor | None
     ) -> torch.Tensor:
-        x = stencil_laplacian(y_target.to(self.compute_dtype or x0.dtype), self.dx, self.kinds)
+        x = self._laplace(y_target.to(self.compute_dtype or x0.dtype))
         x = remove_mean(x) if self._singular(x.ndim - 1) else x
         return x.to(x0.dtype)
+
+    def _laplace(self, u: torch.Tensor) -> torch.Tensor:
+        if self.convention == "ghost":
+            return ghost_dirichlet_laplacian(u, self.dx)
+        return stencil_laplacian(u, self.dx, self.kinds)
+
+    def exact_solve(self, x: torch.Tensor) -> torch.Tensor:
+        """``y = ∇⁻²x`` by the exact spectral solver of the operator's convention (float64, no CG)."""
+        x64 = x.to(torch.float64)
+        if self.convention == "ghost":
+            return ghost_dirichlet_solve(x64, self.dx).to(x.dtype)
+        return spectral_poisson_solve(x64, self.dx, self.kinds).to(x.dtype)
+
+
+def _boundary_cells(shape: Sequence[int], dx, dtype, device) -> torch.Tensor:
+    """``Σ_axes (number of box sides beside the cell) / dx_a²`` per cell ``(*shape)``."""
+    rank = len(shape)
+    dx = (float(dx),) * rank if isinstance(dx, (int, float)) else tuple(float(d) for d in dx)
+    out = torch.zeros(tuple(shape), dtype=dtype, device=device)
+    for a, n in enumerate(shape):
+        edge = torch.zeros(n, dtype=dtype, device=device)
+        edge[0] += 1.0
+        edge[-1] += 1.0
+        view = [1] * rank
+        view[a] = n
+        out = out + edge.view(view) / dx[a] ** 2
+    return out
+
+
+def ghost_dirichlet_laplacian(u: torch.Tensor, dx=1.0) -> torch.Tensor:
+    """The 5-point Laplacian with zero Dirichlet values in the ghost cells (ghost ``0``), ``(B, *res)``.
+
+    The convention of the reference code of E3: the face convention's stencil (ghost ``-u``) plus ``u / dx²``
+    for every box side beside a cell. Differentiable.
+    """
+    return stencil_laplacian(u, dx, "dirichlet") + u * _boundary_cells(u.shape[1:], dx, u.dtype, u.device)
+
+
+def ghost_dirichlet_solve(x: torch.Tensor, dx=1.0) -> torch.Tensor:
+    """Exact inverse of :func:`ghost_dirichlet_laplacian` by DST type I on every axis (``(B, *res)``)."""
+    from phisim.fft import r2rn
+
+    res = tuple(x.shape[1:])
+    rank = len(res)
+    dxs = (float(dx),) * rank if isinstance(dx, (int, float)) else tuple(float(d) for d in dx)
+    lam = torch.zeros(res, dtype=torch.float64, device=x.device)
+    for a, n in enumerate(res):
+        k = torch.arange(1, n + 1, dtype=torch.float64, device=x.device)
+        view = [1] * rank
+        view[a] = n
+        lam = lam + (-4.0 * torch.sin(math.pi * k / (2 * (n + 1))) ** 2 / dxs[a] ** 2).view(view)
+    axes = tuple(range(1, rank + 1))
+    scale = math.prod(2 * (n + 1) for n in res)
+    y = r2rn(x, ("dst1",) * rank, axes)
+    return r2rn(y / (lam.to(x.dtype) * scale), ("dst1",) * rank, axes)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -163,7 +163,9 @@ class PoissonProblem(_UNetGridProblem):
     ``solver`` selects the training path's forward solve: ``'cg'`` (plain CG to ``rtol``, the experiment's
     specification, default) or ``'spectral'`` (CG preconditioned by the exact spectral solver: one
     iteration). ``data_solver`` selects how ``y*`` is generated: ``'spectral'`` (the exact DST solve,
-    default: ~100x faster than CG at 64²) or ``'cg'``.
+    default: ~100x faster than CG at 64²) or ``'cg'``. ``boundary`` places the zero Dirichlet value on the
+    cell faces (``'face'``, phisim's convention, default) or in the ghost cells (``'ghost'``, the reference
+    code's; see :class:`~inverse.operators.Poisson`).
     """
 
     name: str = "poisson"
@@ -172,12 +174,15 @@ class PoissonProblem(_UNetGridProblem):
     lbfgsb_iterations: int = 10
     solver: str = "cg"
     data_solver: str = "spectral"
+    boundary: str = "face"
 
     def __post_init__(self):
         super().__post_init__()
         for attr in ("solver", "data_solver"):
             if getattr(self, attr) not in ("cg", "spectral"):
                 raise ParameterError(f"{attr} must be 'cg' or 'spectral', got {getattr(self, attr)!r}")
+        if self.boundary not in ("face", "ghost"):
+            raise ParameterError(f"boundary must be 'face' or 'ghost', got {self.boundary!r}")
 
     def _make_operator(self) -> PhysicsOperator:
         from phisim.linalg import Solve
@@ -185,7 +190,8 @@ class PoissonProblem(_UNetGridProblem):
         from .operators import Poisson
 
         pre = "spectral" if self.solver == "spectral" else None
-        return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol), preconditioner=pre)
+        return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol), preconditioner=pre,
+                       convention=self.boundary)
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` spectral noise, ``y* = P(x*)``.
@@ -194,14 +200,13 @@ class PoissonProblem(_UNetGridProblem):
         round-off accurate); ``'cg'`` solves it with the training operator's CG instead (to ``rtol``).
         """
         from phisim.noise import spectral_noise
-        from phisim.poisson import spectral_poisson_solve
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
                            dtype=torch.float64).values.to(device=device, dtype=self.dtype)
         op = self.operator()
         with torch.no_grad():
             if self.data_solver == "spectral":
-                y = spectral_poisson_solve(x.to(torch.float64), 1.0, "dirichlet").to(x.dtype)
+                y = op.exact_solve(x)
             else:
                 y = op.forward(x)
         return Batch(y.unsqueeze(1), y, x, op)

@@ -23,6 +23,7 @@ checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -242,6 +243,25 @@ def _run_identity(problem: Problem, batch_size: int) -> dict:
     return keep
 
 
+def _identity_diff(saved: dict, now: dict, problem: Problem) -> dict:
+    """Settings that differ between a checkpoint and the resuming run, ``{name: (saved, now)}``.
+
+    A setting the checkpoint does not record (added to the problem after it was written) counts as equal
+    when the run uses that setting's default, so checkpoints of earlier versions keep resuming.
+    """
+    defaults = {}
+    if dataclasses.is_dataclass(problem):
+        for f in dataclasses.fields(problem):
+            if f.default is not dataclasses.MISSING:
+                defaults[f.name] = list(f.default) if isinstance(f.default, tuple) else f.default
+    diff = {}
+    for k in sorted(set(saved) | set(now)):
+        old = saved[k] if k in saved else defaults.get(k, None)
+        if old != now.get(k):
+            diff[k] = (saved.get(k), now.get(k))
+    return diff
+
+
 def _truncate_log(h5path: Path, method: str, n: int) -> None:
     recover_file(h5path)  # a log killed mid-write: rebuild the file from its journal first
     with h5py.File(h5path, "a") as f:
@@ -390,9 +410,9 @@ def train(
                 f"seed={state.get('seed')}, not {problem.name}/{method.name}/seed {seed}"
             )
         saved = state.get("settings")
-        if saved is not None and saved != _run_identity(problem, batch_size):
-            now = _run_identity(problem, batch_size)
-            diff = {k: (saved.get(k), now.get(k)) for k in sorted(set(saved) | set(now)) if saved.get(k) != now.get(k)}
+        now = _run_identity(problem, batch_size)
+        diff = {} if saved is None else _identity_diff(saved, now, problem)
+        if diff:
             raise FileFormatError(
                 f"checkpoint {ckpt_path} was written with other settings (saved, now): {diff}; resume with the "
                 "same settings, or start afresh without resume (or delete the checkpoint)"

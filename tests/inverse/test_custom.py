@@ -100,8 +100,8 @@ def test_burgers_tutorial_physics_is_differentiable_and_the_generic_inverse_impr
     before = (p.physics(x0) - b.y_target).norm(dim=1)
     after = (p.physics(x1) - b.y_target).norm(dim=1)
     assert (after < 0.05 * before).all()  # inverse-gradient iterations solve P(x) = y*
-    out = mod.main(["--iterations", "1", "--resolution", "8", "--batch-size", "2"])
-    assert set(out) == {"adam", "pg_inverse_gradient", "identity"}
+    out = mod.main(["--iterations", "1", "--resolution", "8", "--batch-size", "2", "--device", "cpu"])
+    assert set(out) == {"adam", "pg_inverse_gradient", "identity", "device"} and out["device"] == "cpu"
     # the network starts as the identity map (zero last layer): one small step stays close to it
     assert out["adam"]["heldout_metric"] == pytest.approx(out["identity"]["heldout_metric"], rel=0.2)
 

@@ -22,12 +22,13 @@ def _load(name: str):
 
 def test_hig_toy_tiny(tmp_path):
     toy = _load("hig_toy")
-    finals = toy.main(["--iterations", "40", "--records", "10", "--batch-size", "64", "--out", str(tmp_path)])
+    finals = toy.main(["--iterations", "40", "--records", "10", "--batch-size", "64", "--out", str(tmp_path),
+                       "--device", "cpu"])
     assert set(finals) == {1.0, 0.01}
     for lam in ("1", "0.01"):
         assert (tmp_path / f"hig_toy_lambda{lam}.png").stat().st_size > 5_000
         with h5py.File(tmp_path / f"hig_toy_lambda{lam}.h5", "r") as f:
-            assert float(f.attrs["lambda"]) == float(lam)
+            assert float(f.attrs["lambda"]) == float(lam) and f.attrs["device"] == "cpu"
             for m in ("adam", "gn", "hig"):
                 g = f[f"training/{m}"]
                 loss, it = g["loss"][()], g["iteration"][()]
@@ -73,10 +74,11 @@ def test_oscillator_physics_is_exact_rk4_of_the_linear_system():
 
 def test_hig_oscillators_tiny(tmp_path):
     osc = _load("hig_oscillators")
-    finals = osc.main(["--epochs", "3", "--n-train", "256", "--out", str(tmp_path)])
+    finals = osc.main(["--epochs", "3", "--n-train", "256", "--out", str(tmp_path), "--device", "cpu"])
     assert set(finals) == {"hig", "adam", "gn"}
     assert (tmp_path / "hig_oscillators.png").stat().st_size > 5_000
     with h5py.File(tmp_path / "hig_oscillators.h5", "r") as f:
+        assert f.attrs["device"] == "cpu"
         for m in ("hig", "adam", "gn"):
             loss = f[f"training/{m}/loss"][()]
             assert f[f"training/{m}/epoch"][-1] >= 1

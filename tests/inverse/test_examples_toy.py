@@ -19,9 +19,9 @@ def _load(name: str):
 
 def test_optimizer_toy_full_size(tmp_path, capsys):
     toy = _load("optimizer_toy")
-    res = toy.main(["--out", str(tmp_path)])
+    res = toy.main(["--out", str(tmp_path), "--device", "cpu"])
     printed = capsys.readouterr().out
-    assert (tmp_path / "optimizer_toy.png").stat().st_size > 10_000
+    assert (tmp_path / "optimizer_toy.png").stat().st_size > 10_000 and "device cpu" in printed
     assert set(res) == {"gd", "newton", "pg", "ig", "pg_lbfgsb"}
     for name, r in res.items():
         assert r["trajectory"].shape == (11, 2)

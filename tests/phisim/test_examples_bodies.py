@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import sys
 from pathlib import Path
@@ -60,8 +61,9 @@ def test_karman_writes_a_well_file_gif_and_forces(tmp_path, dim):
 
 def test_optimize_body_lowers_the_drag(tmp_path):
     opt = _load("optimize_body")
-    out = opt.main(["--iterations", "2", "--nx", "32", "--steps", "8", "--out", str(tmp_path)])
+    out = opt.main(["--iterations", "2", "--nx", "32", "--steps", "8", "--out", str(tmp_path), "--device", "cpu"])
     h = out["history"]
+    assert out["device"] == "cpu" and json.loads(out["json"].read_text())["device"] == "cpu"
     assert h[0]["gradient"] > 0  # turning the plate towards the flow lowers the drag
     assert h[-1]["drag"] < h[0]["drag"] and abs(h[-1]["angle"]) < abs(h[0]["angle"])
 
