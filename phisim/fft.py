@@ -18,7 +18,7 @@ Engines:
   so they run on CUDA and are differentiated by torch's autograd.
 * ``'pyfftw'``: FFTW plans made by pyfftw, cached per (transform, shape, dtype, axes, threads,
   planner effort); the real-to-real kinds are FFTW's own, except where scipy's pocketfft measured faster
-  (float32, and float64 type-1 kinds: one-axis transforms, no plans; see ``_use_pocket``). Results are
+  (float32, and float64 type-1 kinds: one-axis transforms, no plans; see ``phisim._fft_pocket``). Results are
   differentiable through ``torch.autograd.Function`` wrappers whose backward applies the adjoint transform:
   ``DCT-II^T = DCT-III·diag(2,1,…,1)``, ``DCT-III^T = diag(1/2,1,…,1)·DCT-II``,
   ``DST-II^T = DST-III·diag(1,…,1,2)``, ``DST-III^T = diag(1,…,1,1/2)·DST-II``; the adjoint of
@@ -70,10 +70,9 @@ except ImportError:  # pragma: no cover - depends on the environment
     _pyfftw = None
     _HAVE_PYFFTW = False
 
-try:  # the C++ transforms behind scipy.fft, called with an output buffer (no per-call argument handling)
-    from scipy.fft._pocketfft import pypocketfft as _pocket
-except ImportError:  # pragma: no cover - depends on the scipy version
-    _pocket = None
+from ._fft_pocket import pocket_multiply as _pocket_multiply
+from ._fft_pocket import pocket_r2rn as _pocket_r2rn
+from ._fft_pocket import use_pocket as _use_pocket
 
 __all__ = [
     "FFTSettings",
@@ -458,12 +457,8 @@ class _PyfftwR2R(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, kinds, axes):
         ctx.kinds, ctx.axes = kinds, axes
-        if _use_pocket(x.dtype, kinds):  # one-axis pocketfft transforms, the innermost axis first
-            y = None
-            for kind, ax in zip(reversed(kinds), reversed(axes)):
-                fn = _pocket.dct if kind.startswith("dct") else _pocket.dst
-                y = fn(x.detach().numpy() if y is None else y, int(kind[3]), (ax,), 0, y, _SETTINGS.threads)
-            return torch.from_numpy(y)
+        if _use_pocket(x.dtype, kinds):  # one-axis pocketfft transforms
+            return torch.from_numpy(_pocket_r2rn(x.detach().numpy(), kinds, axes, _SETTINGS.threads))
         plan = _get_plan("r2r", tuple(x.shape), _np_dtype(x.dtype), axes, kinds)
         return torch.from_numpy(plan(_np(x)))
 
@@ -627,80 +622,11 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     if _use_pocket(x.dtype, kinds + inverse):
         y = _pocket_multiply(x.detach().numpy(), kinds, inverse, axes, m,
                              None if pre is None else pre.detach().numpy(),
-                             None if out is None else out.detach().numpy())
+                             None if out is None else out.detach().numpy(), _SETTINGS.threads)
         return out if out is not None else torch.from_numpy(y)
     plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes, kinds, inverse)
     y = torch.from_numpy(plan(_np(x), m, None if pre is None else _np(pre)))
     return y if out is None else out.copy_(y)
-
-
-def _use_pocket(dtype: torch.dtype, kinds: tuple[str, ...]) -> bool:
-    """Whether pocketfft beats FFTW for these real-to-real kinds (measured on the development CPU, 1 thread).
-
-    float32: always (2-D DCT-II 256²: 0.12 vs 0.28 ms, 128²: 0.03 vs 0.05 ms; 64³: 1.0 vs 1.1 ms). float64: only
-    with a type-1 kind, which FFTW computes slowly (DST-I x DST-II 255x256: 0.74 vs 0.82 ms, 127x128: 0.14 vs 0.17
-    ms); for the other float64 kinds FFTW's plans are as fast or faster (DCT-II 256²: 0.28 vs 0.35 ms; 64³: 1.2 vs
-    2.0 ms).
-    """
-    return _pocket is not None and bool(kinds) and (dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds)
-
-
-def _pocket_r2r(y: np.ndarray, kind: str, axis: int, src: np.ndarray | None = None) -> None:
-    """One unnormalised real-to-real kind along one axis of ``src`` (default ``y``) into ``y`` (pocketfft)."""
-    fn = _pocket.dct if kind.startswith("dct") else _pocket.dst
-    fn(y if src is None else src, int(kind[3]), (axis,), 0, y, _SETTINGS.threads)
-
-
-def _pocket_multiply(a: np.ndarray, kinds, inverse, axes, mult: np.ndarray, pre: np.ndarray | None,
-                     out: np.ndarray | None = None) -> np.ndarray:
-    """``inverse(forward(a * pre) * mult)`` by one-axis pocketfft transforms in place on ``out`` (or a new array).
-
-    FFTW's real-to-real kinds (REDFT/RODFT) measured up to 2.5x slower than pocketfft's at 128²-256² on the
-    development CPU in float32 (a 2-D DST-I x DST-II of 255x256: 0.42 ms vs 0.17 ms), see :func:`_use_pocket`.
-    """
-    if out is None:
-        out = np.empty(a.shape, dtype=a.dtype)
-    src = a  # the first transform reads the input and writes ``out`` (no separate copy)
-    if pre is not None:
-        src = np.multiply(a, pre, out=out)
-    nd = out.ndim
-    if (len(axes) == 2 and axes == (nd - 2, nd - 1) and kinds[0] in ("dct1", "dst1")
-            and out.shape[-1] * out.shape[-2] * out.itemsize >= _TRANSPOSE_BYTES):
-        return _pocket_multiply_transposed(src, out, kinds, inverse, mult)
-    for kind, ax in zip(reversed(kinds), reversed(axes)):  # the innermost axis first
-        _pocket_r2r(out, kind, ax, src)
-        src = out
-    np.multiply(out, mult, out=out)
-    for kind, ax in zip(inverse, axes):
-        _pocket_r2r(out, kind, ax)
-    return out
-
-
-#: Planes of at least this many bytes take the strided axis in a transposed copy (see below).
-_TRANSPOSE_BYTES = 384 * 1024
-
-
-def _pocket_multiply_transposed(src: np.ndarray, out: np.ndarray, kinds, inverse, mult: np.ndarray) -> np.ndarray:
-    """The 2-D case of :func:`_pocket_multiply` on large planes: the outer axis is transformed in a transposed
-    copy, so every transform runs along contiguous lines.
-
-    Along a strided axis pocketfft gathers a few columns at a time; for the type-1 kinds (computed from a real
-    FFT of twice the length) on a plane that outgrows the cache this costs up to twice a contiguous transform
-    (255x256 float64: DST-I 0.34 ms strided vs 0.17 ms contiguous), more than the two transposed copies
-    (0.03 ms each through torch): 0.90 -> 0.74 ms for a DST-I x DST-II solve of that size. For the other kinds,
-    and for float32 planes of 256², the strided transform measured faster than the copies.
-    """
-    _pocket_r2r(out, kinds[1], out.ndim - 1, src)
-    o = torch.from_numpy(out)
-    t = torch.empty((*out.shape[:-2], out.shape[-1], out.shape[-2]), dtype=o.dtype)
-    t.copy_(o.transpose(-1, -2))
-    tn = t.numpy()
-    _pocket_r2r(tn, kinds[0], out.ndim - 1)
-    np.multiply(tn, np.swapaxes(np.broadcast_to(mult, out.shape), -1, -2), out=tn)
-    _pocket_r2r(tn, inverse[0], out.ndim - 1)
-    o.copy_(t.transpose(-1, -2))
-    _pocket_r2r(out, inverse[1], out.ndim - 1)
-    return out
 
 
 _MULT_PLANS: dict[tuple, _MultiplierPlan] = {}

@@ -5,7 +5,7 @@ import pytest
 import scipy.fft as sfft
 import torch
 
-from phisim import fft
+from phisim import _fft_pocket, fft
 from phisim.errors import ParameterError, ShapeError
 
 ENGINES = fft.available_engines()
@@ -198,7 +198,7 @@ def test_r2r_multiply_one_axis_transforms_match_scipy(dtype, kinds, inverse, tra
     # every kind, in place into a strided view (the interior of a larger array), and the transposed layout
     # that large planes take (forced here by a zero size threshold)
     if transposed:
-        monkeypatch.setattr(fft, "_TRANSPOSE_BYTES", 0)
+        monkeypatch.setattr(_fft_pocket, "TRANSPOSE_BYTES", 0)
     gen = torch.Generator().manual_seed(7)
     x = torch.randn(2, 9, 7, dtype=torch.float64, generator=gen).to(dtype)
     mult = torch.rand(9, 7, dtype=torch.float64, generator=gen).to(dtype)
