@@ -1,8 +1,9 @@
-"""Cost of one viscosity step of a MAC velocity: explicit vs implicit (median of repeats, ms), Markdown table.
+"""Cost of one viscosity step of a MAC velocity: explicit vs implicit (min of repeats, ms), Markdown tables.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32] [--sizes 48 64 128 256]
-[--write]``; ``--write`` saves the tables to ``benchmarks/results/viscosity.md``, which
-``benchmarks/run.py`` copies into ``docs/BENCHMARKS.md`` (section "Viscosity step").
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py [--dtype float32 float64] [--sizes 48 64 128 256]
+[--stat min|median] [--write]``; ``--write`` saves the tables to ``benchmarks/results/viscosity.md``, which
+``benchmarks/run.py`` copies into ``docs/BENCHMARKS.md`` (section "Viscosity step"). Each cell gives the wall
+time and, after the slash, the CPU time of the process for the same statistic.
 
 Cases per resolution (2-D closed box with no-slip walls, batch 1, ``ν dt / dx² = 2``, far beyond the
 explicit limit; the explicit step is timed at its own stable size, the cost per call does not depend on dt):
@@ -10,14 +11,16 @@ explicit limit; the explicit step is timed at its own stable size, the cost per 
 * ``explicit``: forward Euler ``u + ν dt ∇²u`` (one stencil per component), the reference the issue sets:
   an implicit step should cost at most twice as much;
 * ``implicit (spectral)``: :func:`phisim.diffusion.diffuse_staggered`, backward Euler solved exactly by
-  one DST-I/DST-II transform pair per component;
-* ``crank_nicolson``: the same with the explicit half step (one extra stencil);
-* ``implicit, body (PCG)``: backward Euler with the faces of a disc body fixed, CG preconditioned by the
-  exact box solve;
-* ``implicit, old CG``: the unpreconditioned CG of the fluid module before this change, when it is still
-  importable (it is not after the change; its figures are kept in ``docs/BENCHMARKS.md``).
+  one DST-I x DST-II transform pair per component (pocketfft one-axis transforms, in place);
+* ``crank_nicolson``: the same with the explicit half folded into the multiplier;
+* ``implicit, body (capacitance)``: backward Euler with the faces of a disc body fixed, solved directly
+  with the cached capacitance matrix of the body surface (two box solves per component);
+* ``body: one-time build``: the call that builds those matrices (|S| box solves per component; |S| the
+  number of surface faces, and which call with this body and ν dt builds: the earlier ones run PCG);
+* ``implicit, body (PCG)``: the same step by CG preconditioned with the exact box solve, what the first
+  calls with a new body or ν dt run (timed with a tensor viscosity, which keeps the CG path).
 
-A second table times whole Navier-Stokes steps (float32, walls, ν = 0.01, dt = 0.5 dx): the split step
+A last table times whole Navier-Stokes steps (float32, walls, ν = 0.01, dt = 0.5 dx): the split step
 with explicit and with implicit viscosity, and the second-order integrators ``rk2`` and ``imex2``.
 """
 
@@ -31,7 +34,7 @@ import time
 
 import torch
 
-from phisim import Grid, StaggeredGrid, fft
+from phisim import Grid, StaggeredGrid, _mac_diffusion, fft
 from phisim.diffusion import diffuse_staggered
 from phisim.fluid import navier_stokes_step
 from phisim.linalg import Solve
@@ -47,93 +50,126 @@ NOTES = """Reading the tables:
 - Before `diffuse_staggered`, implicit viscosity was unpreconditioned CG (about 12 iterations per component):
   12.5 / 13.5 / 16.3 / 36.8 ms at 48² / 64² / 128² / 256² in the first run of this script (before the change),
   83-112x the explicit step. The issue's own figure was 9.3 ms of an 11 ms step at 48².
-- The exact spectral solve costs 1.2-1.4x an explicit step at 48²-64² (goal: at most 2x) and 2.5-3x at 128².
-  At 256² it is bound by the FFTs: four 2-D real-to-real transforms of 65k samples, 0.33-0.47 ms each on this
-  CPU, against 0.35 ms for the whole explicit step, so about 5x; the goal is not met there on this CPU.
-  (Medians under the load of the shared machine, load average about 21 on 2 cores, were 3-5x the minima
-  at 256²; `--stat median` shows them.)
+- The previous run of this script (float32, FFTW's 2-D real-to-real plans, a separate stencil for
+  Crank-Nicolson, PCG with bodies) measured: implicit 0.197 / 0.227 / 0.482 / 2.072 ms (1.21x / 1.38x / 2.52x /
+  5.82x), crank_nicolson 0.321 / 0.357 / 0.645 / 2.340 ms, body (PCG) 19.9 / 20.6 / 38.5 / 119.8 ms, whole
+  split step with implicit viscosity 1.21 / 1.28 / 2.04 / 11.30 ms and `imex2` 1.95 / 2.04 / 3.06 / 21.88 ms.
+- Goal (issue 14): an implicit step costs at most 2x the explicit one at 48²-256². Met in float32 at 48², 64²
+  and 128² (0.5-1.1x) and in float64 at 48²-128² (0.6-1.4x); not met at 256² (2.2x float32, 2.5x float64).
+  At 256² the exact solve is bound by its transforms: per component four one-axis passes over 65k samples
+  (DST-I of length 255 about 0.10 ms, DST-II/III of length 256 about 0.07 ms in float32 on this CPU), 0.63 ms
+  for the two components before any copy, which is already 1.97x the whole explicit step (0.32 ms). The passes
+  are pocketfft's (scipy): FFTW's REDFT/RODFT plans took 0.42 ms per 2-D transform here (1.7 ms per step),
+  and a real FFT with a permutation and twiddles (Makhoul) measured no faster than pocketfft, which does that
+  in C++. Crank-Nicolson in a box costs the same as backward Euler: its explicit half is folded into the
+  multiplier, `(1 + αλ/2) / (1 - αλ/2)`.
 - Per unit of simulated time the comparison favours the implicit solve at every size: at the dt of this
   table the explicit step would need 8 sub-steps (ν dt Σ 2/dx² = 8).
-- With fixed faces (a disc body) the solve is PCG with the exact box solve as preconditioner: 7-10
-  iterations per refinement round (float32 runs CG rounds with float64 residuals); at these sizes its cost is
-  per-iteration overhead, not FFTs. The split step keeps the fast box solve with bodies (they are imposed
-  before and after it); only `imex2` holds body faces fixed inside the solve.
-- Whole steps: `imex2` (two Crank-Nicolson solves, two projections, two convection terms) costs about 1.5-2x the
-  split step with implicit viscosity; it buys second order in time (docs/SCHEMES.md)."""
+- With fixed faces (a disc body) the solve is direct: a capacitance matrix on the body surface (|S| faces per
+  component), LU-factored once per body and ν dt, then two exact box solves and one |S|-sized triangular solve
+  per component: 1.4-1.7x explicit at 48²-64² (float32), 2.9x at 128², 5.2x at 256², i.e. twice the box solve,
+  which is the floor of this method. The build (|S| box solves) runs once the PCG calls on the same body and
+  ν dt have cost about as much (`CAPACITANCE_FACES_PER_REQUEST`; call 3-10 here). PCG (the first calls, a tensor
+  ν, per-sample bodies) costs 35-125x explicit. The split step keeps the box solve with bodies (they are imposed
+  before and after it); `imex2` holds body faces fixed inside the solve.
+- Whole steps: the split step with implicit viscosity costs 0.9-1.4 ms at 48²-128² and 3.1 ms at 256² (was 11.3
+  ms; the float32 pressure solve also runs on pocketfft now); `imex2` (two Crank-Nicolson solves, two projections,
+  two convection terms) 1.3-1.5x that; it buys second order in time (docs/SCHEMES.md).
+- Wall and CPU times agree for the min of the repeats; the PCG column (10 repeats) shows the load of the shared
+  machine (load average about 6 on 2 cores during this run)."""
 
 
-def bench(fn, repeat: int = 30, min_total: float = 0.3) -> float:
+def bench(fn, repeat: int = 30, min_total: float = 0.3) -> tuple[float, float]:
+    """(wall, CPU) ms of one call: the chosen statistic of the repeats (CPU time of this process)."""
     fn()
     fn()
-    times = []
+    walls, cpus = [], []
     total = 0.0
-    while len(times) < repeat or total < min_total:
-        t = time.perf_counter()
+    while len(walls) < repeat or total < min_total:
+        t, c = time.perf_counter(), time.process_time()
         fn()
         dt = time.perf_counter() - t
-        times.append(dt)
+        cpus.append(time.process_time() - c)
+        walls.append(dt)
         total += dt
-        if len(times) > 2000:
+        if len(walls) > 2000:
             break
-    return 1e3 * (min(times) if STAT == "min" else statistics.median(times))
+    pick = min if STAT == "min" else statistics.median
+    return 1e3 * pick(walls), 1e3 * pick(cpus)
 
 
-def _old_cg(v, alpha, solve):
-    try:
-        from phisim.fluid import _implicit_diffusion
-    except ImportError:  # the fluid package may have moved it
-        return None
-    return lambda: _implicit_diffusion(v, alpha, solve)
+def _disc_masks(grid, n):
+    x = grid.cell_centers(torch.float64)
+    solid = ((x - 0.5) ** 2).sum(-1) <= 0.2**2
+    masks = []
+    for i in range(2):
+        f = torch.nn.functional.pad(solid.to(torch.float64)[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+        m = f.narrow(i, 0, n + 1).narrow(1 - i, 1, n) + f.narrow(i, 1, n + 1).narrow(1 - i, 1, n)
+        masks.append(m > 0)
+    return masks
+
+
+def table(sizes, dtype) -> list[str]:
+    """One viscosity step per method and size (a Markdown table)."""
+    rows = []
+    for n in sizes:
+        grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+        g = torch.Generator().manual_seed(0)
+        v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
+                                for i in range(2)), grid, "wall").with_boundary_faces()
+        dx = grid.dx[0]
+        dt = 2 * dx**2
+        dt_explicit = 0.2 * dx**2
+        masks = _disc_masks(grid, n)
+        solve = Solve(rtol=1e-6 if dtype == torch.float32 else 1e-8)
+        explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
+        implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
+        cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
+        _mac_diffusion._CAP_CACHE.clear()
+        calls = 0
+        while not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries) and calls < 100:
+            t0, c0 = time.perf_counter(), time.process_time()  # PCG until the call that builds the matrices
+            diffuse_staggered(v, dt, viscosity=NU, method="implicit", fixed=masks, solve=solve)
+            build = (1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0))
+            calls += 1
+        surface = max(e[2].surface.numel() for entries in _mac_diffusion._CAP_CACHE.values() for e in entries
+                      if e[2])
+        body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
+                                                                           fixed=m, solve=s))
+        # a tensor viscosity keeps the PCG path (what the first call with a new body or ν dt runs)
+        nu_t = torch.tensor(NU, dtype=dtype)
+        pcg = bench(lambda v=v, h=dt, m=masks, s=solve, nu=nu_t: diffuse_staggered(
+            v, h, viscosity=nu, method="implicit", fixed=m, solve=s), repeat=10)
+        rows.append((n, explicit, implicit, cn, body, build, (surface, calls), pcg))
+    lines = [f"One viscosity step of a MAC velocity, {str(dtype).split('.')[-1]}, batch 1, walls, ν dt/dx² = 2, "
+             f"1 thread; {STAT} of the repeats, wall ms (ratio to explicit) / CPU ms of the process:", "",
+             "| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (capacitance) | "
+             "body: one-time build (surface faces; which call) | implicit, body (PCG) |",
+             "|---|---|---|---|---|---|---|"]
+    for n, e, i, c, b, bu, k, p in rows:
+        def cell(x, e=e):
+            return f"{x[0]:.3f} ({x[0] / e[0]:.2f}x) / {x[1]:.3f}"
+        lines.append(f"| {n}² | {e[0]:.3f} / {e[1]:.3f} | {cell(i)} | {cell(c)} | {cell(b)} | "
+                     f"{bu[0]:.0f} / {bu[1]:.0f} ({k[0]}; call {k[1]}) | {p[0]:.2f} ({p[0] / e[0]:.1f}x) / "
+                     f"{p[1]:.2f} |")
+    return lines
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="+", default=[48, 64, 128, 256])
-    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     ap.add_argument("--write", action="store_true", help="save the tables to benchmarks/results/viscosity.md")
     ap.add_argument("--stat", choices=["min", "median"], default="min", help="statistic of the repeats")
     args = ap.parse_args()
     global STAT
     STAT = args.stat
     torch.set_num_threads(1)
-    dtype = getattr(torch, args.dtype)
-    rows = []
+    lines = []
     with fft.fft_settings(planner_effort="FFTW_MEASURE"):
-        for n in args.sizes:
-            grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
-            g = torch.Generator().manual_seed(0)
-            v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
-                                    for i in range(2)), grid, "wall").with_boundary_faces()
-            dx = grid.dx[0]
-            dt = 2 * dx**2
-            dt_explicit = 0.2 * dx**2
-            x = grid.cell_centers(torch.float64)
-            solid = ((x - 0.5) ** 2).sum(-1) <= 0.2**2
-            masks = []
-            for i in range(2):
-                f = torch.nn.functional.pad(solid.to(torch.float64)[None, None], (1, 1, 1, 1) if i else (1, 1, 1, 1),
-                                            mode="replicate")[0, 0]
-                m = f.narrow(i, 0, n + 1).narrow(1 - i, 1, n) + f.narrow(i, 1, n + 1).narrow(1 - i, 1, n)
-                masks.append(m > 0)
-            solve = Solve(rtol=1e-6 if dtype == torch.float32 else 1e-8)
-            explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
-            implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
-            cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
-            body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
-                                                                               fixed=m, solve=s), repeat=10)
-            old = _old_cg(v, NU * dt, solve)
-            old_ms = bench(old, repeat=5) if old is not None else float("nan")
-            rows.append((n, explicit, implicit, cn, body, old_ms))
-    lines = [f"One viscosity step of a MAC velocity, {args.dtype}, batch 1, walls, ν dt/dx² = 2, 1 thread; "
-             f"{STAT} of the repeats in ms (ratio to explicit):", "",
-             "| n² | explicit | implicit (spectral) | crank_nicolson | implicit, body (PCG) | implicit, old CG |",
-             "|---|---|---|---|---|---|"]
-    for n, e, i, c, b, o in rows:
-        old = f"{o:.2f} ({o / e:.1f}x)" if o == o else "n/a"
-        lines.append(f"| {n}² | {e:.3f} | {i:.3f} ({i / e:.2f}x) | {c:.3f} ({c / e:.2f}x) | {b:.2f} ({b / e:.1f}x) | "
-                     f"{old} |")
-    with fft.fft_settings(planner_effort="FFTW_MEASURE"):
-        lines += bench_steps(args.sizes, dtype)
+        for name in args.dtype:
+            lines += table(args.sizes, getattr(torch, name)) + [""]
+        lines += bench_steps(args.sizes, torch.float32)
     text = "\n".join(lines) + "\n\n" + NOTES + "\n"
     print(text)
     if args.write:
@@ -141,8 +177,8 @@ def main() -> None:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         stamp = time.strftime("%Y-%m-%dT%H:%M:%S")
         with open(path, "w") as fh:
-            fh.write(f"Made by `python benchmarks/bench_viscosity.py --write` ({stamp}, {platform.machine()}, "
-                     f"{os.cpu_count()} cores).\n\n" + text)
+            fh.write(f"Made by `OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py --write` ({stamp}, "
+                     f"{platform.machine()}, {os.cpu_count()} cores).\n\n" + text)
 
 
 def bench_steps(sizes, dtype) -> list[str]:
@@ -161,7 +197,7 @@ def bench_steps(sizes, dtype) -> list[str]:
                    {"integrator": "imex2"}):
             try:
                 row.append(bench(lambda kw=kw, v=v, dt=dt: navier_stokes_step(
-                    v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10))
+                    v, dt, viscosity=0.01, advection="maccormack", **kw), repeat=10)[0])
             except Exception:  # noqa: BLE001 - e.g. an explicit scheme beyond its limit
                 row.append(float("nan"))
         lines.append(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")

@@ -23,10 +23,12 @@ moving lid, an inflow profile, a flux) enter as a constant source ``b``: ``L u =
 backward-Euler or Crank-Nicolson step in a box is one forward transform, a division and one inverse
 transform per component, exact to round-off.
 
-Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability; then
-the θ-scheme is solved by :func:`phisim.linalg.cg` on the free faces, preconditioned with the exact box
-solve. The operator is made symmetric by halving the rows of free boundary faces on open sides (the
-vertex-centred Neumann stencil is symmetric in that weighted inner product).
+Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. When
+the same faces and ``θ ν dt`` come back (fixed-step runs) the θ-scheme is solved directly with a capacitance
+matrix on the body surface (:class:`_CapacitanceSolve`: two box solves and a small LU solve per call);
+otherwise by :func:`phisim.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG
+operator is made symmetric by halving the rows of free boundary faces on open sides (the vertex-centred
+Neumann stencil is symmetric in that weighted inner product).
 """
 
 from __future__ import annotations
@@ -101,6 +103,9 @@ class _Component:
         self.scale = scale
         self.periodic = [a for a in range(grid.rank) if kinds[a] is None]
         self.r2r = [a for a in range(grid.rank) if kinds[a] is not None]
+        self.fwd_kinds = tuple(kinds[a][0] for a in self.r2r)
+        self.inv_kinds = tuple(kinds[a][1] for a in self.r2r)
+        self.r2r_axes = tuple(1 + a for a in self.r2r)
         # eigenvalue sum in the spectral layout (last periodic axis halved for the rfft)
         total = torch.zeros((), dtype=torch.float64)
         for a, lam in enumerate(eigs):
@@ -148,6 +153,26 @@ class _Component:
         full = torch.cat(parts, dim=dim) if len(parts) > 1 else x
         return set_boundary_faces(full, self.i, self.boundary)
 
+    def solve_box(self, rhs: torch.Tensor, mult: torch.Tensor, like: torch.Tensor, engine) -> torch.Tensor | None:
+        """``embed(apply(rhs, mult, prescaled=True), like)`` written in place into one new full component.
+
+        The fast path of the exact box solve: no autograd, no periodic axis, zero boundary values on the
+        faces outside the unknowns (walls); the transforms run on the interior view of the output. Returns
+        None where it does not apply (the caller composes :meth:`apply` and :meth:`embed`).
+        """
+        if self.periodic or not self.r2r or self.has_values or rhs.requires_grad or like.requires_grad:
+            return None
+        full = torch.empty(like.shape, dtype=rhs.dtype, device=rhs.device)
+        dim = 1 + self.i
+        if _fft.r2r_multiply(rhs, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine,
+                             out=full.narrow(dim, self.first, self.count)) is None:
+            return None
+        if self.first:
+            full.narrow(dim, 0, 1).zero_()
+        if self.first + self.count < self.n + 1:
+            full.narrow(dim, self.n, 1).zero_()
+        return full
+
     def laplace(self, u: torch.Tensor) -> torch.Tensor:
         """The full stencil ``L u`` on the full component (ghosts and boundary values from the rules)."""
         p = pad_staggered_component(u, self.i, self.boundary, self.dx, 1)
@@ -175,7 +200,7 @@ class _Component:
         """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
         if isinstance(coef, torch.Tensor):
             return (self.scale / (1.0 - coef * self.lam.to(device))).to(dtype)
-        key = (float(coef), dtype, str(device))
+        key = ("implicit", float(coef), dtype, str(device))
         m = self._mults.get(key)
         if m is None:
             m = (self.scale / (1.0 - float(coef) * self.lam)).to(dtype=dtype, device=device)
@@ -184,9 +209,27 @@ class _Component:
             self._mults[key] = m
         return m
 
+    def step_multiplier(self, method: str, alpha: float, dtype, device) -> torch.Tensor:
+        """A whole box step as one normalised multiplier (cached): ``'crank_nicolson'``
+        ``(1 + αλ/2) / (1 - αλ/2)`` or ``'spectral'`` ``e^{αλ}`` (zero boundary values)."""
+        key = (method, float(alpha), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            a = float(alpha)
+            m = torch.exp(a * self.lam) if method == "spectral" else (1 + 0.5 * a * self.lam) / (1 - 0.5 * a * self.lam)
+            m = (self.scale * m).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
     def apply(self, x: torch.Tensor, mult: torch.Tensor, engine, prescaled: bool = False) -> torch.Tensor:
         """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` in spectral layout (float64, or
         already normalised and in ``x``'s dtype when ``prescaled``)."""
+        if prescaled and self.r2r and not self.periodic:
+            y = _fft.r2r_multiply(x, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine)
+            if y is not None:  # no autograd, pyfftw engine: transform, multiply, transform back in one pass
+                return y
         y = x
         if self.r2r:
             y = _fft.r2rn(y, tuple(self.kinds[a][0] for a in self.r2r), tuple(1 + a for a in self.r2r),
@@ -243,7 +286,7 @@ def _fixed_masks(fixed, velocity):
             m = m[None]
         if tuple(m.shape[1:]) != shape or m.shape[0] not in (1, velocity.batch_size):
             raise ShapeError(f"fixed[{i}] must have shape (1 or B, *{shape}), got {tuple(m.shape)}")
-        m = m.to(velocity.dtype)
+        m = m if m.dtype == torch.bool else m != 0
         out.append(m if bool(m.any()) else None)
     return out
 
@@ -284,12 +327,18 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
         if method == "explicit":
             new = u + alpha * comp.laplace(u)
             if mask is not None:
-                new = mask * u + (1 - mask) * new
+                new = torch.where(mask, u, new)
             out.append(new)
             continue
         lam = comp.lam.to(u.device)
         x = comp.restrict(u)
         b = comp.source(u)
+        if mask is None and b is None and method != "implicit" and not isinstance(alpha, torch.Tensor):
+            # Crank-Nicolson and the exact step in a box: one multiplier, one transform pair, no stencil
+            full = comp.solve_box(x, comp.step_multiplier(method, alpha, u.dtype, u.device), u, engine)
+            if full is not None:
+                out.append(full)
+                continue
         if method == "spectral":
             y = comp.apply(x, torch.exp(alpha * lam), engine)
             if b is not None:
@@ -305,10 +354,16 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
             rhs = rhs + alpha * b
         inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
         if mask is None:
-            out.append(comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
+            full = comp.solve_box(rhs, inverse, u, engine)
+            out.append(full if full is not None else comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
             continue
-        # bodies: CG on the free faces, the exact box solve as preconditioner
-        p = 1 - comp.restrict(mask)
+        # bodies: a direct capacitance solve once the same body and ν dt come back (fixed steps), else CG
+        cap = _capacitance(comp, mask, theta * alpha, u.device, engine)
+        if cap is not None:
+            out.append(cap.solve(comp, rhs, x, inverse, u, engine))
+            continue
+        # CG on the free faces, the exact box solve as preconditioner
+        p = 1 - comp.restrict(mask).to(u.dtype)
         w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
         a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
         v_fixed = (1 - p) * x
@@ -333,10 +388,138 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
         y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t,))
         out.append(comp.embed(y + v_fixed, u))
     result = velocity.with_values(tuple(out))
-    return result.with_boundary_faces()
+    # the solves embed their unknowns with the boundary faces already set (embed / solve_box)
+    return result.with_boundary_faces() if method == "explicit" else result
 
 
 def _phi1(z: torch.Tensor) -> torch.Tensor:
     small = z.abs() < 1e-8
     safe = torch.where(small, torch.ones_like(z), z)
     return torch.where(small, 1.0 + z / 2, torch.expm1(safe) / safe)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# fixed faces by the capacitance matrix
+
+#: Most surface faces per component for which a dense capacitance matrix is built.
+CAPACITANCE_MAX_FACES = 4096
+_CAP_CACHE: dict = {}  # (geometry, θ ν dt, device) -> [[mask, requests, solve], ...]
+_CAP_CACHE_SIZE = 16  # bodies (masks) held in all
+#: Requests of one (body, θ ν dt) answered by CG before the capacitance matrix is built: ``imex2`` solves twice
+#: per step with the same ν dt/2, so a time step that changes every step (CFL control) never builds one.
+CAPACITANCE_BUILD_AFTER = 2
+#: Surface faces per CG request before the build: the matrix is built once the CG calls have cost about as
+#: many box solves as the build (|S|), see :func:`_capacitance`.
+CAPACITANCE_FACES_PER_REQUEST = 32
+
+
+class _CapacitanceSolve:
+    """Exact solve of ``(I - a L₀) u = f`` on the free faces with ``u`` prescribed on the fixed faces.
+
+    Let ``A = I - a L₀`` be the box operator on the unknowns (inverted exactly by the transforms) and ``S`` the
+    fixed faces with a free stencil neighbour (the body surface). The free-face equations see no other fixed
+    face, so the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources ``σ`` on ``S`` chosen so that ``u_S = g_S``:
+    ``C σ = g_S - (A⁻¹ f)_S`` with the capacitance matrix ``C = (A⁻¹)_{SS}`` (|S| x |S|, dense, LU-factored
+    once in float64). Per call: two box solves and one small triangular solve, no iterations; the other fixed
+    faces (inside the body) are overwritten by their prescribed values. Buzbee, Dorr, George & Golub (1971),
+    "The direct solution of the discrete Poisson equation on irregular regions", SIAM J. Numer. Anal. 8(4).
+    """
+
+    def __init__(self, comp, surface: torch.Tensor, fixed: torch.Tensor, coef: float, device, engine):
+        self.surface = surface  # flat indices into the unknowns
+        self.fixed = fixed  # (1, *unknown_shape) bool
+        shape = tuple(fixed.shape[1:])
+        n_all = math.prod(shape)
+        k = surface.numel()
+        # the same faces as flat indices into the full component, and the fixed faces there
+        full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
+        comp.restrict(full).copy_(fixed)
+        self.fixed_full = full
+        index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
+        self.surface_full = comp.restrict(index[None]).reshape(-1)[surface]
+        mult = comp.inverse_multiplier(coef, torch.float64, device)
+        cap = torch.empty(k, k, dtype=torch.float64, device=device)
+        chunk = max(1, (1 << 22) // n_all)  # unit sources per batched box solve (<= 32 MB)
+        for start in range(0, k, chunk):
+            idx = surface[start : start + chunk]
+            e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
+            e[torch.arange(idx.numel(), device=device), idx] = 1.0
+            z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
+            cap[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, surface]
+        self.lu, self.pivots = torch.linalg.lu_factor(cap)
+
+    def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(resid.dtype)
+
+    def solve(self, comp, rhs, x, inverse, like, engine) -> torch.Tensor:
+        """The full component: free faces solved, fixed faces ``x``, boundary faces from the boundary."""
+        full = comp.solve_box(rhs, inverse, like, engine) if self.surface.numel() else None
+        if full is not None:  # no autograd, walls: both box solves in place in the output
+            b = full.shape[0]
+            resid = like.reshape(b, -1)[:, self.surface_full] - full.view(b, -1)[:, self.surface_full]
+            src = full.new_zeros((b, math.prod(self.fixed.shape[1:])))
+            src.index_copy_(1, self.surface, self._sigma(resid))
+            corr = comp.apply(src.view(b, *self.fixed.shape[1:]), inverse, engine, prescaled=True)
+            comp.restrict(full).add_(corr)
+            return torch.where(self.fixed_full, like, full)
+        z = comp.apply(rhs, inverse, engine, prescaled=True)
+        if self.surface.numel():
+            flat = z.flatten(1)
+            resid = x.flatten(1)[:, self.surface] - flat[:, self.surface]
+            src = torch.zeros_like(flat).index_copy(1, self.surface, self._sigma(resid)).reshape(z.shape)
+            z = z + comp.apply(src, inverse, engine, prescaled=True)
+        return comp.embed(torch.where(self.fixed, x, z), like)
+
+
+def _surface(comp, fixed: torch.Tensor) -> torch.Tensor:
+    """Flat indices of the fixed unknowns with a free neighbour in the stencil (``fixed``: ``(*unknowns)``)."""
+    free = ~fixed
+    near = torch.zeros_like(fixed)
+    for a in range(fixed.ndim):
+        n = fixed.shape[a]
+        if a in comp.periodic:
+            near |= torch.roll(free, 1, a) | torch.roll(free, -1, a)
+        elif n > 1:
+            near.narrow(a, 0, n - 1).logical_or_(free.narrow(a, 1, n - 1))
+            near.narrow(a, 1, n - 1).logical_or_(free.narrow(a, 0, n - 1))
+    return (fixed & near).flatten().nonzero().squeeze(1)
+
+
+def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _CapacitanceSolve | None:
+    """The cached capacitance solve for this component, body and ``coef = θ ν dt``, or None (use CG).
+
+    None for a tensor ``coef`` (its gradient needs the CG path), per-sample masks, more than
+    :data:`CAPACITANCE_MAX_FACES` surface faces, and until the same (body, coef) has been requested more than
+    ``max(CAPACITANCE_BUILD_AFTER, |S| / CAPACITANCE_FACES_PER_REQUEST)`` times. The matrix costs |S| box solves;
+    one PCG solve costs about 30-70 (2-D, 48²-256², per component), so building once the CG calls have spent
+    about as much as the build bounds the total at about twice the better choice in hindsight, and the matrix
+    pays off when the same body and time step keep coming back (fixed-step runs).
+    """
+    if isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
+        return None
+    key = (comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first, comp.count, comp.odd,
+           float(coef), str(device))
+    entries = _CAP_CACHE.setdefault(key, [])  # [mask, requests, solve, surface], compared by content
+    for entry in entries:
+        if torch.equal(entry[0], mask):
+            break
+    else:
+        if sum(len(e) for e in _CAP_CACHE.values()) >= _CAP_CACHE_SIZE:
+            _CAP_CACHE.clear()
+            entries = _CAP_CACHE.setdefault(key, [])
+        entry = [mask.detach().clone(), 0, None, None]
+        entries.append(entry)
+    entry[1] += 1
+    if entry[2] is not None or entry[1] <= CAPACITANCE_BUILD_AFTER:
+        return entry[2] or None
+    fixed = comp.restrict(mask).detach()
+    if entry[3] is None:
+        entry[3] = _surface(comp, fixed[0])
+    surface = entry[3]
+    if surface.numel() > CAPACITANCE_MAX_FACES:
+        entry[2] = False  # never: use CG
+        return None
+    if entry[1] <= surface.numel() // CAPACITANCE_FACES_PER_REQUEST:
+        return None
+    entry[2] = _CapacitanceSolve(comp, surface, fixed, float(coef), device, engine)
+    return entry[2]

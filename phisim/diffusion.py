@@ -284,8 +284,10 @@ def diffuse_staggered(
     tangential velocity; open sides leave boundary faces free with a mirrored ghost). In a box (no
     ``fixed`` faces) every implicit method is solved exactly by one forward and one inverse DST/DCT/FFT
     per component, chosen per axis by the component's boundary kinds (table in
-    :mod:`phisim._mac_diffusion`); with ``fixed`` faces (bodies) by conjugate gradients preconditioned
-    with that exact box solve.
+    :mod:`phisim._mac_diffusion`). With ``fixed`` faces (bodies) the solve is direct too once the same faces
+    and ``ν dt`` come back (fixed-step runs): a capacitance matrix on the body surface (|S| box solves to build,
+    cached; then two box solves per call); the first call, a tensor ``ν dt`` or per-sample masks use conjugate
+    gradients preconditioned with the exact box solve.
 
     Methods and their order in time:
 
@@ -308,7 +310,7 @@ def diffuse_staggered(
             1 where the face keeps the value it has in ``velocity``. Those faces act as Dirichlet samples
             in the stencil of their free neighbours.
         solve: :class:`phisim.linalg.Solve` of the CG solve with ``fixed`` faces (default rtol 1e-10 in
-            float64, 1e-6 in float32).
+            float64, 1e-6 in float32); the direct capacitance solve does not use it.
         engine: FFT engine (see :func:`phisim.fft.resolve_engine`).
 
     Returns:

@@ -47,9 +47,10 @@ and ``q`` the previous step's pressure potential (``pressure_guess``, in the ``d
     ``(I - ν dt/2 L) u** = u_n + dt/2 (E(u_n, t_n) + E(u1, t_n + dt)) + ν dt/2 L u_n - G q``,
     ``u_{n+1} = P u**``,  ``q_{n+1} = q + φ`` (``φ`` the potential of the last projection).
 
-The implicit solves are :func:`phisim.diffusion.diffuse_staggered` (exact spectral box solves; PCG with
-the faces touching obstacles held at 0). The incremental pressure ``-G q`` makes the splitting error of
-viscosity and projection at walls second order: pass the returned pressure back as ``pressure_guess``
+The implicit solves are :func:`phisim.diffusion.diffuse_staggered` (exact spectral box solves; with the
+faces touching obstacles held at 0 a direct capacitance solve, or PCG on the first step with a new body
+or dt). The incremental pressure ``-G q`` makes the splitting error of viscosity and projection at walls
+second order: pass the returned pressure back as ``pressure_guess``
 (``None`` on the first step is fine; without it on every step the scheme is first order at walls).
 
 The returned pressure is the potential of the last stage's correction rescaled to the convention of

@@ -5,7 +5,7 @@ import pytest
 import scipy.fft as sfft
 import torch
 
-from phisim import fft
+from phisim import _fft_pocket, fft
 from phisim.errors import ParameterError, ShapeError
 
 ENGINES = fft.available_engines()
@@ -64,6 +64,26 @@ def test_r2r_gradcheck_and_gradgradcheck(engine, kinds):
     f = lambda x: fft.r2rn(x, kinds, (1, 2), engine=engine)  # noqa: E731
     assert torch.autograd.gradcheck(f, (x,))
     assert torch.autograd.gradgradcheck(f, (x,))
+
+
+@pytest.mark.parametrize("kinds", [("dst1", "dct2"), ("dct1", "dst3"), ("dct4", "dst4"), ("dst2", "dct3")])
+def test_r2r_float32_values_and_gradients_match_float64(kinds):
+    # float32 real-to-real transforms (pocketfft with the pyfftw engine) against float64 and scipy, both ways
+    x = torch.randn(2, 6, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(11))
+    g = torch.randn(2, 6, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(12))
+    want = x.numpy()
+    for kind, ax in zip(kinds, (1, 2)):
+        want = (sfft.dct if kind.startswith("dct") else sfft.dst)(want, type=int(kind[3]), axis=ax)
+    grads = {}
+    for dtype in (torch.float32, torch.float64):
+        xs = x.to(dtype).requires_grad_(True)
+        y = fft.r2rn(xs, kinds, (1, 2))
+        np.testing.assert_allclose(y.detach().double().numpy(), want, rtol=0,
+                                   atol=(3e-6 if dtype == torch.float32 else 1e-12) * np.abs(want).max())
+        (y * g.to(dtype)).sum().backward()
+        grads[dtype] = xs.grad.double()
+    torch.testing.assert_close(grads[torch.float32], grads[torch.float64], rtol=0,
+                               atol=3e-6 * float(grads[torch.float64].abs().max()))
 
 
 @pytest.mark.parametrize("engine", ENGINES)
@@ -162,3 +182,57 @@ def test_r2r_multiply_equals_composed_transforms(dtype, kinds, inverse):
     # the fast path declines what it cannot do, so callers fall back to the composed transforms
     assert fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, engine="torch") is None
     assert fft.r2r_multiply(x.requires_grad_(True), kinds, inverse, (1, 2), mult, engine="pyfftw") is None
+
+
+def _scipy_r2r(x: np.ndarray, kind: str, axis: int) -> np.ndarray:
+    fn = sfft.dct if kind.startswith("dct") else sfft.dst
+    return fn(x, type=int(kind[3]), axis=axis)
+
+
+@pytest.mark.skipif("pyfftw" not in ENGINES, reason="the fast path runs with the pyfftw engine")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("kinds,inverse", [(("dst1", "dst2"), ("dst1", "dst3")), (("dct1", "dct3"), ("dct1", "dct2")),
+                                           (("dst3", "dct4"), ("dst2", "dst4")), (("dct2", "dst1"), ("dct3", "dst1"))])
+@pytest.mark.parametrize("transposed", [False, True])
+def test_r2r_multiply_one_axis_transforms_match_scipy(dtype, kinds, inverse, transposed, monkeypatch):
+    # every kind, in place into a strided view (the interior of a larger array), and the transposed layout
+    # that large planes take (forced here by a zero size threshold)
+    if transposed:
+        monkeypatch.setattr(_fft_pocket, "TRANSPOSE_BYTES", 0)
+    gen = torch.Generator().manual_seed(7)
+    x = torch.randn(2, 9, 7, dtype=torch.float64, generator=gen).to(dtype)
+    mult = torch.rand(9, 7, dtype=torch.float64, generator=gen).to(dtype)
+    pre = torch.rand(1, 9, 7, dtype=torch.float64, generator=gen).to(dtype)
+    xs, ms, ps = (t.double().numpy() for t in (x, mult, pre))
+    spec = xs * ps
+    for kind, ax in zip(kinds, (1, 2)):
+        spec = _scipy_r2r(spec, kind, ax)
+    want = spec * ms
+    for kind, ax in zip(inverse, (1, 2)):
+        want = _scipy_r2r(want, kind, ax)
+    big = torch.full((2, 11, 10), 5.0, dtype=dtype)
+    view = big[:, 1:10, 2:9]
+    y = fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, pre=pre, engine="pyfftw", out=view)
+    assert y is view and y.dtype == dtype
+    tol = 1e-12 if dtype == torch.float64 else 3e-5
+    np.testing.assert_allclose(y.double().numpy(), want, rtol=0, atol=tol * np.abs(want).max())
+    outside = torch.ones_like(big, dtype=torch.bool)
+    outside[:, 1:10, 2:9] = False
+    assert bool((big[outside] == 5.0).all())  # nothing written outside the view
+    fresh = fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, pre=pre, engine="pyfftw")
+    torch.testing.assert_close(fresh, y, rtol=0, atol=0)
+    with pytest.raises(ShapeError, match="out"):
+        fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, engine="pyfftw", out=big)
+
+
+def test_r2r_multiply_is_reproducible_in_a_fresh_process():
+    import subprocess
+    import sys
+
+    code = ("import torch; from phisim import fft; g = torch.Generator().manual_seed(3); "
+            "x = torch.randn(1, 40, 33, generator=g); m = torch.rand(40, 33, generator=g); "
+            "y = fft.r2r_multiply(x, ('dst1', 'dst2'), ('dst1', 'dst3'), (1, 2), m); "
+            "print(None if y is None else y.double().sum().item().hex())")
+    outs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+            for _ in range(2)]
+    assert outs[0] == outs[1] and outs[0].strip()

@@ -1,5 +1,5 @@
 """Same seed and settings give bit-identical results in two fresh processes (default FFT planning:
-measured plans shared through the machine's FFTW wisdom file)."""
+measured plans shared through the machine's FFTW wisdom file; pocketfft transforms need no plans)."""
 
 from __future__ import annotations
 
@@ -35,6 +35,10 @@ for _ in range(8):
                  obstacles=Obstacle.sphere([9.0, 11.0], 2.0), advection="maccormack")
     for t in (state.marker.values, *state.velocity.values):
         h.update(t.detach().numpy().tobytes())
+# float32 real-to-real transforms run on pocketfft (no plans); a float64 DCT and a real FFT use measured FFTW plans
+p = torch.rand(2, 16, 24, dtype=torch.float64)
+h.update(fft.dctn(p, 2, (1, 2), engine="pyfftw").numpy().tobytes())
+h.update(torch.view_as_real(fft.rfftn(p.float(), (1, 2), engine="pyfftw")).numpy().tobytes())
 print(h.hexdigest())
 """
 

@@ -1,10 +1,14 @@
-set -x
+# E3 at 60 iterations, three seeds per setting: resolution x batch size, and the ghost-cell boundary convention.
+# Each run wrote out/e3_fact/<name>/e3.h5 and e3_summary.json; they were copied here as <name>.h5 and
+# <name>_summary.json. Table: python examples/seed_table.py --runs data/results/e3_factorial/r64_b16_s{0,1,2}.h5 --at 60
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
-cd /work/main
 for s in 0 1 2; do
   for rb in "32 16" "32 128" "64 16"; do
     set -- $rb
-    nice -n 10 .venv/bin/python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
+    nice -n 10 python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
       --resolution $1 --batch-size $2 --seeds $s --poisson-solver spectral --out out/e3_fact/r$1_b$2_s$s
   done
+  nice -n 10 python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
+    --resolution 64 --batch-size 16 --seeds $s --poisson-solver spectral --poisson-boundary ghost \
+    --out out/e3_fact/r64_b16_ghost_s$s
 done
