@@ -128,7 +128,7 @@ class _Location:
     def padder(self, dtype, device):
         """Pads ``(B, C, *shape)`` channel by channel (scalars, or MAC component ``face_axis``) by a cached
         gather plan, or ``None`` where the boundary has non-constant rules (then the general path pads)."""
-        if not bmod._FAST_PADDING:
+        if not bmod._fast_padding(self.shape):
             return None
         key = ("pad", dtype, device)
         if key not in self._consts:

@@ -255,3 +255,26 @@ def test_advection_gradcheck_through_fast_paths():
 
     inputs = tuple(t[:1].detach().clone().requires_grad_(True) for t in (*st.velocity.values, m.values))
     assert torch.autograd.gradcheck(f, inputs, atol=1e-7)
+
+
+def test_large_arrays_take_the_general_path_with_the_same_numbers():
+    from phisim.boundary import pad, pad_staggered_component, set_boundary_faces
+
+    n = 150  # 150 * 151 samples per batch entry: above the plans' size limit
+    assert n * (n + 1) > bmod._FAST_PADDING_MAX and not bmod._fast_padding((n, n + 1))
+    assert bmod._fast_padding((16, 17))
+    boundary = Boundary(((NoSlipWall(), Open()), (Dirichlet(0.3), Neumann(0.2))))
+    g = torch.Generator().manual_seed(11)
+    cells = torch.randn(2, n, n, dtype=torch.float64, generator=g)
+    faces = torch.randn(2, n + 1, n, dtype=torch.float64, generator=g)
+    old = bmod._FAST_PADDING_MAX
+    bmod._FAST_PADDING_MAX = 10**9  # force the plans
+    try:
+        planned = (pad(cells, boundary, (1.0, 0.5), 2), pad_staggered_component(faces, 0, boundary, (1.0, 0.5), 2),
+                   set_boundary_faces(faces, 0, boundary))
+    finally:
+        bmod._FAST_PADDING_MAX = old
+    general = (pad(cells, boundary, (1.0, 0.5), 2), pad_staggered_component(faces, 0, boundary, (1.0, 0.5), 2),
+               set_boundary_faces(faces, 0, boundary))
+    for a, b in zip(planned, general):
+        assert torch.equal(a, b)
