@@ -320,6 +320,8 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
     B = x.shape[0]
     dev = x.device
     on_cpu = dev.type == "cpu"
+    if B == 1 and on_cpu:
+        return _cg_single(A, M, P, x, r, tol, active, budget, window)
     iters = torch.zeros(B, dtype=torch.int64, device=dev)
     status = torch.full((B,), _RUNNING, dtype=torch.int8, device=dev)
     rnorm = _norm(r)
@@ -371,6 +373,60 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         rz = rz_new
     status = torch.where(active, _MAX_ITER, status)
     return x, iters, status
+
+
+def _cg_single(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Projector | None,
+               x: Tensor, r: Tensor, tol: Tensor, active: Tensor, budget: Tensor,
+               window: int) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_cg_core` for a single sample on the CPU: the same iteration and stopping rules, with the
+    scalars (``alpha``, ``beta``, norms, counters) as Python numbers instead of ``(1,)`` tensors, which saves
+    about twenty tensor operations per iteration (a third of an iteration's cost at 128^2)."""
+
+    def done(iterations: int, status: int) -> tuple[Tensor, Tensor, Tensor]:
+        return (x, torch.tensor([iterations], dtype=torch.int64, device=x.device),
+                torch.tensor([status], dtype=torch.int8, device=x.device))
+
+    if not bool(active[0]):
+        return done(0, _RUNNING)
+    tol_, budget_ = float(tol[0]), int(budget[0])
+    rnorm = float(_norm(r)[0])
+    if rnorm <= tol_:
+        return done(0, _CONVERGED)
+    if not math.isfinite(rnorm):
+        return done(0, _NONFINITE)
+    if budget_ <= 0:
+        return done(0, _MAX_ITER)
+    z = M(r) if M is not None else r
+    rz = float(_dot(r, z)[0])
+    p = z if M is not None else r.clone()
+    best, last, k = rnorm, 0, 0
+    while k < budget_:
+        q = A(p)
+        pq = float(_dot(p, q)[0])
+        if not pq > 0:  # p^T A p <= 0 (breakdown) or NaN
+            return done(k, _BREAKDOWN if math.isfinite(pq) else _NONFINITE)
+        alpha = rz / pq
+        x.add_(p, alpha=alpha)
+        r.add_(q, alpha=-alpha)
+        if P is not None:
+            r.copy_(P(r))
+        k += 1
+        z = M(r) if M is not None else r
+        rz_new = float(_dot(r, z)[0])
+        rnorm = float(_norm(r)[0]) if M is not None else math.sqrt(max(rz_new, 0.0))
+        if rnorm < 0.99 * best:
+            best, last = rnorm, k
+        if rnorm <= tol_:
+            return done(k, _CONVERGED)
+        if not math.isfinite(rnorm):
+            return done(k, _NONFINITE)
+        if k - last >= window:
+            return done(k, _STAGNATED)
+        if k >= budget_:
+            return done(k, _MAX_ITER)
+        p = torch.add(z, p, alpha=rz_new / rz)
+        rz = rz_new
+    return done(k, _MAX_ITER)
 
 
 class _Setup:

@@ -391,3 +391,37 @@ def test_public_names_have_docstrings():
     import phisim.linalg as m
     for name in m.__all__:
         assert getattr(m, name).__doc__, name
+
+
+@pytest.mark.parametrize("case", ["plain", "preconditioned", "projected", "breakdown", "stagnated", "max_iter",
+                                  "float32"])
+def test_single_sample_loop_equals_the_batched_loop(case):
+    """One sample on the CPU runs a scalar loop: same iterations, statuses and solutions as the batched loop."""
+    gen = torch.Generator().manual_seed(12)
+    dtype = torch.float32 if case == "float32" else torch.float64
+    b = torch.randn(1, 12, 10, dtype=torch.float64, generator=gen).to(dtype)
+    op, kw = neg_laplace, {"solve": Solve(rtol=1e-9 if dtype == torch.float64 else 1e-5, raise_on_failure=False,
+                                          refine=False)}
+    if case == "preconditioned":
+        kw["preconditioner"] = lambda r: r / 4.0
+    if case == "projected":
+        op, kw["project"] = neg_laplace_periodic, remove_mean
+    if case == "breakdown":
+        op = lambda x: -neg_laplace(x)  # noqa: E731
+    if case == "stagnated":
+        op, b = neg_laplace_periodic, b + 1.0
+        kw["solve"] = Solve(rtol=1e-9, raise_on_failure=False, stagnation_window=20)
+    if case == "max_iter":
+        kw["solve"] = Solve(rtol=1e-12, max_iter=7, raise_on_failure=False)
+    x1, i1 = cg(op, b, return_info=True, **kw)
+    x2, i2 = cg(op, torch.cat([b, b]), return_info=True, **kw)
+    assert i1.status[0] == i2.status[0] == i2.status[1]
+    assert int(i1.iterations[0]) == int(i2.iterations[0])
+    expected = {"breakdown": "breakdown", "max_iter": "max_iter"}.get(case)
+    if expected:
+        assert i1.status[0] == expected
+    elif case != "stagnated":
+        assert i1.status[0] == "converged"
+    if case != "stagnated":  # a stagnated iterate is garbage in both loops
+        scale = float(x2[0].abs().max())
+        torch.testing.assert_close(x1[0], x2[0], rtol=0, atol=(1e-10 if dtype == torch.float64 else 1e-4) * scale)
