@@ -30,14 +30,20 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 
 import torch
 
-from phisim import Grid, StaggeredGrid, _mac_diffusion, fft
-from phisim.diffusion import diffuse_staggered
-from phisim.fluid import navier_stokes_step
-from phisim.linalg import Solve
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from timing import synchronize  # noqa: E402
+
+from phisim import Grid, StaggeredGrid, _mac_diffusion, fft  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
+from phisim.diffusion import diffuse_staggered  # noqa: E402
+from phisim.fluid import navier_stokes_step  # noqa: E402
+from phisim.linalg import Solve  # noqa: E402
 
 NU = 1.0  # viscosity of the single-step table
 #: Statistic of the repeats: "min" (default: on a shared machine other load only adds time, so the fastest
@@ -79,15 +85,21 @@ NOTES = """Reading the tables:
   machine (load average about 6 on 2 cores during this run)."""
 
 
+DEVICE = torch.device("cpu")
+
+
 def bench(fn, repeat: int = 30, min_total: float = 0.3) -> tuple[float, float]:
-    """(wall, CPU) ms of one call: the chosen statistic of the repeats (CPU time of this process)."""
+    """(wall, CPU) ms of one call: the chosen statistic of the repeats (CPU time of this process; on a GPU the
+    device is synchronised around each call, and the CPU time is that of the host)."""
     fn()
     fn()
     walls, cpus = [], []
     total = 0.0
     while len(walls) < repeat or total < min_total:
+        synchronize(DEVICE)
         t, c = time.perf_counter(), time.process_time()
         fn()
+        synchronize(DEVICE)
         dt = time.perf_counter() - t
         cpus.append(time.process_time() - c)
         walls.append(dt)
@@ -99,7 +111,7 @@ def bench(fn, repeat: int = 30, min_total: float = 0.3) -> tuple[float, float]:
 
 
 def _disc_masks(grid, n):
-    x = grid.cell_centers(torch.float64)
+    x = grid.cell_centers(torch.float64, DEVICE)
     solid = ((x - 0.5) ** 2).sum(-1) <= 0.2**2
     masks = []
     for i in range(2):
@@ -115,8 +127,8 @@ def table(sizes, dtype) -> list[str]:
     for n in sizes:
         grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
         g = torch.Generator().manual_seed(0)
-        v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
-                                for i in range(2)), grid, "wall").with_boundary_faces()
+        v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(
+            dtype=dtype, device=DEVICE) for i in range(2)), grid, "wall").with_boundary_faces()
         dx = grid.dx[0]
         dt = 2 * dx**2
         dt_explicit = 0.2 * dx**2
@@ -137,7 +149,7 @@ def table(sizes, dtype) -> list[str]:
         body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
                                                                            fixed=m, solve=s))
         # a tensor viscosity keeps the PCG path (what the first call with a new body or ν dt runs)
-        nu_t = torch.tensor(NU, dtype=dtype)
+        nu_t = torch.tensor(NU, dtype=dtype, device=DEVICE)
         pcg = bench(lambda v=v, h=dt, m=masks, s=solve, nu=nu_t: diffuse_staggered(
             v, h, viscosity=nu, method="implicit", fixed=m, solve=s), repeat=10)
         rows.append((n, explicit, implicit, cn, body, build, (surface, calls), pcg))
@@ -155,15 +167,18 @@ def table(sizes, dtype) -> list[str]:
     return lines
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> str:
+    """Command-line entry point; returns the Markdown text."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", type=int, nargs="+", default=[48, 64, 128, 256])
     ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     ap.add_argument("--write", action="store_true", help="save the tables to benchmarks/results/viscosity.md")
     ap.add_argument("--stat", choices=["min", "median"], default="min", help="statistic of the repeats")
-    args = ap.parse_args()
-    global STAT
+    ap.add_argument("--device", default="cpu", help="torch device, e.g. cuda (timings synchronise it)")
+    args = ap.parse_args(argv)
+    global STAT, DEVICE
     STAT = args.stat
+    DEVICE = check_device(args.device)
     torch.set_num_threads(1)
     lines = []
     with fft.fft_settings(planner_effort="FFTW_MEASURE"):
@@ -171,6 +186,8 @@ def main() -> None:
             lines += table(args.sizes, getattr(torch, name)) + [""]
         lines += bench_steps(args.sizes, torch.float32)
     text = "\n".join(lines) + "\n\n" + NOTES + "\n"
+    if DEVICE.type != "cpu":
+        text = f"Device: {DEVICE}.\n\n" + text
     print(text)
     if args.write:
         path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "viscosity.md")
@@ -179,6 +196,7 @@ def main() -> None:
         with open(path, "w") as fh:
             fh.write(f"Made by `OMP_NUM_THREADS=1 python benchmarks/bench_viscosity.py --write` ({stamp}, "
                      f"{platform.machine()}, {os.cpu_count()} cores).\n\n" + text)
+    return text
 
 
 def bench_steps(sizes, dtype) -> list[str]:
@@ -189,8 +207,8 @@ def bench_steps(sizes, dtype) -> list[str]:
     for n in sizes:
         grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
         g = torch.Generator().manual_seed(0)
-        v = StaggeredGrid(tuple(0.1 * torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(dtype)
-                                for i in range(2)), grid, "wall").with_boundary_faces()
+        v = StaggeredGrid(tuple(0.1 * torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(
+            dtype=dtype, device=DEVICE) for i in range(2)), grid, "wall").with_boundary_faces()
         dt = 0.5 / n
         row = []
         for kw in ({"viscosity_scheme": "explicit"}, {"viscosity_scheme": "implicit"}, {"integrator": "rk2"},

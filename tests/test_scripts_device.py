@@ -64,6 +64,7 @@ SCRIPTS = {
     "benchmarks/bench_training.py": ["--resolution", "16", "--batch-size", "2", "--out", "{out}/t.md"],
     "benchmarks/bench_hig.py": ["--batch-sizes", "2", "--widths", "4", "--out", "{out}/h.md"],
     "benchmarks/run.py": ["--suite", "operators", "--quick", "--out", "{out}"],
+    "benchmarks/bench_viscosity.py": ["--sizes", "8", "--dtype", "float64"],
     "benchmarks/bench_simulate.py": ["--step-cost", "--sizes", "8", "12", "--sizes3d", "--rounds", "1", "--calls",
                                      "2", "--out", "{out}/s.json"],
 }
@@ -78,9 +79,7 @@ def test_every_script_is_listed():
     found = {f"examples/{p.name}" for p in (ROOT / "examples").glob("*.py")}
     found |= {f"benchmarks/{p.name}" for p in (ROOT / "benchmarks").glob("*.py")}
     helpers = {"examples/demo.py", "examples/seed_table.py", "benchmarks/cases_phisim.py", "benchmarks/inputs.py",
-               "benchmarks/peer_phiflow.py", "benchmarks/timing.py",
-               # the lead adds --device to this one (edited elsewhere at the time of writing)
-               "benchmarks/bench_viscosity.py"}
+               "benchmarks/peer_phiflow.py", "benchmarks/timing.py"}
     assert found - helpers == set(SCRIPTS)
     for script in SCRIPTS:
         assert "--device" in (ROOT / script).read_text(), script
@@ -320,3 +319,8 @@ def test_e5_diagnose_on_cuda_matches_cpu(tmp_path):
     gpu = _e5(tmp_path, "cuda")
     # float32 network; cuDNN may run its convolutions in TF32 (about 1e-3 relative)
     assert gpu["metric"] == pytest.approx(cpu["metric"], rel=1e-2)
+
+
+def test_bench_viscosity_tiny_cpu(tmp_path):
+    text = load("benchmarks/bench_viscosity.py").main(argv("benchmarks/bench_viscosity.py", tmp_path / "out", "cpu"))
+    assert "| 8² |" in text and "float64" in text and "Device:" not in text  # the CPU table carries no device line
