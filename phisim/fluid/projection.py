@@ -113,11 +113,8 @@ def net_boundary_flux(velocity: StaggeredGrid) -> torch.Tensor:
 
 def _check_balance(v: StaggeredGrid) -> None:
     """A domain without an open side must have zero net inflow."""
-    if v.boundary.has_open_side:
-        return
-    if all(v.boundary.is_periodic(a) or all(_zero_normal(c, a) for c in v.boundary.sides[a])
-           for a in range(v.grid.rank)):
-        return  # every prescribed normal velocity is 0 (walls): nothing can flow in
+    if _box_constants(v.boundary)[2]:
+        return  # an open side, or every prescribed normal velocity is 0 (walls): nothing to balance
     net = net_boundary_flux(v).detach()
     scale = 0.0
     grid = v.grid
@@ -270,13 +267,14 @@ def make_incompressible(
 
 
 def _box_constants(boundary: Boundary):
-    """Per velocity boundary: the pressure boundary, its solver kinds, and whether no net inflow is possible."""
+    """Per velocity boundary (memoised): the pressure boundary, its solver kinds, and whether the inflow needs
+    no balance check (an open side, or a zero normal velocity prescribed on every non-periodic side)."""
     def make():
         kinds = normalize_kinds(_pressure_kinds(boundary), boundary.rank)
-        closed = boundary.has_open_side or all(
+        exempt = boundary.has_open_side or all(
             boundary.is_periodic(a) or all(_zero_normal(c, a) for c in boundary.sides[a])
             for a in range(boundary.rank))
-        return boundary.for_pressure(), kinds, closed
+        return boundary.for_pressure(), kinds, exempt
     return boundary._memo("projection", make)
 
 
@@ -287,9 +285,8 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     of :func:`make_incompressible` are the caller's.
     """
     grid, boundary = v.grid, v.boundary
-    p_boundary, kinds, closed = _box_constants(boundary)
-    if not closed:
-        _check_balance(v)
+    p_boundary, kinds, _ = _box_constants(boundary)
+    _check_balance(v)
     dx = grid.dx
     dxt = [const(d, v.dtype, v.device) for d in dx]
     div = None
