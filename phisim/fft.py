@@ -40,6 +40,10 @@ read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effo
 algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in
 every process: no file, at the price of cross-process reproducibility.
 
+Modules: this one holds the settings, the argument checks and the public transforms; the engines live in
+:mod:`phisim._fft_torch` (Makhoul transforms, shared tensor helpers), :mod:`phisim._fft_fftw` (plans and
+autograd wrappers) and :mod:`phisim._fft_pocket` (pocketfft one-axis passes).
+
 Thread count: ``FFTSettings.threads`` (default 1). On the 2-core development machine two FFTW
 threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms for a 256² DST-II,
 18.3 ms vs 18.5 ms for 128³), so one thread is the default.
@@ -50,16 +54,12 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import threading
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
-from functools import lru_cache
 
-import numpy as np
 import torch
 
-from . import _fftw_wisdom
 from .errors import ParameterError, ShapeError
 
 try:  # pragma: no cover - exercised implicitly
@@ -70,9 +70,11 @@ except ImportError:  # pragma: no cover - depends on the environment
     _pyfftw = None
     _HAVE_PYFFTW = False
 
+from . import _fft_fftw as _fftw
+from . import _fft_torch
 from ._fft_pocket import pocket_multiply as _pocket_multiply
-from ._fft_pocket import pocket_r2rn as _pocket_r2rn
 from ._fft_pocket import use_pocket as _use_pocket
+from ._fft_torch import axis_vector, edge_weight
 
 __all__ = [
     "FFTSettings",
@@ -95,16 +97,6 @@ __all__ = [
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
 R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4", "dct1", "dst1")
-_FFTW_KIND = {
-    "dct2": "FFTW_REDFT10",
-    "dct3": "FFTW_REDFT01",
-    "dst2": "FFTW_RODFT10",
-    "dst3": "FFTW_RODFT01",
-    "dct4": "FFTW_REDFT11",
-    "dst4": "FFTW_RODFT11",
-    "dct1": "FFTW_REDFT00",
-    "dst1": "FFTW_RODFT00",
-}
 _ENGINES = ("auto", "torch", "pyfftw")
 _EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 
@@ -272,311 +264,8 @@ def _check_real(x: torch.Tensor, name: str) -> None:
     if x.dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"{name} expects a float32 or float64 tensor, got {x.dtype}")
 
-
-def _axis_vector(w: torch.Tensor, ndim: int, axis: int) -> torch.Tensor:
-    shape = [1] * ndim
-    shape[axis] = -1
-    return w.reshape(shape)
-
-
 # ----------------------------------------------------------------------------------------------
-# torch engine: DCT/DST from one real FFT (Makhoul's permutation)
-
-
-@lru_cache(maxsize=256)
-def _twiddle(n: int, sign: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    k = torch.arange(n // 2 + 1, dtype=torch.float64)
-    w = torch.polar(torch.ones_like(k), sign * math.pi * k / (2 * n))
-    cdtype = torch.complex64 if dtype == torch.float32 else torch.complex128
-    return w.to(device=device, dtype=cdtype)
-
-
-def _torch_dct2_last(x: torch.Tensor) -> torch.Tensor:
-    n = x.shape[-1]
-    v = torch.cat([x[..., ::2], x[..., 1::2].flip(-1)], dim=-1)
-    z = torch.fft.rfft(v, dim=-1) * _twiddle(n, -1, x.dtype, x.device)
-    lower = 2 * z.real
-    upper = (-2 * z.imag[..., 1 : n - n // 2]).flip(-1)
-    return torch.cat([lower, upper], dim=-1)
-
-
-def _torch_dct3_last(c: torch.Tensor) -> torch.Tensor:
-    n = c.shape[-1]
-    h = n // 2 + 1
-    # Z_k = (c_k - i c_{N-k}) / 2 for k = 0..N//2, with c_N := 0.
-    rev = torch.cat([torch.zeros_like(c[..., :1]), c[..., 1:].flip(-1)], dim=-1)[..., :h]
-    z = torch.complex(c[..., :h], -rev) * _twiddle(n, 1, c.dtype, c.device)
-    v = torch.fft.irfft(z, n=n, dim=-1) * n  # (2N * idct2) = N * irfft(Z * W) * 2 / 2
-    m = (n + 1) // 2
-    out = torch.empty_like(v)
-    out[..., ::2] = v[..., :m]
-    out[..., 1::2] = v[..., m:].flip(-1)
-    return out
-
-
-def _alternate(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    a = torch.ones(n, dtype=dtype, device=device)
-    a[1::2] = -1
-    return a
-
-
-@lru_cache(maxsize=64)
-def _type4_matrix(n: int, kind: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    arg = math.pi * i[:, None] * i[None, :] / n
-    m = 2 * (torch.cos(arg) if kind == "dct4" else torch.sin(arg))
-    return m.to(dtype=dtype, device=device)
-
-
-def _torch_r2r_last(x: torch.Tensor, kind: str) -> torch.Tensor:
-    n = x.shape[-1]
-    if kind == "dst1":  # odd extension [0, x, 0, -x reversed] of length 2(n+1): y_k = -Im FFT_{k+1}
-        z = torch.zeros_like(x[..., :1])
-        ext = torch.cat([z, x, z, -x.flip(-1)], dim=-1)
-        return -torch.fft.rfft(ext, dim=-1).imag[..., 1 : n + 1]
-    if kind == "dct1":  # even extension [x, x_{n-2} .. x_1] of length 2(n-1): y_k = Re FFT_k
-        ext = torch.cat([x, x[..., 1 : n - 1].flip(-1)], dim=-1)
-        return torch.fft.rfft(ext, dim=-1).real
-    if kind in ("dct4", "dst4"):
-        # Type-4 transforms (mixed Dirichlet/Neumann axes) as a dense symmetric matrix: O(n^2) per line.
-        return x @ _type4_matrix(n, kind, x.dtype, x.device)
-    if kind == "dct2":
-        return _torch_dct2_last(x)
-    if kind == "dct3":
-        return _torch_dct3_last(x)
-    alt = _alternate(n, x.dtype, x.device)
-    if kind == "dst2":
-        return _torch_dct2_last(x * alt).flip(-1)
-    if kind == "dst3":
-        return _torch_dct3_last(x.flip(-1)) * alt
-    raise ParameterError(f"unknown real-to-real kind {kind!r}; expected one of {R2R_KINDS}")
-
-
-def _torch_r2rn(x: torch.Tensor, kinds: tuple[str, ...], axes: tuple[int, ...]) -> torch.Tensor:
-    for kind, axis in zip(kinds, axes):
-        x = _torch_r2r_last(x.movedim(axis, -1), kind).movedim(-1, axis)
-    return x
-
-
-# ----------------------------------------------------------------------------------------------
-# pyfftw engine: cached plans, autograd wrappers
-
-
-class _Plan:
-    """An FFTW plan with its own aligned buffers and a lock (plans are not re-entrant)."""
-
-    def __init__(self, fftw, input_array, output_array):
-        self.fftw = fftw
-        self.input_array = input_array
-        self.output_array = output_array
-        self.lock = threading.Lock()
-
-    def __call__(self, a: np.ndarray) -> np.ndarray:
-        with self.lock:
-            # Always copy into the plan's own buffer: FFTW may overwrite its input.
-            self.input_array[...] = a
-            self.fftw.execute()
-            return self.output_array.copy()
-
-
-_PLANS: dict[tuple, _Plan] = {}
-_PLAN_LOCK = threading.Lock()
-
-
-def _get_plan(
-    op: str,
-    shape: tuple[int, ...],
-    dtype: np.dtype,
-    axes: tuple[int, ...],
-    kinds: tuple[str, ...] = (),
-    out_n: tuple[int, ...] = (),
-) -> _Plan:
-    s = _SETTINGS
-    key = (op, shape, np.dtype(dtype).str, axes, kinds, out_n, s.threads, s.planner_effort)
-    plan = _PLANS.get(key)
-    if plan is not None:
-        return plan
-    with _PLAN_LOCK:
-        plan = _PLANS.get(key)
-        if plan is not None:
-            return plan
-        real = np.dtype(dtype)
-        cplx = np.result_type(real, np.complex64)
-        if op == "r2r":
-            a = _pyfftw.empty_aligned(shape, dtype=real)
-            b = _pyfftw.empty_aligned(shape, dtype=real)
-            direction = [_FFTW_KIND[k] for k in kinds]
-        elif op == "rfft":
-            a = _pyfftw.empty_aligned(shape, dtype=real)
-            oshape = list(shape)
-            oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
-            b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
-            direction = "FFTW_FORWARD"
-        elif op == "irfft":
-            # shape is the complex input shape; out_n the real output sizes along axes
-            oshape = list(shape)
-            for ax, n in zip(axes, out_n):
-                oshape[ax] = n
-            a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
-            b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
-            direction = "FFTW_BACKWARD"
-        else:  # pragma: no cover - internal
-            raise AssertionError(op)
-        fftw = _fftw_wisdom.plan(_pyfftw, lambda effort: _pyfftw.FFTW(
-            a, b, axes=axes, direction=direction, flags=(effort, "FFTW_DESTROY_INPUT"), threads=s.threads),
-            s.planner_effort)
-        plan = _Plan(fftw, a, b)
-        _PLANS[key] = plan
-        return plan
-
-
-def _np(x: torch.Tensor) -> np.ndarray:
-    return x.detach().contiguous().numpy()
-
-
-_ADJOINT = {"dct2": "dct3", "dct3": "dct2", "dst2": "dst3", "dst3": "dst2", "dct4": "dct4", "dst4": "dst4",
-            "dct1": "dct1", "dst1": "dst1"}
-
-
-def _edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
-    """Vector of ones with ``value`` at index 0 (DCT kinds) or at index n-1 (DST kinds)."""
-    w = torch.ones(n, dtype=dtype, device=device)
-    w[0 if kind.startswith("dct") else n - 1] = value
-    return w
-
-
-def _dct1_edges(n: int, value: float, dtype, device) -> torch.Tensor:
-    """Vector of ones with ``value`` at both ends."""
-    w = torch.ones(n, dtype=dtype, device=device)
-    w[0] = value
-    w[n - 1] = value
-    return w
-
-
-class _PyfftwR2R(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, kinds, axes):
-        ctx.kinds, ctx.axes = kinds, axes
-        if _use_pocket(x.dtype, kinds):  # one-axis pocketfft transforms
-            return torch.from_numpy(_pocket_r2rn(x.detach().numpy(), kinds, axes, _SETTINGS.threads))
-        plan = _get_plan("r2r", tuple(x.shape), _np_dtype(x.dtype), axes, kinds)
-        return torch.from_numpy(plan(_np(x)))
-
-    @staticmethod
-    def backward(ctx, g):
-        kinds, axes = ctx.kinds, ctx.axes
-        g = g.contiguous()
-        # pre-weights of the adjoint (for type-2 kinds): double the edge entry
-        for kind, ax in zip(kinds, axes):
-            if kind in ("dct2", "dst2"):
-                g = g * _axis_vector(_edge_weight(g.shape[ax], kind, 2.0, g.dtype, g.device), g.ndim, ax)
-            elif kind == "dct1":  # DCT-I = C diag(1, 2, .., 2, 1) with C symmetric
-                g = g * _axis_vector(_dct1_edges(g.shape[ax], 2.0, g.dtype, g.device), g.ndim, ax)
-        out = _PyfftwR2R.apply(g, tuple(_ADJOINT[k] for k in kinds), axes)
-        for kind, ax in zip(kinds, axes):
-            if kind in ("dct3", "dst3"):
-                out = out * _axis_vector(
-                    _edge_weight(out.shape[ax], kind, 0.5, out.dtype, out.device), out.ndim, ax
-                )
-            elif kind == "dct1":
-                out = out * _axis_vector(_dct1_edges(out.shape[ax], 0.5, out.dtype, out.device), out.ndim, ax)
-        return out, None, None
-
-
-def _halved_axis_weight(n: int, value: float, dtype, device) -> torch.Tensor:
-    """Weights over the rfft bins 0..n//2 of the halved axis: ``value`` on interior bins, 1 on 0 and n/2."""
-    w = torch.full((n // 2 + 1,), value, dtype=dtype, device=device)
-    w[0] = 1.0
-    if n % 2 == 0:
-        w[-1] = 1.0
-    return w
-
-
-class _PyfftwRfftn(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x, axes):
-        ctx.axes = axes
-        ctx.s = tuple(x.shape[a] for a in axes)
-        plan = _get_plan("rfft", tuple(x.shape), _np_dtype(x.dtype), axes)
-        return torch.from_numpy(plan(_np(x)))
-
-    @staticmethod
-    def backward(ctx, g):
-        axes, s = ctx.axes, ctx.s
-        real = g.real.dtype
-        w = _halved_axis_weight(s[-1], 0.5, real, g.device)
-        g = g * _axis_vector(w, g.ndim, axes[-1])
-        return _PyfftwIrfftn.apply(g, s, axes) * math.prod(s), None
-
-
-class _PyfftwIrfftn(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, X, s, axes):
-        ctx.axes, ctx.s = axes, s
-        real = torch.float32 if X.dtype == torch.complex64 else torch.float64
-        plan = _get_plan("irfft", tuple(X.shape), _np_dtype(real), axes, (), s)
-        # FFTW's execute() is unnormalised; scale by 1/prod(s) here.
-        return torch.from_numpy(plan(_np(X))) / math.prod(s)
-
-    @staticmethod
-    def backward(ctx, g):
-        axes, s = ctx.axes, ctx.s
-        G = _PyfftwRfftn.apply(g.contiguous(), axes)
-        w = _halved_axis_weight(s[-1], 2.0, g.dtype, g.device) / math.prod(s)
-        return G * _axis_vector(w, G.ndim, axes[-1]), None, None
-
-
-class _MultiplierPlan:
-    """A forward and an inverse plan sharing one spectrum buffer: ``x -> inverse(forward(x) * m)``.
-
-    Real FFT pair (``kinds`` empty: rfft then irfft) or real-to-real pair (``kinds`` the forward kinds,
-    ``inverse`` the inverse kinds). Two copies per call (in and out) instead of four, no intermediate tensors.
-    """
-
-    def __init__(self, shape, dtype, axes, threads, effort, kinds=(), inverse=()):
-        real = np.dtype(dtype)
-        self.inp = _pyfftw.empty_aligned(shape, dtype=real)
-        self.out = _pyfftw.empty_aligned(shape, dtype=real)
-        if kinds:
-            self.spec = _pyfftw.empty_aligned(shape, dtype=real)
-            fwd_dir, inv_dir = [_FFTW_KIND[k] for k in kinds], [_FFTW_KIND[k] for k in inverse]
-        else:
-            hshape = list(shape)
-            hshape[axes[-1]] = shape[axes[-1]] // 2 + 1
-            self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=np.result_type(real, np.complex64))
-            fwd_dir, inv_dir = "FFTW_FORWARD", "FFTW_BACKWARD"
-        self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
-            self.inp, self.spec, axes=axes, direction=fwd_dir, flags=(e, "FFTW_DESTROY_INPUT"),
-            threads=threads), effort)
-        self.inv = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
-            self.spec, self.out, axes=axes, direction=inv_dir, flags=(e, "FFTW_DESTROY_INPUT"),
-            threads=threads), effort)
-        self.lock = threading.Lock()
-
-    def __call__(self, a: np.ndarray, mult: np.ndarray, pre: np.ndarray | None = None) -> np.ndarray:
-        with self.lock:
-            if pre is None:
-                self.inp[...] = a
-            else:
-                np.multiply(a, pre, out=self.inp)
-            self.fwd.execute()
-            np.multiply(self.spec, mult, out=self.spec)
-            self.inv.execute()
-            return self.out.copy()
-
-
-def _multiplier_plan(shape, dtype, axes, kinds=(), inverse=()) -> _MultiplierPlan:
-    s = _SETTINGS
-    key = (tuple(shape), np.dtype(dtype).str, tuple(axes), tuple(kinds), tuple(inverse), s.threads,
-           s.planner_effort)
-    plan = _MULT_PLANS.get(key)
-    if plan is None:
-        with _PLAN_LOCK:
-            plan = _MULT_PLANS.get(key)
-            if plan is None:
-                plan = _MULT_PLANS[key] = _MultiplierPlan(tuple(shape), dtype, tuple(axes), s.threads,
-                                                          s.planner_effort, tuple(kinds), tuple(inverse))
-    return plan
+# transform, multiply, transform back: fused fast path and Fourier multipliers
 
 
 def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], axes: Sequence[int],
@@ -624,27 +313,10 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
                              None if pre is None else pre.detach().numpy(),
                              None if out is None else out.detach().numpy(), _SETTINGS.threads)
         return out if out is not None else torch.from_numpy(y)
-    plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes, kinds, inverse)
-    y = torch.from_numpy(plan(_np(x), m, None if pre is None else _np(pre)))
+    plan = _fftw.multiplier_plan(tuple(x.shape), _fftw.np_dtype(x.dtype), axes, _SETTINGS.threads,
+                                 _SETTINGS.planner_effort, kinds, inverse)
+    y = torch.from_numpy(plan(_fftw.as_numpy(x), m, None if pre is None else _fftw.as_numpy(pre)))
     return y if out is None else out.copy_(y)
-
-
-_MULT_PLANS: dict[tuple, _MultiplierPlan] = {}
-
-
-class _PyfftwFourierMultiply(torch.autograd.Function):
-    """``irfft(rfft(x) * m)`` for an even real multiplier: a symmetric operator, so backward = forward."""
-
-    @staticmethod
-    def forward(ctx, x, mult, axes):
-        plan = _multiplier_plan(tuple(x.shape), _np_dtype(x.dtype), axes)
-        m = (mult / math.prod(x.shape[a] for a in axes)).to(x.dtype)  # FFTW's inverse is unnormalised
-        ctx.mult, ctx.axes = mult, axes
-        return torch.from_numpy(plan(_np(x), m.numpy()))
-
-    @staticmethod
-    def backward(ctx, g):
-        return _PyfftwFourierMultiply.apply(g.contiguous(), ctx.mult, ctx.axes), None, None
 
 
 def fourier_multiply(
@@ -680,13 +352,10 @@ def fourier_multiply(
     if mult.is_complex():
         raise ParameterError("fourier_multiply needs a real multiplier")
     if resolve_engine(x, engine) == "pyfftw":
-        return _PyfftwFourierMultiply.apply(x, mult.detach().to(torch.float64), axes)
+        return _fftw.PyfftwFourierMultiply.apply(x, mult.detach().to(torch.float64), axes, _SETTINGS.threads,
+                                                  _SETTINGS.planner_effort)
     s = tuple(x.shape[a] for a in axes)
     return torch.fft.irfftn(torch.fft.rfftn(x, dim=axes) * mult.to(x.dtype), s=s, dim=axes)
-
-
-def _np_dtype(dtype: torch.dtype) -> np.dtype:
-    return np.dtype("float32") if dtype == torch.float32 else np.dtype("float64")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -750,8 +419,8 @@ def r2rn(
     if not axes:
         return x
     if resolve_engine(x, engine) == "pyfftw":
-        return _PyfftwR2R.apply(x, kinds, axes)
-    return _torch_r2rn(x, kinds, axes)
+        return _fftw.PyfftwR2R.apply(x, kinds, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
+    return _fft_torch.r2rn(x, kinds, axes)
 
 
 def rfftn(
@@ -776,7 +445,7 @@ def rfftn(
     if not axes:
         raise ShapeError("rfftn needs at least one axis")
     if resolve_engine(x, engine) == "pyfftw":
-        return _PyfftwRfftn.apply(x, axes)
+        return _fftw.PyfftwRfftn.apply(x, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
     return torch.fft.rfftn(x, dim=axes)
 
 
@@ -813,7 +482,7 @@ def irfftn(
             f"irfftn: input shape {tuple(X.shape)} does not match output sizes {s} on axes {axes}"
         )
     if resolve_engine(X, engine) == "pyfftw":
-        return _PyfftwIrfftn.apply(X, s, axes)
+        return _fftw.PyfftwIrfftn.apply(X, s, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
     return torch.fft.irfftn(X, s=s, dim=axes)
 
 
@@ -838,14 +507,14 @@ def _trig(x: torch.Tensor, family: str, type: int, axes, norm: str, inverse: boo
         for ax in axes:
             n = x.shape[ax]
             if applied_type == 3:  # pre-weight h: 1/sqrt(N) at the edge entry, 1/sqrt(2N) elsewhere
-                h = _edge_weight(n, kind, math.sqrt(2.0), x.dtype, x.device) / math.sqrt(2.0 * n)
-                x = x * _axis_vector(h, x.ndim, ax)
+                h = edge_weight(n, kind, math.sqrt(2.0), x.dtype, x.device) / math.sqrt(2.0 * n)
+                x = x * axis_vector(h, x.ndim, ax)
         y = r2rn(x, kind, axes, engine=engine)
         for ax in axes:
             n = y.shape[ax]
             if applied_type == 2:  # post-weight f: sqrt(1/4N) at the edge entry, sqrt(1/2N) elsewhere
-                f = _edge_weight(n, kind, math.sqrt(0.5), y.dtype, y.device) / math.sqrt(2.0 * n)
-                y = y * _axis_vector(f, y.ndim, ax)
+                f = edge_weight(n, kind, math.sqrt(0.5), y.dtype, y.device) / math.sqrt(2.0 * n)
+                y = y * axis_vector(f, y.ndim, ax)
         return y
     y = r2rn(x, kind, axes, engine=engine)
     if (norm == "forward") != inverse:
