@@ -1,13 +1,15 @@
-"""Adam / PG ratios of several seeds at given iterations, from the training logs that reproduce.py writes.
+"""Adam / method ratios of several seeds at given iterations, from the training logs that reproduce.py writes.
 
 Each ``--runs`` entry is a training log (``<out>/<exp>.h5``) of one seed holding a reference method (Adam)
-and the compared method (PG). For every iteration asked for and every window, the script prints the running
-mean (trailing, over ``window`` mini-batches; iteration ``n`` is the ``n``-th update, entry ``n - 1``) of both
-methods per seed, the ratio, and the mean and range of the ratio over the seeds, as a Markdown table; with
-``--json`` it also writes them.
+and the compared methods (PG by default; ``--method pg sgd pg_lbfgsb`` for several). For every method, every
+iteration asked for and every window, the script prints the running mean (trailing, over ``window``
+mini-batches; iteration ``n`` is the ``n``-th update, entry ``n - 1``) of both methods per seed, the ratio
+(reference / method: above 1 means the method is more accurate), and the mean and range of the ratio over the
+seeds, as a Markdown table; with ``--json`` it also writes them (``ratios``: the first method, ``methods``:
+every method).
 
 Run:  python examples/seed_table.py --runs data/results/e3_64x128/e3.h5 data/results/e3_64x128_s1/e3.h5 \\
-          data/results/e3_64x128_s2/e3.h5 --at 60 100 --windows 16 64
+          data/results/e3_64x128_s2/e3.h5 --at 60 100 --windows 16 64 --method pg sgd pg_lbfgsb
 """
 
 from __future__ import annotations
@@ -56,9 +58,11 @@ def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str =
     return out
 
 
-def markdown(result: dict, runs: list[Path]) -> str:
+def markdown(result: dict, runs: list[Path], reference: str = "adam", method: str = "pg") -> str:
     """The table of :func:`ratios` in Markdown."""
-    lines = ["| window | iteration | " + " | ".join(f"seed log {i}: Adam / PG" for i in range(len(runs)))
+    names = {"adam": "Adam", "pg": "PG", "sgd": "SGD", "pg_lbfgsb": "PG+L-BFGS-B"}
+    pair = f"{names.get(reference, reference)} / {names.get(method, method)}"
+    lines = ["| window | iteration | " + " | ".join(f"seed log {i}: {pair}" for i in range(len(runs)))
              + " | mean ratio (min-max) |", "|---|---:|" + "---|" * len(runs) + "---|"]
     for w, by_it in result.items():
         for n, v in by_it.items():
@@ -75,15 +79,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--at", type=int, nargs="+", required=True)
     ap.add_argument("--windows", type=int, nargs="+", default=[16, 64])
     ap.add_argument("--reference", default="adam")
-    ap.add_argument("--method", default="pg")
+    ap.add_argument("--method", "--methods", nargs="+", default=["pg"], help="compared method(s)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    result = ratios(args.runs, args.at, args.windows, args.reference, args.method)
+    results = {m: ratios(args.runs, args.at, args.windows, args.reference, m) for m in args.method}
     print("runs: " + ", ".join(str(r) for r in args.runs))
-    print(markdown(result, args.runs))
+    for m, result in results.items():
+        print(markdown(result, args.runs, args.reference, m) + "\n")
     if args.json is not None:
-        args.json.write_text(json.dumps({"runs": [str(r) for r in args.runs], "ratios": result}, indent=1))
-    return result
+        first = results[args.method[0]]
+        args.json.write_text(json.dumps({"runs": [str(r) for r in args.runs], "reference": args.reference,
+                                         "ratios": first, "methods": results}, indent=1))
+    return results[args.method[0]] if len(results) == 1 else results
 
 
 if __name__ == "__main__":

@@ -168,7 +168,8 @@ def test_seed_table_ratios_of_running_means(tmp_path):
     assert out[1][4]["per_seed"][0][2] == pytest.approx(2.0) and out[1][4]["mean"] == pytest.approx(3.0)
     assert out[4][10]["per_seed"][1][:2] == pytest.approx((4 * 17.5, 17.5))
     assert out[4][10]["min"] == pytest.approx(2.0) and out[4][10]["max"] == pytest.approx(4.0)
-    assert "| 4 | 10 |" in mod.markdown(out, runs)
+    assert "| 4 | 10 |" in mod.markdown(out, runs) and "Adam / PG" in mod.markdown(out, runs)
+    assert "Adam / SGD" in mod.markdown(out, runs, method="sgd")
     with pytest.raises(ParameterError, match="fewer than 11"):
         mod.ratios(runs, at=[11], windows=[1])
     with pytest.raises(ParameterError, match="no curve 'hig'"):
