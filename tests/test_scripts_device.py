@@ -61,6 +61,8 @@ SCRIPTS = {
                                         "--sizes", "24", "--rounds", "1", "--warm", "1", "--steps", "1",
                                         "--repeat", "1", "--out", "{out}/flow.json"],
     "benchmarks/bench_cg.py": ["--sizes", "16", "--repeats", "1"],
+    "examples/bn_recalibrate.py": ["--experiment", "e4", "--resolution", "16", "--batch-size", "2", "--runs",
+                                   "{out}/run", "--batches", "1"],
     "benchmarks/bench_training.py": ["--resolution", "16", "--batch-size", "2", "--out", "{out}/t.md"],
     "benchmarks/bench_hig.py": ["--batch-sizes", "2", "--widths", "4", "--out", "{out}/h.md"],
     "benchmarks/run.py": ["--suite", "operators", "--quick", "--out", "{out}"],

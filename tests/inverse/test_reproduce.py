@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+from phisim.errors import ParameterError
 from phisim.io import read_training
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -148,7 +151,6 @@ def test_headline_pg_ahead_of_adam(case):
 def test_seed_table_ratios_of_running_means(tmp_path):
     import sys
 
-    from phisim.errors import ParameterError
     from phisim.traininglog import TrainingLog
 
     sys.path.insert(0, str(ROOT / "examples"))
@@ -174,3 +176,61 @@ def test_seed_table_ratios_of_running_means(tmp_path):
         mod.ratios(runs, at=[11], windows=[1])
     with pytest.raises(ParameterError, match="no curve 'hig'"):
         mod.ratios(runs, at=[1], windows=[1], method="hig")
+
+
+def test_bn_recalibration_is_the_exact_average_of_the_batches():
+    """``recalibrate`` resets BatchNorm and averages the statistics of the fresh batches exactly; the weights
+    and the original network stay as they were."""
+    import sys
+    from types import SimpleNamespace
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    spec = importlib.util.spec_from_file_location("bn_recalibrate", ROOT / "examples" / "bn_recalibrate.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(1, 3, 3, padding=1), torch.nn.BatchNorm2d(3))
+    seen = []
+
+    def sample(batch_size, gen, device=None):
+        x = torch.randn(batch_size, 1, 6, 5, generator=gen, dtype=torch.float64) * 2 + 1
+        seen.append(x)
+        return x
+
+    problem = SimpleNamespace(batch_size=4, sample=sample, predict=lambda model, x: model(x))
+    net = net.double()
+    before = copy.deepcopy(net.state_dict())
+    out = mod.recalibrate(problem, net, batches=3, device="cpu")
+    conv = net[0]
+    with torch.no_grad():
+        acts = [conv(x) for x in seen]
+    mean = torch.stack([a.mean(dim=(0, 2, 3)) for a in acts]).mean(0)
+    var = torch.stack([a.var(dim=(0, 2, 3), unbiased=True) for a in acts]).mean(0)
+    torch.testing.assert_close(out[1].running_mean, mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out[1].running_var, var, rtol=1e-12, atol=1e-12)
+    for k, v in net.state_dict().items():  # the original is untouched
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0)
+    assert all(torch.equal(out.state_dict()[k], v) for k, v in before.items() if "running" not in k
+               and "num_batches" not in k)
+    with pytest.raises(ParameterError, match="no BatchNorm"):
+        mod.recalibrate(problem, torch.nn.Conv2d(1, 1, 1).double(), batches=1, device="cpu")
+
+
+def test_bn_recalibrate_tiny_run(reproduce, tmp_path):
+    """On a tiny E4 run with checkpoints: 'as trained' is the run's own last held-out figure, and the other
+    measures are finite."""
+    reproduce.main(["--experiment", "e4", "--iterations", "2", "--batch-size", "2", "--resolution", "16",
+                    "--methods", "adam", "pg", "--checkpoint-every", "1", "--out", str(tmp_path)])
+    spec = importlib.util.spec_from_file_location("bn_recalibrate", ROOT / "examples" / "bn_recalibrate.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.main(["--experiment", "e4", "--resolution", "16", "--batch-size", "2", "--runs", str(tmp_path),
+                    "--batches", "2", "--window", "2", "--json", str(tmp_path / "bn.json")])
+    logs = read_training(tmp_path / "e4.h5")
+    for method in ("adam", "pg"):
+        entry = out[str(tmp_path)][method]
+        assert entry["iteration"] == 2
+        held = np.asarray(logs[method]["eval_metric"], dtype=np.float64)
+        assert entry["as_trained"] == pytest.approx(held[np.isfinite(held)][-1], rel=1e-9)
+        assert all(np.isfinite(entry[k]) for k in ("recalibrated", "batch_statistics", "training_stream"))
+    assert json.loads((tmp_path / "bn.json").read_text())["runs"][str(tmp_path)]["pg"]["iteration"] == 2
