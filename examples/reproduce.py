@@ -55,7 +55,7 @@ from inverse.operators import Heat  # noqa: E402
 from inverse.problems import Problem, get_problem  # noqa: E402
 from inverse.train import batch_generator, train  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.errors import PhisimError  # noqa: E402
+from phisim.errors import ParameterError, PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
 from phisim.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
 
@@ -119,7 +119,7 @@ def _method_key(method: str, seed: int, seeds: Sequence[int]) -> str:
 # ----------------------------------------------------------------------------------------- training
 
 
-def _problem(exp: str, resolution: int | None, sgd_lr: float | None = None, solver: str | None = None,
+def _problem(exp: str, resolution: int | Sequence[int] | None, sgd_lr: float | None = None, solver: str | None = None,
              data_solver: str | None = None, boundary: str | None = None) -> Problem:
     spec = EXPERIMENTS[exp]
     settings = {}
@@ -130,13 +130,13 @@ def _problem(exp: str, resolution: int | None, sgd_lr: float | None = None, solv
     if data_solver is not None and spec["problem"] == "poisson":
         settings["data_solver"] = data_solver
     if resolution is not None and spec["problem"] != "sine":
-        settings["resolution"] = (resolution, resolution)
+        settings["resolution"] = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
     if sgd_lr is not None and spec["problem"] != "sine":
         settings["sgd_lr"] = sgd_lr
     return get_problem(spec["problem"], **settings)
 
 
-def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resolution: int | None,
+def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resolution: int | tuple | None,
                      seeds: Sequence[int], out: Path, methods: Sequence[str] | None = None,
                      max_iterations: dict[str, int] | None = None, sgd_lr: float | None = None,
                      solver: str | None = None, device: str = "cpu", checkpoint_every: int = 0,
@@ -147,7 +147,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
         exp: ``'e2'``, ``'e3'`` or ``'e4'``.
         iterations: Training iterations per method.
         batch_size: Mini-batch size (None: the problem's default, the paper's value).
-        resolution: Grid cells per axis for E3/E4 (None: the problem's default, 64).
+        resolution: Grid cells for E3/E4: one count for every axis or one per axis (None: the default, 64²).
         seeds: Network-initialisation / data-stream seeds; each method runs once per seed.
         out: Output folder (``<exp>.h5`` and ``<exp>_<key>.pt`` are written there).
         methods: Subset of the experiment's methods (default: all).
@@ -328,7 +328,7 @@ def _x_mae(x: torch.Tensor, x_true: torch.Tensor) -> np.ndarray:
     return (x - x_true).abs().reshape(x.shape[0], -1).sum(dim=1).detach().cpu().numpy()
 
 
-def optimise_heat(*, samples: int, resolution: int | None, gd_iterations: int, inverse_iterations: int,
+def optimise_heat(*, samples: int, resolution: int | tuple | None, gd_iterations: int, inverse_iterations: int,
                   lbfgsb_iterations: int, seed: int, out: Path) -> dict:
     """E4 without a network: optimise ``x`` for a few heat problems from ``x = 0`` and record x L1 curves.
 
@@ -507,7 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training iterations (default: E2 10000, E3 5000, E4 10000; e4-opt: GD and L-BFGS-B "
                         "iterations, the damped inverse gets a tenth)")
     p.add_argument("--batch-size", type=int, default=None, help="mini-batch size (default: the paper's)")
-    p.add_argument("--resolution", type=int, default=None, help="cells per axis for E3/E4 (default 64)")
+    p.add_argument("--resolution", type=int, nargs="+", default=None,
+                   help="E3/E4 cells: one number per axis, or one for all (default 64; the E3 paper text's "
+                        "grid is --resolution 80 60)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--methods", nargs="+", default=None, help="subset of the experiment's methods")
     p.add_argument("--max-iterations", nargs="*", default=[], metavar="METHOD=N",
@@ -537,6 +539,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     """Command-line entry point; returns ``{experiment: summary}``."""
     args = build_parser().parse_args(argv)
     check_device(args.device)  # a bad device fails before anything is written
+    if args.resolution is not None:
+        if len(args.resolution) > 2 or min(args.resolution) < 1:
+            raise ParameterError(f"--resolution takes one or two positive cell counts, got {args.resolution}")
+        args.resolution = args.resolution[0] if len(args.resolution) == 1 else tuple(args.resolution)
     args.out.mkdir(parents=True, exist_ok=True)
     exps = ["e2", "e3", "e4", "e4-opt"] if args.experiment == "all" else [args.experiment]
     results = {}

@@ -234,3 +234,14 @@ def test_bn_recalibrate_tiny_run(reproduce, tmp_path):
         assert entry["as_trained"] == pytest.approx(held[np.isfinite(held)][-1], rel=1e-9)
         assert all(np.isfinite(entry[k]) for k in ("recalibrated", "batch_statistics", "training_stream"))
     assert json.loads((tmp_path / "bn.json").read_text())["runs"][str(tmp_path)]["pg"]["iteration"] == 2
+
+
+def test_non_square_grid_as_in_the_papers_text(reproduce, tmp_path):
+    """``--resolution NX NY`` (the E3 text's 80x60): the U-net handles sizes that do not halve evenly."""
+    out = reproduce.main(["--experiment", "e3", "--resolution", "20", "12", "--batch-size", "2", "--iterations",
+                          "2", "--methods", "adam", "pg", "--out", str(tmp_path)])["e3"]
+    assert out["resolution"] == [20, 12]
+    assert all(np.isfinite(m["final"]) for m in out["methods"].values())
+    for bad in (["1", "2", "3"], ["0"]):
+        with pytest.raises(ParameterError, match="--resolution"):
+            reproduce.main(["--experiment", "e3", "--resolution", *bad, "--out", str(tmp_path / "bad")])
