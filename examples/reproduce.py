@@ -120,9 +120,14 @@ def _method_key(method: str, seed: int, seeds: Sequence[int]) -> str:
 
 
 def _problem(exp: str, resolution: int | Sequence[int] | None, sgd_lr: float | None = None, solver: str | None = None,
-             data_solver: str | None = None, boundary: str | None = None) -> Problem:
+             data_solver: str | None = None, boundary: str | None = None, reduction: str | None = None,
+             normalize: bool | None = None) -> Problem:
     spec = EXPERIMENTS[exp]
     settings = {}
+    if reduction is not None and spec["problem"] != "sine":
+        settings["reduction"] = reduction
+    if normalize is not None and spec["problem"] == "poisson":
+        settings["normalize"] = normalize
     if boundary is not None and spec["problem"] == "poisson":
         settings["boundary"] = boundary
     if solver is not None and spec["problem"] == "poisson":
@@ -140,7 +145,8 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
                      seeds: Sequence[int], out: Path, methods: Sequence[str] | None = None,
                      max_iterations: dict[str, int] | None = None, sgd_lr: float | None = None,
                      solver: str | None = None, device: str = "cpu", checkpoint_every: int = 0,
-                     resume: bool = False, data_solver: str | None = None, boundary: str | None = None) -> dict:
+                     resume: bool = False, data_solver: str | None = None, boundary: str | None = None,
+                     reduction: str | None = None, normalize: bool | None = None) -> dict:
     """Train every method of a network experiment on the same data stream and save curves and weights.
 
     Args:
@@ -161,6 +167,8 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
         data_solver: E3's data solve (``'spectral'``, the default, or ``'cg'``, which the runs before the
             spectral default used; needed to reproduce their curves bit for bit).
         boundary: E3's Dirichlet convention, ``'face'`` (default) or ``'ghost'`` (the reference code's).
+        reduction: E3/E4: ``'sum'`` (default) or ``'mean'`` over the batch for the backpropagated objective.
+        normalize: E3: False leaves out the per-sample normalisation of ``x*`` (default: the recipe's).
 
     Returns:
         ``{key: {'method', 'seed', 'iterations', 'seconds', 'diverged'}}`` per run; ``diverged`` holds the
@@ -168,7 +176,7 @@ def train_experiment(exp: str, *, iterations: int, batch_size: int | None, resol
     """
     spec = EXPERIMENTS[exp]
     methods = list(spec["methods"] if methods is None else methods)
-    problem = _problem(exp, resolution, sgd_lr, solver, data_solver, boundary)
+    problem = _problem(exp, resolution, sgd_lr, solver, data_solver, boundary, reduction, normalize)
     unknown = [m for m in methods if m not in problem.methods]
     assert not unknown, f"{exp}: unknown methods {unknown}; choose from {sorted(problem.methods)}"
     caps = dict(max_iterations or {})
@@ -444,12 +452,14 @@ def run_network_experiment(exp: str, args: argparse.Namespace) -> dict:
                                 max_iterations=_parse_caps(args.max_iterations), sgd_lr=args.sgd_lr,
                                 solver=args.poisson_solver, device=args.device,
                                 checkpoint_every=args.checkpoint_every, resume=args.resume,
-                                data_solver=args.poisson_data_solver, boundary=args.poisson_boundary)
+                                data_solver=args.poisson_data_solver, boundary=args.poisson_boundary,
+                                reduction=args.reduction, normalize=False if args.no_normalize else None)
     curves = read_training(out / f"{exp}.h5")
     assert curves, f"{out / f'{exp}.h5'} holds no training curves"
     longest = max(len(c["metric"]) for c in curves.values())
     window = min(spec["window"] if args.window is None else args.window, longest)
-    problem = _problem(exp, args.resolution, data_solver=args.poisson_data_solver, boundary=args.poisson_boundary)
+    problem = _problem(exp, args.resolution, data_solver=args.poisson_data_solver, boundary=args.poisson_boundary,
+                       normalize=False if args.no_normalize else None)
     size = "" if spec["problem"] == "sine" else f", {problem.resolution[0]}x{problem.resolution[1]}"
     batch_size = problem.batch_size if args.batch_size is None else args.batch_size
     title = f"{exp.upper()} {spec['problem']}{size}, batch {batch_size}"
@@ -523,6 +533,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="E3 training-path solve: plain CG (default, as specified) or spectral-preconditioned CG")
     p.add_argument("--poisson-data-solver", choices=["cg", "spectral"], default=None,
                    help="E3 data solve: exact spectral (default) or CG (as the runs made before that default)")
+    p.add_argument("--reduction", choices=["sum", "mean"], default=None,
+                   help="E3/E4: batch reduction of the backpropagated objective (default: sum, as specified)")
+    p.add_argument("--no-normalize", action="store_true",
+                   help="E3: skip the per-sample zero-mean / unit-std normalisation of x* (an experiment)")
     p.add_argument("--poisson-boundary", choices=["face", "ghost"], default=None,
                    help="E3: zero Dirichlet value on the cell faces (phisim's convention, default) or in the ghost "
                         "cells (the reference code's)")

@@ -165,7 +165,8 @@ class PoissonProblem(_UNetGridProblem):
     iteration). ``data_solver`` selects how ``y*`` is generated: ``'spectral'`` (the exact DST solve,
     default: ~100x faster than CG at 64²) or ``'cg'``. ``boundary`` places the zero Dirichlet value on the
     cell faces (``'face'``, phisim's convention, default) or in the ghost cells (``'ghost'``, the reference
-    code's; see :class:`~inverse.operators.Poisson`).
+    code's; see :class:`~inverse.operators.Poisson`). ``normalize=False`` leaves out the per-sample shift and
+    scaling of ``x*`` to zero mean and unit standard deviation (the recipe's; an experiment on its effect).
     """
 
     name: str = "poisson"
@@ -175,6 +176,7 @@ class PoissonProblem(_UNetGridProblem):
     solver: str = "cg"
     data_solver: str = "spectral"
     boundary: str = "face"
+    normalize: bool = True
 
     def __post_init__(self):
         super().__post_init__()
@@ -202,7 +204,7 @@ class PoissonProblem(_UNetGridProblem):
         from phisim.noise import spectral_noise
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
-                           dtype=torch.float64).values.to(device=device, dtype=self.dtype)
+                           normalize=self.normalize, dtype=torch.float64).values.to(device=device, dtype=self.dtype)
         op = self.operator()
         with torch.no_grad():
             if self.data_solver == "spectral":

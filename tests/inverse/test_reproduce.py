@@ -245,3 +245,32 @@ def test_non_square_grid_as_in_the_papers_text(reproduce, tmp_path):
     for bad in (["1", "2", "3"], ["0"]):
         with pytest.raises(ParameterError, match="--resolution"):
             reproduce.main(["--experiment", "e3", "--resolution", *bad, "--out", str(tmp_path / "bad")])
+
+
+def test_loss_reduction_cannot_change_adam_driven_runs(reproduce, tmp_path):
+    """Adam is invariant to a constant scale of its gradient (up to eps), so a batch mean instead of the batch
+    sum gives the same E3 curves for Adam and PG to round-off: the reduction cannot explain a gap."""
+    common = ["--experiment", "e3", "--resolution", "16", "--batch-size", "4", "--iterations", "4",
+              "--methods", "adam", "pg"]
+    reproduce.main(common + ["--out", str(tmp_path / "sum")])
+    reproduce.main(common + ["--reduction", "mean", "--out", str(tmp_path / "mean")])
+    a, b = read_training(tmp_path / "sum" / "e3.h5"), read_training(tmp_path / "mean" / "e3.h5")
+    for m in ("adam", "pg"):
+        np.testing.assert_allclose(a[m]["metric"], b[m]["metric"], rtol=1e-6)  # float32 round-off: 1e-7
+
+
+def test_poisson_data_without_normalisation():
+    from inverse.problems import get_problem
+
+    gen = torch.Generator().manual_seed(0)
+    x = get_problem("poisson", resolution=(16, 16)).sample(3, gen).x_true
+    gen = torch.Generator().manual_seed(0)
+    raw = get_problem("poisson", resolution=(16, 16), normalize=False).sample(3, gen).x_true
+    std = x.double().flatten(1).std(1, unbiased=False)
+    np.testing.assert_allclose(std.numpy(), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(x.double().flatten(1).mean(1).numpy(), 0.0, atol=1e-6)
+    assert not np.allclose(raw.double().flatten(1).std(1, unbiased=False).numpy(), 1.0, rtol=1e-2)
+    # the same noise, only shifted and scaled per sample
+    for i in range(3):
+        r, n = raw[i].double().flatten(), x[i].double().flatten()
+        np.testing.assert_allclose(((r - r.mean()) / r.std(unbiased=False)).numpy(), n.numpy(), atol=1e-5)
