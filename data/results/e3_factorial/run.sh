@@ -17,3 +17,11 @@ for s in 0 1 2; do
   nice -n 10 python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
     --resolution 80 60 --batch-size 16 --seeds $s --poisson-solver spectral --out out/e3_fact/r80x60_b16_s$s
 done
+# Normalisation and loss reduction (added later): x* without the per-sample normalisation, 3 seeds; the batch
+# mean instead of the sum, seed 0 (Adam's scale invariance makes it equal to round-off; tests/inverse/test_reproduce.py).
+for s in 0 1 2; do
+  nice -n 10 python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
+    --resolution 64 --batch-size 16 --seeds $s --poisson-solver spectral --no-normalize --out out/e3_fact/r64_b16_raw_s$s
+done
+nice -n 10 python examples/reproduce.py --experiment e3 --iterations 60 --methods adam pg \
+  --resolution 64 --batch-size 16 --seeds 0 --poisson-solver spectral --reduction mean --out out/e3_fact/r64_b16_mean_s0
