@@ -29,13 +29,45 @@ from phisim.errors import ParameterError  # noqa: E402
 from phisim.io import read_training  # noqa: E402
 
 
+def centred_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Centred running mean, NaN where the window does not fit: entry ``i`` averages the entries
+    ``i - window//2 + 1 .. i + window//2`` (a 'valid' moving average placed at its centre, as a common curve
+    plotting helper, and the published analysis, place it)."""
+    v = np.asarray(values, dtype=np.float64)
+    out = np.full(v.shape, np.nan)
+    if len(v) >= window:
+        valid = np.convolve(v, np.ones(window) / window, mode="valid")
+        start = window // 2 - 1
+        out[start:start + len(valid)] = valid
+    return out
+
+
+def first_crossing(runs: list[Path], level: float, window: int, reference: str = "adam", method: str = "pg",
+                   centred: bool = False) -> list[int | None]:
+    """Per run: the first iteration (1-based) at which the smoothed reference / method ratio reaches ``level``
+    (None if never)."""
+    smooth = centred_average if centred else running_average
+    out = []
+    for run in runs:
+        logs = read_training(run)
+        a, b = smooth(logs[reference]["metric"], window), smooth(logs[method]["metric"], window)
+        n = min(len(a), len(b))
+        with np.errstate(invalid="ignore"):
+            hit = np.flatnonzero(a[:n] / b[:n] >= level)
+        out.append(int(hit[0]) + 1 if hit.size else None)
+    return out
+
+
 def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str = "adam",
-           method: str = "pg") -> dict:
+           method: str = "pg", centred: bool = False) -> dict:
     """``{window: {iteration: {"per_seed": [(ref, method, ratio)], "mean", "min", "max"}}}`` (see the module doc).
+
+    ``centred`` uses :func:`centred_average` instead of the trailing running mean.
 
     Raises:
         ParameterError: A log lacks one of the methods or is shorter than an iteration asked for.
     """
+    smooth = centred_average if centred else running_average
     curves = []
     for run in runs:
         logs = read_training(run)
@@ -51,7 +83,7 @@ def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str =
             for run, (ref, m) in zip(runs, curves):
                 if min(len(ref), len(m)) < n:
                     raise ParameterError(f"{run} holds {min(len(ref), len(m))} iterations, fewer than {n}")
-                a, b = running_average(ref, w)[n - 1], running_average(m, w)[n - 1]
+                a, b = smooth(ref, w)[n - 1], smooth(m, w)[n - 1]
                 rows.append((float(a), float(b), float(a / b)))
             r = np.array([x[2] for x in rows])
             out[w][n] = {"per_seed": rows, "mean": float(r.mean()), "min": float(r.min()), "max": float(r.max())}
@@ -80,12 +112,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--windows", type=int, nargs="+", default=[16, 64])
     ap.add_argument("--reference", default="adam")
     ap.add_argument("--method", "--methods", nargs="+", default=["pg"], help="compared method(s)")
+    ap.add_argument("--centred", action="store_true", help="centred instead of trailing running means")
+    ap.add_argument("--first-ratio", type=float, default=None, metavar="R",
+                    help="also print the first iteration at which the ratio reaches R (first window)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    results = {m: ratios(args.runs, args.at, args.windows, args.reference, m) for m in args.method}
-    print("runs: " + ", ".join(str(r) for r in args.runs))
+    results = {m: ratios(args.runs, args.at, args.windows, args.reference, m, args.centred) for m in args.method}
+    print("runs: " + ", ".join(str(r) for r in args.runs) + (" (centred windows)" if args.centred else ""))
     for m, result in results.items():
         print(markdown(result, args.runs, args.reference, m) + "\n")
+        if args.first_ratio is not None:
+            hits = first_crossing(args.runs, args.first_ratio, args.windows[0], args.reference, m, args.centred)
+            print(f"first iteration with {args.reference} / {m} >= {args.first_ratio}: {hits}\n")
     if args.json is not None:
         first = results[args.method[0]]
         args.json.write_text(json.dumps({"runs": [str(r) for r in args.runs], "reference": args.reference,

@@ -172,6 +172,13 @@ def test_seed_table_ratios_of_running_means(tmp_path):
     assert out[4][10]["min"] == pytest.approx(2.0) and out[4][10]["max"] == pytest.approx(4.0)
     assert "| 4 | 10 |" in mod.markdown(out, runs) and "Adam / PG" in mod.markdown(out, runs)
     assert "Adam / SGD" in mod.markdown(out, runs, method="sgd")
+    # centred windows: entry i averages entries i-1 .. i+2 for window 4 ('valid' average placed at its centre)
+    c = mod.centred_average(np.arange(10.0), 4)
+    assert np.isnan(c[0]) and c[1] == pytest.approx(1.5) and c[7] == pytest.approx(7.5) and np.isnan(c[8])
+    cen = mod.ratios(runs, at=[5], windows=[4], centred=True)
+    assert cen[4][5]["per_seed"][0][:2] == pytest.approx((2 * 14.5, 14.5))
+    # seed 0's ratio is 2 throughout, seed 1's is 4: the first iteration reaching 3
+    assert mod.first_crossing(runs, 3.0, window=1) == [None, 1]
     with pytest.raises(ParameterError, match="fewer than 11"):
         mod.ratios(runs, at=[11], windows=[1])
     with pytest.raises(ParameterError, match="no curve 'hig'"):
