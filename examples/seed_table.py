@@ -58,6 +58,24 @@ def first_crossing(runs: list[Path], level: float, window: int, reference: str =
     return out
 
 
+def iterations_to_reach(runs: list[Path], at: int, window: int, reference: str = "adam", method: str = "pg",
+                        centred: bool = False) -> list[int | None]:
+    """Per run: the first iteration (1-based) at which the method's smoothed curve is at or below the
+    reference's smoothed value at iteration ``at`` (the published "iterations to reach Adam's accuracy after
+    N iterations"); None if never."""
+    smooth = centred_average if centred else running_average
+    out = []
+    for run in runs:
+        logs = read_training(run)
+        ref, m = smooth(logs[reference]["metric"], window), smooth(logs[method]["metric"], window)
+        if len(ref) < at:
+            raise ParameterError(f"{run} holds {len(ref)} iterations of '{reference}', fewer than {at}")
+        with np.errstate(invalid="ignore"):
+            hit = np.flatnonzero(m <= ref[at - 1])
+        out.append(int(hit[0]) + 1 if hit.size else None)
+    return out
+
+
 def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str = "adam",
            method: str = "pg", centred: bool = False) -> dict:
     """``{window: {iteration: {"per_seed": [(ref, method, ratio)], "mean", "min", "max"}}}`` (see the module doc).
@@ -115,6 +133,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--centred", action="store_true", help="centred instead of trailing running means")
     ap.add_argument("--first-ratio", type=float, default=None, metavar="R",
                     help="also print the first iteration at which the ratio reaches R (first window)")
+    ap.add_argument("--reach", type=int, default=None, metavar="N",
+                    help="also print the iterations each method needs to reach the reference's level at N")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     results = {m: ratios(args.runs, args.at, args.windows, args.reference, m, args.centred) for m in args.method}
@@ -124,6 +144,9 @@ def main(argv: list[str] | None = None) -> dict:
         if args.first_ratio is not None:
             hits = first_crossing(args.runs, args.first_ratio, args.windows[0], args.reference, m, args.centred)
             print(f"first iteration with {args.reference} / {m} >= {args.first_ratio}: {hits}\n")
+        if args.reach is not None:
+            hits = iterations_to_reach(args.runs, args.reach, args.windows[0], args.reference, m, args.centred)
+            print(f"iterations of {m} to reach {args.reference}'s level at {args.reach}: {hits}\n")
     if args.json is not None:
         first = results[args.method[0]]
         args.json.write_text(json.dumps({"runs": [str(r) for r in args.runs], "reference": args.reference,

@@ -179,6 +179,10 @@ def test_seed_table_ratios_of_running_means(tmp_path):
     assert cen[4][5]["per_seed"][0][:2] == pytest.approx((2 * 14.5, 14.5))
     # seed 0's ratio is 2 throughout, seed 1's is 4: the first iteration reaching 3
     assert mod.first_crossing(runs, 3.0, window=1) == [None, 1]
+    # pg (10..19) lies below adam's level at iteration 10 (2*19, 4*19) from its first iteration on; adam (20..)
+    # never gets down to pg's level at iteration 1 (10)
+    assert mod.iterations_to_reach(runs, at=10, window=1) == [1, 1]
+    assert mod.iterations_to_reach(runs, at=1, window=1, reference="pg", method="adam") == [None, None]
     with pytest.raises(ParameterError, match="fewer than 11"):
         mod.ratios(runs, at=[11], windows=[1])
     with pytest.raises(ParameterError, match="no curve 'hig'"):
