@@ -122,6 +122,43 @@ def markdown(result: dict, runs: list[Path], reference: str = "adam", method: st
     return "\n".join(lines)
 
 
+NAMES = {"adam": "Adam", "pg": "PG", "sgd": "SGD", "pg_lbfgsb": "PG+L-BFGS-B"}
+
+
+def overview(runs: list[Path], at: list[int], window: int, methods: list[str], reach: int,
+             reference: str = "adam", bn: dict | None = None) -> str:
+    """One Markdown table for several methods: the reference / method ratio at each iteration of ``at`` (mean and
+    range over the seeds), the method's mean running average at the last of them, and the iterations each seed
+    needs to reach the reference's level at ``reach``. With ``bn`` (the JSON of ``bn_recalibrate.py``), a second
+    table of held-out errors: as trained, with recalibrated BatchNorm statistics, and the training stream."""
+    logs = [read_training(r) for r in runs]
+    last = at[-1]
+    lines = ["| " + f"{NAMES.get(reference, reference)} / method (window {window}) | "
+             + " | ".join(f"it. {n}" for n in at) + f" | x L1 at {last} (mean of seeds) | iterations to reach "
+             f"{NAMES.get(reference, reference)}'s level at {reach}, per seed |", "|---|" + "---:|" * (len(at) + 1)
+             + "---|"]
+    ref_level = np.mean([running_average(g[reference]["metric"], window)[last - 1] for g in logs])
+    lines.append(f"| {NAMES.get(reference, reference)} | " + " | ".join("1" for _ in at) + f" | {ref_level:,.0f} | |")
+    for m in methods:
+        res = ratios(runs, at, [window], reference, m)[window]
+        cells = [f"**{res[n]['mean']:.2f}** ({res[n]['min']:.2f}-{res[n]['max']:.2f})" for n in at]
+        level = np.mean([running_average(g[m]["metric"], window)[last - 1] for g in logs])
+        hits = iterations_to_reach(runs, reach, window, reference, m)
+        lines.append(f"| {NAMES.get(m, m)} | " + " | ".join(cells) + f" | {level:,.0f} | "
+                     + " / ".join("not reached" if h is None else str(h) for h in hits) + " |")
+    if bn is not None:
+        lines += ["", "| held-out set, final networks (mean of seeds) | as trained (eval mode) | BatchNorm "
+                  "recalibrated | batch statistics | training stream (last iterations) |", "|---|---:|---:|---:|---:|"]
+        for m in [reference] + list(methods):
+            vals = [bn["runs"][str(r.parent)][m] for r in runs if m in bn["runs"].get(str(r.parent), {})]
+            if len(vals) == len(runs):
+                def mean(k, vals=vals):
+                    return np.mean([v[k] for v in vals])
+                lines.append(f"| {NAMES.get(m, m)} | {mean('as_trained'):,.0f} | {mean('recalibrated'):,.0f} | "
+                             f"{mean('batch_statistics'):,.0f} | {mean('training_stream'):,.0f} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Command-line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -135,8 +172,15 @@ def main(argv: list[str] | None = None) -> dict:
                     help="also print the first iteration at which the ratio reaches R (first window)")
     ap.add_argument("--reach", type=int, default=None, metavar="N",
                     help="also print the iterations each method needs to reach the reference's level at N")
+    ap.add_argument("--overview", action="store_true",
+                    help="one table for all methods (first window; --reach defaults to the last --at)")
+    ap.add_argument("--bn", type=Path, default=None, help="with --overview: bn_recalibrate.py's JSON")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
+    if args.overview:
+        bn = None if args.bn is None else json.loads(args.bn.read_text())
+        print(overview(args.runs, args.at, args.windows[0], args.method, args.reach or args.at[-1], args.reference,
+                       bn))
     results = {m: ratios(args.runs, args.at, args.windows, args.reference, m, args.centred) for m in args.method}
     print("runs: " + ", ".join(str(r) for r in args.runs) + (" (centred windows)" if args.centred else ""))
     for m, result in results.items():

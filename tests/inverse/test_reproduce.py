@@ -183,6 +183,11 @@ def test_seed_table_ratios_of_running_means(tmp_path):
     # never gets down to pg's level at iteration 1 (10)
     assert mod.iterations_to_reach(runs, at=10, window=1) == [1, 1]
     assert mod.iterations_to_reach(runs, at=1, window=1, reference="pg", method="adam") == [None, None]
+    bn = {"runs": {str(r.parent): {m: {"as_trained": 3.0, "recalibrated": 2.0, "batch_statistics": 2.5,
+                                        "training_stream": 1.0} for m in ("adam", "pg")} for r in runs}}
+    text = mod.overview(runs, at=[4, 10], window=1, methods=["pg"], reach=10, bn=bn)
+    assert "| PG | **3.00** (2.00-4.00) | **3.00** (2.00-4.00) | 19 | 1 / 1 |" in text
+    assert "| PG | 3 | 2 | 2 | 1 |" in text
     with pytest.raises(ParameterError, match="fewer than 11"):
         mod.ratios(runs, at=[11], windows=[1])
     with pytest.raises(ParameterError, match="no curve 'hig'"):
