@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce import _problem  # noqa: E402
 
-from inverse.train import evaluate  # noqa: E402
+from inverse.train import _slice_batch, evaluate  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError  # noqa: E402
 from phisim.io import read_training  # noqa: E402
@@ -68,8 +68,6 @@ def batch_statistics(problem, model: nn.Module, device) -> float:
     net.train()
     held = problem.heldout(device)
     n = int(held.inputs.shape[0])
-    from inverse.train import _slice_batch
-
     total = 0.0
     with torch.no_grad():
         for start in range(0, n, problem.batch_size):
@@ -125,7 +123,6 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    torch.manual_seed(0)
     result = diagnose(args.experiment, args.resolution, args.runs, args.methods, args.batches, args.window,
                       args.batch_size, check_device(args.device))
     if args.json is not None:

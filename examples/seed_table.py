@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,12 @@ from reproduce import running_average  # noqa: E402
 
 from phisim.errors import ParameterError  # noqa: E402
 from phisim.io import read_training  # noqa: E402
+
+
+@cache
+def _logs(run: Path) -> dict:
+    """The training curves of one log, read once per process (every table reads the same few files)."""
+    return read_training(run)
 
 
 def centred_average(values: np.ndarray, window: int) -> np.ndarray:
@@ -49,7 +56,7 @@ def first_crossing(runs: list[Path], level: float, window: int, reference: str =
     smooth = centred_average if centred else running_average
     out = []
     for run in runs:
-        logs = read_training(run)
+        logs = _logs(Path(run))
         a, b = smooth(logs[reference]["metric"], window), smooth(logs[method]["metric"], window)
         n = min(len(a), len(b))
         with np.errstate(invalid="ignore"):
@@ -66,7 +73,7 @@ def iterations_to_reach(runs: list[Path], at: int, window: int, reference: str =
     smooth = centred_average if centred else running_average
     out = []
     for run in runs:
-        logs = read_training(run)
+        logs = _logs(Path(run))
         ref, m = smooth(logs[reference]["metric"], window), smooth(logs[method]["metric"], window)
         if len(ref) < at:
             raise ParameterError(f"{run} holds {len(ref)} iterations of '{reference}', fewer than {at}")
@@ -88,7 +95,7 @@ def ratios(runs: list[Path], at: list[int], windows: list[int], reference: str =
     smooth = centred_average if centred else running_average
     curves = []
     for run in runs:
-        logs = read_training(run)
+        logs = _logs(Path(run))
         for name in (reference, method):
             if name not in logs:
                 raise ParameterError(f"{run} has no curve '{name}' (it has {sorted(logs)})")
@@ -131,7 +138,7 @@ def overview(runs: list[Path], at: list[int], window: int, methods: list[str], r
     range over the seeds), the method's mean running average at the last of them, and the iterations each seed
     needs to reach the reference's level at ``reach``. With ``bn`` (the JSON of ``bn_recalibrate.py``), a second
     table of held-out errors: as trained, with recalibrated BatchNorm statistics, and the training stream."""
-    logs = [read_training(r) for r in runs]
+    logs = [_logs(Path(r)) for r in runs]
     last = at[-1]
     lines = ["| " + f"{NAMES.get(reference, reference)} / method (window {window}) | "
              + " | ".join(f"it. {n}" for n in at) + f" | x L1 at {last} (mean of seeds) | iterations to reach "
