@@ -74,6 +74,7 @@ from . import _fft_fftw as _fftw
 from . import _fft_torch
 from ._fft_pocket import pocket_multiply as _pocket_multiply
 from ._fft_pocket import use_pocket as _use_pocket
+from ._fft_pocket import wall_solve as _pocket_wall_solve
 from ._fft_torch import axis_vector, edge_weight
 
 __all__ = [
@@ -84,6 +85,7 @@ __all__ = [
     "available_engines",
     "resolve_engine",
     "r2r_multiply",
+    "wall_solve",
     "rfftn",
     "irfftn",
     "dctn",
@@ -317,6 +319,33 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
                                  _SETTINGS.planner_effort, kinds, inverse)
     y = torch.from_numpy(plan(_fftw.as_numpy(x), m, None if pre is None else _fftw.as_numpy(pre)))
     return y if out is None else out.copy_(y)
+
+
+def wall_solve(x: torch.Tensor, out: torch.Tensor, axis: int, kinds: Sequence[str], inverse: Sequence[str],
+               axes: Sequence[int], mult: torch.Tensor, green: torch.Tensor, *, subtract: bool = False,
+               engine: str | None = None) -> torch.Tensor | None:
+    """A box solve with two walls along ``axis`` by a periodic FFT and a one-face correction, or None.
+
+    The fast path of an exact ``(I - c L)⁻¹`` whose wall-to-wall axis would need a DST-I (see
+    :func:`phisim._fft_pocket.wall_solve` for the method and the arguments): ``x`` holds the ``n - 1`` interior
+    samples along ``axis``, ``out`` the ``n + 1`` samples with both wall faces (set to zero). It returns None
+    when it does not apply (pocketfft missing, an engine other than pyfftw, a non-CPU or grad-requiring
+    tensor, a dtype other than float32/float64); the caller then takes the DST-I route.
+
+    Raises:
+        ShapeError: For an ``out`` whose shape does not match ``x`` (two more samples along ``axis``).
+    """
+    if (not _use_pocket(x.dtype, ("dst1",)) or x.device.type != "cpu" or x.requires_grad
+            or resolve_engine(x, engine) != "pyfftw"):
+        return None
+    want = list(x.shape)
+    want[axis] += 2
+    if list(out.shape) != want or out.dtype != x.dtype or out.device.type != "cpu":
+        raise ShapeError(f"wall_solve: out must be a CPU tensor of shape {tuple(want)} and dtype {x.dtype}, "
+                         f"got {tuple(out.shape)} {out.dtype} on {out.device}")
+    _pocket_wall_solve(x.detach().numpy(), out.detach().numpy(), axis, tuple(kinds), tuple(inverse), tuple(axes),
+                       mult.detach().numpy(), green.detach().numpy(), _SETTINGS.threads, subtract)
+    return out
 
 
 def fourier_multiply(

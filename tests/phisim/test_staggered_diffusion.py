@@ -149,6 +149,114 @@ def test_3d_box_against_dense_reference_and_batch_one():
         torch.testing.assert_close(a[0], r[2], rtol=0, atol=1e-13)
 
 
+# ---- walls on both sides: periodic FFT plus a one-face correction instead of the DST-I -----------------------
+
+
+def _count_wall_solves(monkeypatch):
+    """Force the wall path at any size; return the list that records its calls."""
+    from phisim import _mac_diffusion
+
+    monkeypatch.setattr(_mac_diffusion, "WALL_SOLVE_MIN_SAMPLES", 0)
+    calls = []
+    real = fft.wall_solve
+
+    def spy(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(fft, "wall_solve", spy)
+    return calls
+
+
+@pytest.mark.skipif("pyfftw" not in fft.available_engines(), reason="the fast path runs with the pyfftw engine")
+@pytest.mark.parametrize("res, boundary", [
+    ((7, 5), "wall"), ((6, 9), "free_slip"), ((2, 3), "wall"), ((8, 6), {"x": "wall", "y": "open"}),
+    ((7, 6), {"x": "wall", "y": ("wall", "open")}), ((4, 3, 5), "wall"),
+    ((5, 4, 3), {"x": "open", "y": "wall", "z": "free_slip"})],
+    ids=str)
+@pytest.mark.parametrize("method, theta", [("implicit", 1.0), ("crank_nicolson", 0.5)])
+@pytest.mark.parametrize("transposed", [False, True])
+def test_wall_solve_equals_dense_theta_scheme(res, boundary, method, theta, transposed, monkeypatch):
+    # The periodic embedding is exact: it must reproduce the dense θ-scheme on the free faces to round-off,
+    # for odd and even n, the smallest n (2: one unknown), 2-D and 3-D, with either layout of the FFT.
+    from phisim import _fft_pocket
+
+    calls = _count_wall_solves(monkeypatch)
+    if transposed:
+        monkeypatch.setattr(_fft_pocket, "WALL_TRANSPOSE_BYTES", 0)
+    grid = Grid(res, bounds=[(0, 0.2 * n) for n in res])
+    v = _random_velocity(grid, boundary, batch=2)
+    alpha = 0.05
+    out = diffuse_staggered(v, 1.0, viscosity=alpha, method=method)
+    walls = [i for i in range(grid.rank) if v.boundary.sides[i][0].rule("normal", i)[0] == "odd"
+             and v.boundary.sides[i][1].rule("normal", i)[0] == "odd"]
+    assert calls == [True] * len(walls) and walls  # every component with walls on its own axis took the path
+    for a, r in zip(out.values, _theta_reference(v, alpha, theta)):
+        np.testing.assert_allclose(a.numpy(), r, rtol=0, atol=1e-11)
+
+
+@pytest.mark.skipif("pyfftw" not in fft.available_engines(), reason="the fast path runs with the pyfftw engine")
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("alpha", [1e-3, 2.0, 1e6])
+def test_wall_solve_agrees_with_the_dst1_solve_at_any_viscosity(dtype, alpha, monkeypatch):
+    # The correction subtracts G/G(0) times face 0 of the periodic answer; m = 1/(1 - cλ) <= 1 and G peaks at
+    # its source, so nothing is amplified: float64 agrees with the DST-I route to 1e-13 even at ν dt/dx² = 1e6,
+    # float32 to its own round-off.
+    from phisim import _mac_diffusion
+
+    grid = Grid((40, 36), bounds=[(0, 1.0), (0, 0.9)])
+    v = _random_velocity(grid, "wall", batch=1)
+    v = v.with_values(tuple(c.to(dtype) for c in v.values))
+    h = grid.dx[0] ** 2 * alpha
+    monkeypatch.setattr(_mac_diffusion, "WALL_SOLVE_MIN_SAMPLES", 10**9)
+    ref = diffuse_staggered(v, h, viscosity=1.0)
+    calls = _count_wall_solves(monkeypatch)
+    out = diffuse_staggered(v, h, viscosity=1.0)
+    assert calls == [True, True]
+    tol = 1e-13 if dtype == F64 else 1e-6
+    for a, r in zip(out.values, ref.values):
+        assert a.dtype == dtype
+        torch.testing.assert_close(a, r, rtol=0, atol=tol * float(r.abs().max()))
+        assert float(a[:, 0].abs().max()) == 0 or float(a[:, :, 0].abs().max()) == 0  # the walls stay exactly zero
+
+
+@pytest.mark.skipif("pyfftw" not in fft.available_engines(), reason="the fast path runs with the pyfftw engine")
+@pytest.mark.parametrize("rank", [2, 3])
+def test_capacitance_with_the_wall_solve_equals_converged_cg(rank, monkeypatch):
+    from phisim import _mac_diffusion
+    from phisim.linalg import Solve
+
+    res = (10, 8) if rank == 2 else (6, 5, 7)
+    grid = Grid(res, bounds=[(0, 0.1 * n) for n in res])
+    v = _random_velocity(grid, "wall", batch=2)
+    masks = _body_masks(grid)
+    v = v.with_values(tuple(torch.where(m, torch.randn_like(c), c) for c, m in zip(v.values, masks)))
+    _mac_diffusion._CAP_CACHE.clear()
+    nu = torch.tensor(1.0, dtype=F64)  # a tensor viscosity keeps the CG path
+    cg = diffuse_staggered(v, 0.02, viscosity=nu, method="crank_nicolson", fixed=masks, solve=Solve(rtol=1e-13))
+    calls = _count_wall_solves(monkeypatch)
+    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 2):
+        out = diffuse_staggered(v, 0.02, viscosity=1.0, method="crank_nicolson", fixed=masks)
+    assert calls[-2 * rank:] == [True] * (2 * rank)  # both box solves of every component
+    for a, b in zip(out.values, cg.values):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-11)
+
+
+def test_wall_solve_declines_and_checks(monkeypatch):
+    grid = Grid((6, 5), bounds=[(0, 1.2), (0, 1)])
+    v = _random_velocity(grid, "wall", batch=1)
+    x = v.values[0][:, 1:6]
+    mult = torch.ones(1, 4, 5, dtype=F64)
+    green = torch.ones(1, 6, 5, dtype=F64)
+    args = (1, ("dst2",), ("dst3",), (2,), mult, green)
+    assert fft.wall_solve(x, torch.empty(1, 7, 5, dtype=F64), *args, engine="torch") is None
+    assert fft.wall_solve(x.clone().requires_grad_(True), torch.empty(1, 7, 5, dtype=F64), *args) is None
+    if "pyfftw" in fft.available_engines():
+        with pytest.raises(ShapeError, match="out"):
+            fft.wall_solve(x, torch.empty(1, 6, 5, dtype=F64), *args, engine="pyfftw")
+
+
 def test_taylor_green_decay_orders_in_time():
     """Pure viscous decay of a periodic mode: BE first order, CN second order, spectral exact."""
     n = 16
