@@ -53,36 +53,39 @@ STAT = "min"
 
 NOTES = """Reading the tables:
 
-- Before `diffuse_staggered`, implicit viscosity was unpreconditioned CG (about 12 iterations per component):
-  12.5 / 13.5 / 16.3 / 36.8 ms at 48² / 64² / 128² / 256² in the first run of this script (before the change),
-  83-112x the explicit step. The issue's own figure was 9.3 ms of an 11 ms step at 48².
-- The previous run of this script (float32, FFTW's 2-D real-to-real plans, a separate stencil for
-  Crank-Nicolson, PCG with bodies) measured: implicit 0.197 / 0.227 / 0.482 / 2.072 ms (1.21x / 1.38x / 2.52x /
-  5.82x), crank_nicolson 0.321 / 0.357 / 0.645 / 2.340 ms, body (PCG) 19.9 / 20.6 / 38.5 / 119.8 ms, whole
-  split step with implicit viscosity 1.21 / 1.28 / 2.04 / 11.30 ms and `imex2` 1.95 / 2.04 / 3.06 / 21.88 ms.
-- Goal (issue 14): an implicit step costs at most 2x the explicit one at 48²-256². Met in float32 at 48², 64²
-  and 128² (0.5-1.1x) and in float64 at 48²-128² (0.6-1.4x); not met at 256² (2.2x float32, 2.5x float64).
-  At 256² the exact solve is bound by its transforms: per component four one-axis passes over 65k samples
-  (DST-I of length 255 about 0.10 ms, DST-II/III of length 256 about 0.07 ms in float32 on this CPU), 0.63 ms
-  for the two components before any copy, which is already 1.97x the whole explicit step (0.32 ms). The passes
-  are pocketfft's (scipy): FFTW's REDFT/RODFT plans took 0.42 ms per 2-D transform here (1.7 ms per step),
-  and a real FFT with a permutation and twiddles (Makhoul) measured no faster than pocketfft, which does that
-  in C++. Crank-Nicolson in a box costs the same as backward Euler: its explicit half is folded into the
-  multiplier, `(1 + αλ/2) / (1 - αλ/2)`.
+- Goal (issue 14): an implicit step costs at most 2x the explicit one at 48²-256². Met for the box solve in
+  both precisions at every size: 0.7-1.2x at 48²-128² and 1.7-1.8x at 256² (implicit and Crank-Nicolson,
+  float32 and float64). Not met with fixed faces (bodies), see below.
+- How the box solve got there. Per component the exact solve is one transform pair per axis. The normal
+  component between two walls needs a DST-I along its own axis, which pocketfft (like FFTW) computes from a
+  real FFT of twice the length: the most expensive pass (255 samples: 0.09 ms float32, 0.16-0.29 ms float64,
+  against 0.05 / 0.07 ms for a real FFT of 256). From about 90² up (`WALL_SOLVE_MIN_SAMPLES`) that axis is now
+  solved as periodic over the faces 0..n-1, an FFT of length n, and one exact correction per transverse mode
+  puts face 0 back to zero: the periodic Green's function of face 0, scaled by the value found there
+  (`phisim.fft.wall_solve`; the other faces then satisfy exactly the wall problem, tests compare with the
+  dense θ-scheme and with the DST-I route to round-off). Per 255x256 component: 0.33 -> 0.26 ms float32,
+  0.72/0.56 -> 0.51/0.42 ms float64 (the float64 FFT along the outer axis runs on a transposed copy). The
+  previous run of this script (DST-I route) measured 0.688 ms (2.17x) float32 and 1.317 ms (2.50x) float64
+  at 256².
+- Earlier history: before `diffuse_staggered`, implicit viscosity was unpreconditioned CG (about 12
+  iterations per component), 12.5 / 13.5 / 16.3 / 36.8 ms at 48² / 64² / 128² / 256², 83-112x the explicit
+  step; the issue's own figure was 9.3 ms of an 11 ms step at 48².
+- Crank-Nicolson in a box costs the same as backward Euler: `2 (I - αL/2)⁻¹ f - f`, one solve and a
+  subtraction.
 - Per unit of simulated time the comparison favours the implicit solve at every size: at the dt of this
   table the explicit step would need 8 sub-steps (ν dt Σ 2/dx² = 8).
 - With fixed faces (a disc body) the solve is direct: a capacitance matrix on the body surface (|S| faces per
   component), LU-factored once per body and ν dt, then two exact box solves and one |S|-sized triangular solve
-  per component: 1.4-1.7x explicit at 48²-64² (float32), 2.9x at 128², 5.2x at 256², i.e. twice the box solve,
-  which is the floor of this method. The build (|S| box solves) runs once the PCG calls on the same body and
-  ν dt have cost about as much (`CAPACITANCE_FACES_PER_REQUEST`; call 3-10 here). PCG (the first calls, a tensor
-  ν, per-sample bodies) costs 35-125x explicit. The split step keeps the box solve with bodies (they are imposed
-  before and after it); `imex2` holds body faces fixed inside the solve.
-- Whole steps: the split step with implicit viscosity costs 0.9-1.4 ms at 48²-128² and 3.1 ms at 256² (was 11.3
-  ms; the float32 pressure solve also runs on pocketfft now); `imex2` (two Crank-Nicolson solves, two projections,
-  two convection terms) 1.3-1.5x that; it buys second order in time (docs/SCHEMES.md).
-- Wall and CPU times agree for the min of the repeats; the PCG column (10 repeats) shows the load of the shared
-  machine (load average about 6 on 2 cores during this run)."""
+  per component: 2.3-2.5x explicit at 48²-64², 2.7-3.4x at 128², 4.3-4.4x at 256² (both precisions), i.e.
+  about twice the box solve, the floor of this method (the second solve's source is sparse, but its answer
+  is not). The build (|S| box solves) runs once the PCG calls on the same body and ν dt have cost about as
+  much (`CAPACITANCE_FACES_PER_REQUEST`; call 3-10 here). PCG with the exact box solve as preconditioner (the
+  first calls, a tensor ν, per-sample bodies) costs 30-58x explicit. Only `imex2` pays the body solve: the
+  split step imposes bodies before and after a box solve, so its viscosity costs the box column.
+- Whole steps: the split step with implicit viscosity costs 0.5-1.1 ms at 48²-128² and 3.0 ms at 256²;
+  `imex2` (two Crank-Nicolson solves, two projections, two convection terms) 1.2-1.8x that; it buys second
+  order in time (docs/SCHEMES.md).
+- Wall and CPU times agree for the min of the repeats (the machine was otherwise idle)."""
 
 
 DEVICE = torch.device("cpu")
