@@ -43,6 +43,8 @@ from phisim import Grid, StaggeredGrid, _mac_diffusion, fft  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.diffusion import diffuse_staggered  # noqa: E402
 from phisim.fluid import navier_stokes_step  # noqa: E402
+from phisim.fluid.bodies import Body  # noqa: E402
+from phisim.fluid.geometry import Sphere  # noqa: E402
 from phisim.linalg import Solve  # noqa: E402
 
 NU = 1.0  # viscosity of the single-step table
@@ -54,7 +56,7 @@ STAT = "min"
 NOTES = """Reading the tables:
 
 - Goal (issue 14): an implicit step costs at most 2x the explicit one at 48²-256². Met for the box solve in
-  both precisions at every size: 0.7-1.2x at 48²-128² and 1.7-1.8x at 256² (implicit and Crank-Nicolson,
+  both precisions at every size: 0.8-1.3x at 48²-128² and 1.7-1.8x at 256² (implicit and Crank-Nicolson,
   float32 and float64). Not met with fixed faces (bodies), see below.
 - How the box solve got there. Per component the exact solve is one transform pair per axis. The normal
   component between two walls needs a DST-I along its own axis, which pocketfft (like FFTW) computes from a
@@ -76,13 +78,16 @@ NOTES = """Reading the tables:
   table the explicit step would need 8 sub-steps (ν dt Σ 2/dx² = 8).
 - With fixed faces (a disc body) the solve is direct: a capacitance matrix on the body surface (|S| faces per
   component), LU-factored once per body and ν dt, then two exact box solves and one |S|-sized triangular solve
-  per component: 2.3-2.5x explicit at 48²-64², 2.7-3.4x at 128², 4.3-4.4x at 256² (both precisions), i.e.
+  per component: 2.3-2.6x explicit at 48²-64², 2.9-3.4x at 128², 4.2-4.5x at 256² (both precisions), i.e.
   about twice the box solve, the floor of this method (the second solve's source is sparse, but its answer
   is not). The build (|S| box solves) runs once the PCG calls on the same body and ν dt have cost about as
   much (`CAPACITANCE_FACES_PER_REQUEST`; call 3-10 here). PCG with the exact box solve as preconditioner (the
   first calls, a tensor ν, per-sample bodies) costs 30-58x explicit. Only `imex2` pays the body solve: the
   split step imposes bodies before and after a box solve, so its viscosity costs the box column.
-- Whole steps: the split step with implicit viscosity costs 0.5-1.1 ms at 48²-128² and 3.0 ms at 256²;
+- In whole steps with a body the viscosity solves no longer dominate (last table): 5-7 % of a split step and
+  12-18 % of an `imex2` step at 64²-256² (ν dt / dx² = 0.3-1.3 per solve); the masked pressure projection
+  takes most of the rest.
+- Whole steps: the split step with implicit viscosity costs 0.5-1.2 ms at 48²-128² and 3.0 ms at 256²;
   `imex2` (two Crank-Nicolson solves, two projections, two convection terms) 1.2-1.8x that; it buys second
   order in time (docs/SCHEMES.md).
 - Wall and CPU times agree for the min of the repeats (the machine was otherwise idle)."""
@@ -188,6 +193,7 @@ def main(argv: list[str] | None = None) -> str:
         for name in args.dtype:
             lines += table(args.sizes, getattr(torch, name)) + [""]
         lines += bench_steps(args.sizes, torch.float32)
+        lines += bench_body_steps(args.sizes, torch.float32)
     text = "\n".join(lines) + "\n\n" + NOTES + "\n"
     if DEVICE.type != "cpu":
         text = f"Device: {DEVICE}.\n\n" + text
@@ -222,6 +228,54 @@ def bench_steps(sizes, dtype) -> list[str]:
             except Exception:  # noqa: BLE001 - e.g. an explicit scheme beyond its limit
                 row.append(float("nan"))
         lines.append(f"| {n}² | " + " | ".join(f"{t:.2f}" for t in row) + " |")
+    return lines
+
+
+def bench_body_steps(sizes, dtype, repeat: int = 10) -> list[str]:
+    """Whole steps with a disc body (split with implicit viscosity, imex2): ms per step and the part spent in
+    the viscosity solves (a Markdown table). The first calls build the body's capacitance matrices and
+    projection operators; the timed calls repeat the same step."""
+    lines = ["", "Whole Navier-Stokes steps with a disc body (radius 0.2, walls, ν = 0.01, dt = 0.5 dx, MacCormack), "
+             f"ms per step, {STAT} of {repeat} after 12 warm-up steps; in brackets the viscosity solves' part:", "",
+             "| n² | split, implicit visc. | imex2 |", "|---|---|---|"]
+    real = _mac_diffusion.diffuse_staggered
+    spent = [0.0]
+
+    def timed(*args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return real(*args, **kwargs)
+        finally:
+            spent[0] += time.perf_counter() - t
+
+    body = Body(Sphere((0.5, 0.5), 0.2))
+    _mac_diffusion.diffuse_staggered = timed
+    try:
+        for n in sizes:
+            grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+            g = torch.Generator().manual_seed(0)
+            v = StaggeredGrid(tuple(0.1 * torch.randn(1, *grid.face_shape(i), generator=g, dtype=torch.float64).to(
+                dtype=dtype, device=DEVICE) for i in range(2)), grid, "wall").with_boundary_faces()
+            row = []
+            for kw in ({"viscosity_scheme": "implicit"}, {"integrator": "imex2"}):
+                def step(kw=kw, v=v, n=n):
+                    return navier_stokes_step(v, 0.5 / n, viscosity=0.01, advection="maccormack", obstacles=[body],
+                                              **kw)
+                for _ in range(12):
+                    step()
+                samples = []
+                for _ in range(repeat):
+                    spent[0] = 0.0
+                    synchronize(DEVICE)
+                    t = time.perf_counter()
+                    step()
+                    synchronize(DEVICE)
+                    samples.append((time.perf_counter() - t, spent[0]))
+                total, visc = min(samples) if STAT == "min" else sorted(samples)[len(samples) // 2]
+                row.append(f"{1e3 * total:.2f} ({1e3 * visc:.2f}, {100 * visc / total:.0f} %)")
+            lines.append(f"| {n}² | " + " | ".join(row) + " |")
+    finally:
+        _mac_diffusion.diffuse_staggered = real
     return lines
 
 
