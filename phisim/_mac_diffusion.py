@@ -452,7 +452,8 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
 
         def precond(r, p=p, comp=comp, inverse=inverse, w=w):
             z = p * r if w is None else p * r / w
-            return p * comp.apply(z, inverse.to(r.dtype), engine, prescaled=True) + (1 - p) * r
+            # no gradient through a preconditioner (it changes the iterations, not the answer)
+            return p * comp.apply(z, inverse.detach().to(r.dtype), engine, prescaled=True) + (1 - p) * r
 
         rhs_cg = p * weighted(rhs + a_t * lap0(v_fixed))
         if solve is None:

@@ -280,8 +280,9 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     measured faster (float32, and float64 with a type-1 kind: 1.2-2.5x faster than FFTW's REDFT/RODFT kinds at
     128²-256² on the development CPU; no plans, so the same round-off in every process); otherwise two FFTW
     plans share their buffers. ``kinds`` empty means a real FFT pair (``mult`` on the half spectrum). It
-    returns None when it does not apply (pyfftw missing or not the resolved engine, a non-CPU or grad-requiring
-    tensor, or a dtype other than float32/float64); the caller then composes :func:`r2rn` calls itself.
+    returns None when it does not apply (pyfftw missing or not the resolved engine, a non-CPU tensor, any of
+    ``x``, ``mult``, ``pre`` requiring grad, or a dtype other than float32/float64); the caller then composes
+    :func:`r2rn` calls itself.
 
     Args:
         x: Real tensor (float32/float64) on the CPU; any strides.
@@ -302,7 +303,7 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
         ShapeError: For an ``out`` of another shape or dtype.
     """
     if (x.dtype not in (torch.float32, torch.float64) or x.device.type != "cpu" or x.requires_grad
-            or resolve_engine(x, engine) != "pyfftw"):
+            or mult.requires_grad or (pre is not None and pre.requires_grad) or resolve_engine(x, engine) != "pyfftw"):
         return None
     if out is not None and (out.shape != x.shape or out.dtype != x.dtype or out.device.type != "cpu"):
         raise ShapeError(f"r2r_multiply: out must be a CPU tensor of shape {tuple(x.shape)} and dtype {x.dtype}, "
@@ -335,8 +336,8 @@ def wall_solve(x: torch.Tensor, out: torch.Tensor, axis: int, kinds: Sequence[st
     Raises:
         ShapeError: For an ``out`` whose shape does not match ``x`` (two more samples along ``axis``).
     """
-    if (not _use_pocket(x.dtype, ("dst1",)) or x.device.type != "cpu" or x.requires_grad
-            or resolve_engine(x, engine) != "pyfftw"):
+    if (not _use_pocket(x.dtype, ("dst1",)) or x.device.type != "cpu" or x.requires_grad or mult.requires_grad
+            or green.requires_grad or resolve_engine(x, engine) != "pyfftw"):
         return None
     want = list(x.shape)
     want[axis] += 2

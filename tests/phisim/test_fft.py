@@ -181,6 +181,10 @@ def test_r2r_multiply_equals_composed_transforms(dtype, kinds, inverse):
     assert y2.data_ptr() != y.data_ptr() and torch.equal(y, y2)  # each call returns its own tensor
     # the fast path declines what it cannot do, so callers fall back to the composed transforms
     assert fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, engine="torch") is None
+    # a multiplier or pre-factor with a gradient (e.g. a tensor viscosity) must not be detached silently
+    assert fft.r2r_multiply(x, kinds, inverse, (1, 2), mult.clone().requires_grad_(True), engine="pyfftw") is None
+    assert fft.r2r_multiply(x, kinds, inverse, (1, 2), mult, pre=pre.clone().requires_grad_(True),
+                            engine="pyfftw") is None
     assert fft.r2r_multiply(x.requires_grad_(True), kinds, inverse, (1, 2), mult, engine="pyfftw") is None
 
 

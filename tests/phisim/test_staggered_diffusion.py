@@ -473,6 +473,21 @@ def test_gradcheck_spectral_and_cg_paths():
     assert torch.autograd.gradcheck(fn, (u0, w0, nu))
 
 
+@pytest.mark.parametrize("method", ["implicit", "crank_nicolson", "spectral"])
+def test_gradient_reaches_the_viscosity_when_only_it_requires_grad(method):
+    # A velocity without gradient and a viscosity with one: the box fast paths must not detach the multiplier.
+    grid = Grid((6, 5), bounds=[(0, 1.2), (0, 1)])
+    v = _random_velocity(grid, "wall", batch=1)
+
+    def fn(nu):
+        return sum((c**2).sum() for c in diffuse_staggered(v, 0.05, viscosity=nu, method=method).values)
+
+    nu = torch.tensor(0.7, dtype=F64, requires_grad=True)
+    out = fn(nu)
+    assert out.requires_grad
+    assert torch.autograd.gradcheck(fn, (nu,))
+
+
 # ---- API -------------------------------------------------------------------------------------------------
 
 
