@@ -243,6 +243,24 @@ def test_capacitance_with_the_wall_solve_equals_converged_cg(rank, monkeypatch):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-11)
 
 
+def test_wall_solve_is_bit_identical_in_fresh_processes():
+    # 128² float32 takes the periodic wall path by default; two fresh processes must agree bit for bit.
+    import hashlib
+    import subprocess
+    import sys
+
+    code = ("import torch, hashlib; from phisim import Grid, StaggeredGrid; "
+            "from phisim.diffusion import diffuse_staggered; g = torch.Generator().manual_seed(3); "
+            "grid = Grid((128, 128), bounds=[(0, 1), (0, 1)]); "
+            "v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g) for i in range(2)), grid, "
+            "'wall').with_boundary_faces(); "
+            "out = diffuse_staggered(v, 1e-3, viscosity=1.0, method='crank_nicolson'); "
+            "print(hashlib.sha256(b''.join(c.numpy().tobytes() for c in out.values)).hexdigest())")
+    outs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+            for _ in range(2)]
+    assert outs[0] == outs[1] and len(outs[0].strip()) == len(hashlib.sha256().hexdigest())
+
+
 def test_wall_solve_declines_and_checks(monkeypatch):
     grid = Grid((6, 5), bounds=[(0, 1.2), (0, 1)])
     v = _random_velocity(grid, "wall", batch=1)
