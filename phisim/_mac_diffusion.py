@@ -176,8 +176,8 @@ class _Component:
         faces outside the unknowns (walls); the transforms run on the interior view of the output. With
         ``op = ('implicit', c)`` (``mult`` is ``1 / (1 - c λ)``) or ``('crank_nicolson', α)`` and walls on both
         sides of the own axis, that axis is solved by a periodic FFT and a one-face correction instead of a
-        DST-I (:func:`phisim.fft.wall_solve`; same answer, 25-50 % less time). Returns None where the fast path
-        does not apply (the caller composes :meth:`apply` and :meth:`embed`).
+        DST-I (:func:`phisim.fft.wall_solve`; same answer to round-off, 20-30 % less time). Returns None where
+        the fast path does not apply (the caller composes :meth:`apply` and :meth:`embed`).
         """
         if (self.periodic or not self.r2r or self.has_values or rhs.requires_grad or like.requires_grad
                 or mult.requires_grad):
