@@ -3,7 +3,9 @@
 The floor of one iteration is one preconditioner transform round trip (the spectral inverse of the box, as
 one fused FFTW pass where available) plus one application of the weighted stencil; an iteration also does a
 few vector updates, two dot products, the null-space projection and the leaf elimination's gathers. Measured at
-128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32.
+128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32. On the CPU the direct solve
+that a layout solved again and again switches to (:mod:`phisim._poisson_direct`) is timed as well: its one-time
+build and one solve (two box solves, a small LU solve, CG's check of the answer).
 
 On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU-only) and every timed call is
 bracketed by CUDA synchronisations.
@@ -26,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from timing import synchronize  # noqa: E402
 
+from phisim import poisson_masked as pm  # noqa: E402
 from phisim.boundary import Boundary  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.fft import r2r_multiply  # noqa: E402
@@ -84,6 +87,7 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
         op.apply(x)
 
     tol = Solve(rtol=1e-6 if dtype == torch.float64 else 1e-5, raise_on_failure=False, refine=False)
+    pm.DIRECT = False  # the PCG figures: no direct solve of this (repeatedly solved) layout
     _, info = op.solve(rhs, solve=tol)
     iters = int(info.iterations[0])
     t_floor = _best(floor, repeat, 20, device)
@@ -98,9 +102,24 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     with torch.no_grad():
         per_iter = (_best(capped(k2), repeat, 3, device) - _best(capped(k1), repeat, 3, device)) / (k2 - k1)
         t_solve = _best(lambda: op.solve(rhs, solve=tol), repeat, 1, device)
+    # the direct solve of the same operator (CPU): built once (k box solves), then two box solves per call
+    direct = {}
+    if device.type == "cpu":
+        pm.DIRECT = True
+        fresh = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
+        fresh._direct = None
+        fresh._requests = 10**9  # build on this request
+        t = time.perf_counter()
+        fresh.solve(rhs, solve=tol)
+        t_build = time.perf_counter() - t
+        with torch.no_grad():
+            t_direct = _best(lambda: fresh.solve(rhs, solve=tol), repeat, 3, device)
+        _, dinfo = fresh.solve(rhs, solve=tol)
+        direct = {"direct_ms": 1e3 * t_direct, "direct_build_ms": 1e3 * t_build, "rank": fresh._direct.rank,
+                  "direct_iterations": int(dinfo.iterations[0])}
     return {"n": n, "dtype": str(dtype).replace("torch.", ""), "floor_ms": 1e3 * t_floor,
             "iteration_ms": 1e3 * per_iter, "ratio": per_iter / t_floor, "iterations_to_rtol": iters,
-            "solve_ms": 1e3 * t_solve, "device": str(device)}
+            "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
 
 
 def main(argv=None) -> int:
@@ -126,7 +145,10 @@ def main(argv=None) -> int:
             print(f"{n:4d}^2 {r['dtype']:8s} {r['device']} floor {r['floor_ms']:.3f} ms  "
                   f"iteration {r['iteration_ms']:.3f} ms  "
                   f"ratio {r['ratio']:.2f}  iterations to rtol {r['iterations_to_rtol']}  "
-                  f"whole solve {r['solve_ms']:.1f} ms", flush=True)
+                  f"whole solve {r['solve_ms']:.1f} ms" + (
+                      f"  direct solve {r['direct_ms']:.2f} ms (CG iterations after it {r['direct_iterations']}; "
+                      f"built once in {r['direct_build_ms']:.0f} ms, rank {r['rank']})" if "direct_ms" in r else ""),
+                  flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

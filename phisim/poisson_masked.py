@@ -36,6 +36,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ._poisson_direct import MAX_RANK, WoodburySolve
 from .errors import ParameterError, ShapeError
 from .fft import r2r_multiply
 from .linalg import Solve, SolveInfo, cg
@@ -45,11 +46,19 @@ from .poisson import (
     _inverse_eigs,
     _layout,
     _normalize_dx,
+    _singular,
     _transform_scale,
     normalize_kinds,
 )
 
 __all__ = ["MaskedPoisson"]
+
+#: Solve a layout that keeps coming back directly (:mod:`phisim._poisson_direct`); False: always PCG.
+DIRECT = True
+#: Requests of one operator answered by PCG before its direct solve is built, at least ...
+DIRECT_BUILD_AFTER = 2
+#: ... and one per this many cut faces (the build costs one box solve per face; a PCG solve about 10-20).
+DIRECT_FACES_PER_REQUEST = 16
 
 #: Cells whose diagonal is at most this fraction of the open-box diagonal are eliminated exactly in the
 #: preconditioner when they couple to no other such cell (0: off). 0.2 measured best over a cold solve with a
@@ -145,6 +154,8 @@ class MaskedPoisson:
         cut = active & (dw < d0 * (1 - 1e-9)) & (dw > 0) & (self._diagonal(frac) > 0)  # cells with cut faces
         self._cut_inv = torch.where(cut, 1.0 / torch.where(cut, dw, torch.ones_like(dw)), torch.zeros_like(dw))
         self._scale2 = tuple(1.0 / d**2 for d in self.dx)
+        self._direct = None  # WoodburySolve once set up; False where the direct solve does not apply
+        self._requests = 0
 
     # ---- structure ---------------------------------------------------------------------------------------
 
@@ -434,6 +445,52 @@ class MaskedPoisson:
             _scatter_add(y2, src, y2.index_select(1, dst) * frac)
         return self.project(y)
 
+    # ---- direct solve of a layout that keeps coming back --------------------------------------------------
+
+    def _box_inverse(self, f: torch.Tensor) -> torch.Tensor:
+        """``(-∇²_box)⁻¹ f`` (the unweighted box, exact; the kinds must not be singular)."""
+        r2r, per = _layout(self.kinds)
+        if not per and not f.requires_grad:
+            key = ("mult", f.dtype)
+            mult = self._casts.get(key)
+            if mult is None:
+                mult = self._casts[key] = (-self._inv * _transform_scale(self.resolution, self.kinds)).to(f.dtype)
+            fwd = tuple(_TRANSFORM[self.kinds[a]][0] for a in r2r)
+            inv = tuple(_TRANSFORM[self.kinds[a]][1] for a in r2r)
+            y = r2r_multiply(f, fwd, inv, tuple(1 + a for a in r2r), mult, engine=self.engine)
+            if y is not None:
+                return y
+        return -_apply_multiplier(f, self.kinds, self._inv, self.engine)
+
+    def _direct_solver(self, dtype: torch.dtype):
+        """The factored direct solve of this operator, or None (PCG).
+
+        It applies to one layout shared by the batch, weights without gradient, a box with a Dirichlet side
+        and no closed fluid region (a non-singular system), on the CPU, with at most
+        :data:`phisim._poisson_direct.MAX_RANK` cut faces. It is built once the operator has been solved more
+        than ``max(DIRECT_BUILD_AFTER, k / DIRECT_FACES_PER_REQUEST)`` times (its ``k`` box solves then cost
+        about as much as the PCG solves so far), so a layout that changes every step never builds one.
+        """
+        if self._direct is False or not DIRECT:
+            return None
+        if self._direct is None:
+            if (self.batch != 1 or self.null is not None or _singular(self.kinds) or self.active.device.type != "cpu"
+                    or any(w.requires_grad for w in self.weights) or dtype not in (torch.float32, torch.float64)):
+                self._direct = False
+                return None
+            self._direct = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
+                                         lambda f: self._box_inverse(f.to(torch.float64)))
+            if self._direct.rank > MAX_RANK:
+                self._direct = False
+                return None
+        self._requests += 1
+        if self._direct.lu is None:
+            if self._requests <= max(DIRECT_BUILD_AFTER, self._direct.rank // DIRECT_FACES_PER_REQUEST):
+                return None
+            self._direct.factor()
+            self._direct.box_inverse = self._box_inverse  # per call in the working dtype (C⁻¹ in float64)
+        return self._direct
+
     def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None,
               preconditioned: bool = True) -> tuple[torch.Tensor, SolveInfo]:
         """Solve ``apply(p) = rhs`` on the active cells (``rhs`` is zeroed on inactive ones).
@@ -454,7 +511,10 @@ class MaskedPoisson:
             raise ShapeError(f"rhs must have shape (B, *{self.resolution}), got {tuple(rhs.shape)}")
         act = self._cast("active", self.active, rhs.dtype)
         b = self.project(rhs * act)
-        if x0 is not None:
+        direct = self._direct_solver(rhs.dtype) if preconditioned else None
+        if direct is not None:  # the exact answer as the start: CG checks it and polishes it if need be
+            x0 = direct.solve(b.detach()) * act
+        elif x0 is not None:
             x0 = self.project(x0.detach().to(rhs.dtype) * act)
         params = tuple(w for w in self.weights if w.requires_grad)
         if params:

@@ -144,3 +144,109 @@ def test_scatter_add_in_rounds_equals_index_add():
     torch.testing.assert_close(rounds, ref, rtol=1e-14, atol=1e-14)
     # each round adds one value per index, in the order the values come: bit for bit on a second call
     assert torch.equal(rounds, _scatter_add(out.clone(), index, values, in_rounds=True))
+
+
+# ---- the direct (capacitance) solve of a layout that keeps coming back ----------------------------------------
+
+
+def _disc_weights(res, centres, radius, batch=1):
+    """Fractional face weights of discs/spheres: 0 inside, 1 outside, a linear ramp over one cell."""
+    out = []
+    for a in range(len(res)):
+        shape = list(res)
+        shape[a] += 1
+        axes = []
+        for b, n in enumerate(shape):
+            x = torch.arange(n, dtype=torch.float64) + (0.0 if b == a else 0.5)
+            axes.append(x / res[0])
+        grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+        w = torch.ones(shape, dtype=torch.float64)
+        for c in centres:
+            dist = (grid - torch.tensor(c, dtype=torch.float64)).norm(dim=-1)
+            w = torch.minimum(w, ((dist - radius) * res[0] + 0.5).clamp(0, 1))
+        out.append(w[None].expand(batch, *shape).contiguous())
+    return out
+
+
+DIRECT_CASES = [
+    ("channel disc", (24, 12), [(0.3, 0.25)], 0.12, (("neumann", "dirichlet"), ("neumann", "neumann"))),
+    ("two discs, periodic", (20, 16), [(0.25, 0.4), (0.7, 0.35)], 0.1, (("dirichlet", "dirichlet"),
+                                                                        ("periodic", "periodic"))),
+    ("disc on a Dirichlet side", (16, 16), [(0.0, 0.5)], 0.3, (("dirichlet", "neumann"), ("neumann", "neumann"))),
+    ("sphere", (10, 9, 8), [(0.5, 0.45, 0.4)], 0.25, (("neumann", "dirichlet"), ("periodic", "periodic"),
+                                                     ("neumann", "neumann"))),
+]
+
+
+@pytest.mark.parametrize("name, res, centres, radius, kinds", DIRECT_CASES, ids=[c[0] for c in DIRECT_CASES])
+def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radius, kinds, monkeypatch):
+    from phisim import poisson_masked as pm
+    from phisim.linalg import Solve
+
+    weights = _disc_weights(res, centres, radius)
+    dx = tuple(1.0 / res[0] for _ in res)
+    rhs = torch.randn(2, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    monkeypatch.setattr(pm, "DIRECT", False)
+    ref, info = MaskedPoisson(weights, dx, kinds).solve(rhs, solve=Solve(rtol=1e-13))
+    assert bool(info.converged.all())
+    monkeypatch.setattr(pm, "DIRECT", True)
+    monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
+    monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 10**9)
+    op = MaskedPoisson(weights, dx, kinds)
+    p, info = op.solve(rhs, solve=Solve(rtol=1e-10))
+    assert op._direct and op._direct.lu is not None
+    # the direct answer alone meets the tolerance: CG, which checks it, takes no iteration
+    assert info.iterations.tolist() == [0, 0]
+    torch.testing.assert_close(p, ref, rtol=0, atol=1e-9 * float(ref.abs().max()))
+    # residual of the Woodbury solve itself, on the active cells
+    act = op.active.double()
+    x = op._direct.solve(rhs * act) * act
+    resid = (op.apply(x) - rhs) * act
+    assert float(resid.norm()) <= 1e-11 * float((rhs * act).norm())
+    assert float(p[:, ~op.active[0]].abs().max()) == 0
+    # pins: one per block of solid cells that reaches no Dirichlet side
+    pins = int((op._direct.d > 0).sum())
+    assert pins == {"channel disc": 1, "two discs, periodic": 2, "disc on a Dirichlet side": 0, "sphere": 1}[name]
+    # float32: the same solve in single precision
+    p32, info32 = op.solve(rhs.float(), solve=Solve(rtol=1e-5))
+    assert bool(info32.converged.all())
+    torch.testing.assert_close(p32.double(), ref, rtol=0, atol=2e-5 * float(ref.abs().max()))
+
+
+def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot_do(monkeypatch):
+    from phisim import poisson_masked as pm
+    from phisim.linalg import Solve
+
+    monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 4)
+    res, kinds = (16, 12), (("neumann", "dirichlet"), ("neumann", "neumann"))
+    weights = _disc_weights(res, [(0.4, 0.35)], 0.15)
+    rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    op = MaskedPoisson(weights, 1 / 16, kinds)
+    calls = 0
+    while True:
+        _, info = op.solve(rhs, solve=Solve(rtol=1e-10))
+        calls += 1
+        if op._direct.lu is not None:
+            break
+        assert int(info.iterations[0]) > 0 and calls < 100  # PCG until then
+    assert calls == max(pm.DIRECT_BUILD_AFTER, op._direct.rank // 4) + 1
+    # per-sample layouts, weights with gradient, a closed box: PCG only
+    two = [torch.cat([w, torch.ones_like(w)]) for w in weights]
+    grad = [w.clone().requires_grad_(True) for w in weights]
+    for ws, k in ((two, kinds), (grad, kinds), (weights, (("neumann", "neumann"), ("neumann", "neumann")))):
+        op = MaskedPoisson(ws, 1 / 16, k)
+        for _ in range(3):
+            op.solve(rhs.expand(ws[0].shape[0], *res), solve=Solve(rtol=1e-8))
+        assert op._direct is False
+
+
+def test_direct_solve_keeps_the_rhs_gradient(monkeypatch):
+    from phisim import poisson_masked as pm
+    from phisim.linalg import Solve
+
+    monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
+    res, kinds = (8, 6), (("neumann", "dirichlet"), ("neumann", "neumann"))
+    op = MaskedPoisson(_disc_weights(res, [(0.45, 0.35)], 0.2), 1 / 8, kinds)
+    rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(3), requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f: op.solve(f, solve=Solve(rtol=1e-12))[0], (rhs,))
+    assert op._direct and op._direct.lu is not None
