@@ -10,13 +10,15 @@ build and one solve (two box solves, a small LU solve, CG's check of the answer)
 On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU-only) and every timed call is
 bracketed by CUDA synchronisations.
 
-Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--device cpu] [--json out.json]
+Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--device cpu] [--wake]
+      [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -122,6 +124,32 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
             "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
 
 
+def wake_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
+    """Median ms per split step (implicit viscosity) of a cylinder wake on ``n x n`` cells over the last half
+    of ``steps`` steps: inflow 0.5 on the left, open right side, walls, a disc of radius 0.06 n, Re 100 (the
+    wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve."""
+    from phisim import Open, StaggeredGrid
+    from phisim.boundary import Inflow
+    from phisim.fluid import navier_stokes_step, projection
+
+    pm.DIRECT = direct
+    projection._OPS.clear()
+    u = 0.5
+    grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
+    v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], u),
+                                                           torch.zeros_like(x[..., 0])], -1),
+                                    grid, {"x": (Inflow((u, 0.0)), Open()), "y": "wall"}, dtype=dtype)
+    body = Body(Sphere((0.25 * n, 0.52 * n), 0.06 * n))
+    p, times = None, []
+    for k in range(steps):
+        t = time.perf_counter()
+        v, p = navier_stokes_step(v, 1.0, viscosity=u * 0.12 * n / 100, advection="semi_lagrangian", obstacles=body,
+                                  pressure_guess=p, time=float(k), viscosity_scheme="implicit")
+        times.append(time.perf_counter() - t)
+    pm.DIRECT = True
+    return 1e3 * statistics.median(times[steps // 2:])
+
+
 def main(argv=None) -> int:
     """Command-line entry point: prints one line per size and dtype, optionally writes the rows as JSON.
 
@@ -134,6 +162,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
+    ap.add_argument("--wake", action="store_true", help="also time wake steps with PCG and with the direct solve")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -149,6 +178,13 @@ def main(argv=None) -> int:
                       f"  direct solve {r['direct_ms']:.2f} ms (CG iterations after it {r['direct_iterations']}; "
                       f"built once in {r['direct_build_ms']:.0f} ms, rank {r['rank']})" if "direct_ms" in r else ""),
                   flush=True)
+    if device.type == "cpu" and args.wake:
+        for n in args.sizes:
+            for dtype in (torch.float32, torch.float64):
+                a, b = wake_step_ms(n, dtype, False), wake_step_ms(n, dtype, True)
+                rows.append({"wake": n, "dtype": str(dtype).replace("torch.", ""), "pcg_ms": a, "direct_ms": b})
+                print(f"wake {n:4d}^2 {rows[-1]['dtype']:8s} split step: PCG pressure {a:.2f} ms, direct {b:.2f} ms "
+                      f"({a / b:.2f}x)", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
