@@ -473,17 +473,19 @@ class MaskedPoisson:
         """
         if self._direct is False or not DIRECT:
             return None
+        self._requests += 1
         if self._direct is None:
             if (self.batch != 1 or self.null is not None or _singular(self.kinds) or self.active.device.type != "cpu"
                     or any(w.requires_grad for w in self.weights) or dtype not in (torch.float32, torch.float64)):
                 self._direct = False
+                return None
+            if self._requests <= DIRECT_BUILD_AFTER:  # a layout used once or twice (moving bodies) costs nothing
                 return None
             self._direct = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
                                          lambda f: self._box_inverse(f.to(torch.float64)))
             if self._direct.rank > MAX_RANK:
                 self._direct = False
                 return None
-        self._requests += 1
         if self._direct.lu is None:
             if self._requests <= max(DIRECT_BUILD_AFTER, self._direct.rank // DIRECT_FACES_PER_REQUEST):
                 return None

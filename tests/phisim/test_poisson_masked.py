@@ -226,7 +226,7 @@ def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot
     while True:
         _, info = op.solve(rhs, solve=Solve(rtol=1e-10))
         calls += 1
-        if op._direct.lu is not None:
+        if op._direct and op._direct.lu is not None:
             break
         assert int(info.iterations[0]) > 0 and calls < 100  # PCG until then
     assert calls == max(pm.DIRECT_BUILD_AFTER, op._direct.rank // 4) + 1
