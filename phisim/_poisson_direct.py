@@ -27,6 +27,10 @@ from scipy.sparse.csgraph import connected_components
 
 #: Largest rank ``k`` (faces with ``w < 1`` beside active cells, plus pins) for which the direct solve is built.
 MAX_RANK = 4096
+#: ... and largest ``k² / cells``: the triangular solves cost ``2 k²`` per call against two box solves. Measured:
+#: 2-D discs and boxes at 128²-256² (``k² / cells`` 36-40) solve 6-9x faster than PCG from zero and make wake
+#: steps 1.7-2.6x faster; a sphere in 32³ (170) only 2x faster than a cold PCG solve, less than warm ones.
+MAX_RANK_SQUARED_PER_CELL = 64
 
 
 class WoodburySolve:

@@ -36,7 +36,7 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ._poisson_direct import MAX_RANK, WoodburySolve
+from ._poisson_direct import MAX_RANK, MAX_RANK_SQUARED_PER_CELL, WoodburySolve
 from .errors import ParameterError, ShapeError
 from .fft import r2r_multiply
 from .linalg import Solve, SolveInfo, cg
@@ -483,7 +483,8 @@ class MaskedPoisson:
                 return None
             self._direct = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
                                          lambda f: self._box_inverse(f.to(torch.float64)))
-            if self._direct.rank > MAX_RANK:
+            k = self._direct.rank
+            if k > MAX_RANK or k * k > MAX_RANK_SQUARED_PER_CELL * math.prod(self.resolution):
                 self._direct = False
                 return None
         if self._direct.lu is None:

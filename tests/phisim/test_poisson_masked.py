@@ -192,6 +192,7 @@ def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radi
     monkeypatch.setattr(pm, "DIRECT", True)
     monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
     monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 10**9)
+    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)  # tiny grids: rank large against the cells
     op = MaskedPoisson(weights, dx, kinds)
     p, info = op.solve(rhs, solve=Solve(rtol=1e-10))
     assert op._direct and op._direct.lu is not None
@@ -218,6 +219,7 @@ def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot
     from phisim.linalg import Solve
 
     monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 4)
+    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)
     res, kinds = (16, 12), (("neumann", "dirichlet"), ("neumann", "neumann"))
     weights = _disc_weights(res, [(0.4, 0.35)], 0.15)
     rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
@@ -230,12 +232,14 @@ def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot
             break
         assert int(info.iterations[0]) > 0 and calls < 100  # PCG until then
     assert calls == max(pm.DIRECT_BUILD_AFTER, op._direct.rank // 4) + 1
-    # per-sample layouts, weights with gradient, a closed box: PCG only
+    # per-sample layouts, weights with gradient, a closed box, a rank too large for the grid: PCG only
     two = [torch.cat([w, torch.ones_like(w)]) for w in weights]
     grad = [w.clone().requires_grad_(True) for w in weights]
-    for ws, k in ((two, kinds), (grad, kinds), (weights, (("neumann", "neumann"), ("neumann", "neumann")))):
+    closed = (("neumann", "neumann"), ("neumann", "neumann"))
+    for ws, k, limit in ((two, kinds, 64), (grad, kinds, 64), (weights, closed, 64), (weights, kinds, 0)):
+        monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", limit)
         op = MaskedPoisson(ws, 1 / 16, k)
-        for _ in range(3):
+        for _ in range(4):
             op.solve(rhs.expand(ws[0].shape[0], *res), solve=Solve(rtol=1e-8))
         assert op._direct is False
 
@@ -245,6 +249,7 @@ def test_direct_solve_keeps_the_rhs_gradient(monkeypatch):
     from phisim.linalg import Solve
 
     monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
+    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)
     res, kinds = (8, 6), (("neumann", "dirichlet"), ("neumann", "neumann"))
     op = MaskedPoisson(_disc_weights(res, [(0.45, 0.35)], 0.2), 1 / 8, kinds)
     rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(3), requires_grad=True)
