@@ -56,7 +56,7 @@ STAT = "min"
 NOTES = """Reading the tables:
 
 - Goal (issue 14): an implicit step costs at most 2x the explicit one at 48²-256². Met for the box solve in
-  both precisions at every size: 0.8-1.3x at 48²-128² and 1.7-1.8x at 256² (implicit and Crank-Nicolson,
+  both precisions at every size: 0.8-1.3x at 48²-128² and 1.7-1.9x at 256² (implicit and Crank-Nicolson,
   float32 and float64). Not met with fixed faces (bodies), see below.
 - How the box solve got there. Per component the exact solve is one transform pair per axis. The normal
   component between two walls needs a DST-I along its own axis, which pocketfft (like FFTW) computes from a
@@ -85,9 +85,10 @@ NOTES = """Reading the tables:
   first calls, a tensor ν, per-sample bodies) costs 30-58x explicit. Only `imex2` pays the body solve: the
   split step imposes bodies before and after a box solve, so its viscosity costs the box column.
 - In whole steps with a body the viscosity solves no longer dominate (last table): 5-7 % of a split step and
-  12-18 % of an `imex2` step at 64²-256² (ν dt / dx² = 0.3-1.3 per solve); the masked pressure projection
-  takes most of the rest.
-- Whole steps: the split step with implicit viscosity costs 0.5-1.2 ms at 48²-128² and 3.0 ms at 256²;
+  12-19 % of an `imex2` step at 48²-256² (ν dt / dx² = 0.3-1.3 per solve); the masked pressure projection
+  takes most of the rest (PCG: the closed box is singular, which the direct pressure solve of static bodies
+  declines).
+- Whole steps: the split step with implicit viscosity costs 0.5-1.2 ms at 48²-128² and 3.1 ms at 256²;
   `imex2` (two Crank-Nicolson solves, two projections, two convection terms) 1.2-1.8x that; it buys second
   order in time (docs/SCHEMES.md).
 - Wall and CPU times agree for the min of the repeats (the machine was otherwise idle)."""
