@@ -150,6 +150,36 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
     return 1e3 * statistics.median(times[steps // 2:])
 
 
+def plume_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
+    """Median ms per step of a smoke plume in a closed box with two box bodies (the ``plume_boxes`` scene of
+    ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
+    over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
+    from phisim import CenteredGrid, StaggeredGrid
+    from phisim.advection import maccormack, semi_lagrangian
+    from phisim.fluid import buoyancy, make_incompressible, projection
+
+    pm.DIRECT = direct
+    projection._OPS.clear()
+    grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
+    x = grid.cell_centers(torch.float64)
+    source = torch.exp(-((x[..., 0] - 0.45 * n) ** 2 + (x[..., 1] - 0.15 * n) ** 2) / (0.05 * n) ** 2)[None]
+    source = source.to(dtype)
+    smoke = CenteredGrid(torch.zeros(1, n, n, dtype=dtype), grid, "neumann")
+    v = StaggeredGrid(tuple(torch.zeros(1, *grid.face_shape(i), dtype=dtype) for i in range(2)), grid, "wall")
+    boxes = [((round(0.35 * n), round(0.45 * n)), (round(0.55 * n), round(0.52 * n))),
+             ((round(0.55 * n), round(0.68 * n)), (round(0.80 * n), round(0.74 * n)))]
+    bodies = [Body(Box(lo, hi)) for lo, hi in boxes]
+    p, times = None, []
+    for _ in range(steps):
+        t = time.perf_counter()
+        smoke = maccormack(smoke, v, 1.0) + source
+        v = buoyancy(semi_lagrangian(v, v, 1.0), smoke, 1.0, strength=0.1)
+        v, p = make_incompressible(v, bodies, pressure_guess=p)
+        times.append(time.perf_counter() - t)
+    pm.DIRECT = True
+    return 1e3 * statistics.median(times[steps // 2:])
+
+
 def main(argv=None) -> int:
     """Command-line entry point: prints one line per size and dtype, optionally writes the rows as JSON.
 
@@ -162,7 +192,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
-    ap.add_argument("--wake", action="store_true", help="also time wake steps with PCG and with the direct solve")
+    ap.add_argument("--wake", action="store_true",
+                    help="also time wake and plume steps with PCG and with the direct solve")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -184,6 +215,10 @@ def main(argv=None) -> int:
                 a, b = wake_step_ms(n, dtype, False), wake_step_ms(n, dtype, True)
                 rows.append({"wake": n, "dtype": str(dtype).replace("torch.", ""), "pcg_ms": a, "direct_ms": b})
                 print(f"wake {n:4d}^2 {rows[-1]['dtype']:8s} split step: PCG pressure {a:.2f} ms, direct {b:.2f} ms "
+                      f"({a / b:.2f}x)", flush=True)
+                a, b = plume_step_ms(n, dtype, False), plume_step_ms(n, dtype, True)
+                rows.append({"plume": n, "dtype": str(dtype).replace("torch.", ""), "pcg_ms": a, "direct_ms": b})
+                print(f"plume {n:4d}^2 {rows[-1]['dtype']:8s} step: PCG pressure {a:.2f} ms, direct {b:.2f} ms "
                       f"({a / b:.2f}x)", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

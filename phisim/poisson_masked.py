@@ -448,7 +448,15 @@ class MaskedPoisson:
     # ---- direct solve of a layout that keeps coming back --------------------------------------------------
 
     def _box_inverse(self, f: torch.Tensor) -> torch.Tensor:
-        """``(-∇²_box)⁻¹ f`` (the unweighted box, exact; the kinds must not be singular)."""
+        """``(-∇²_box)⁻¹ f`` of the unweighted box, exact. A singular box (no Dirichlet side) is made definite by
+        ``β 11ᵀ / N`` with ``β`` its smallest non-zero eigenvalue: its pseudo-inverse plus ``mean(f) / β``."""
+        y = self._box_pinv(f)
+        if _singular(self.kinds):
+            dims = tuple(range(1, f.ndim))
+            y = y + f.mean(dims, keepdim=True) * float(self._inv.abs().max())
+        return y
+
+    def _box_pinv(self, f: torch.Tensor) -> torch.Tensor:
         r2r, per = _layout(self.kinds)
         if not per and not f.requires_grad:
             key = ("mult", f.dtype)
@@ -465,8 +473,10 @@ class MaskedPoisson:
     def _direct_solver(self, dtype: torch.dtype):
         """The factored direct solve of this operator, or None (PCG).
 
-        It applies to one layout shared by the batch, weights without gradient, a box with a Dirichlet side
-        and no closed fluid region (a non-singular system), on the CPU, with at most
+        It applies to one layout shared by the batch, weights without gradient, either a box with a Dirichlet
+        side and no fluid region closed off from it (a definite system) or a closed box with one fluid region
+        (the constants its only null space; the box operator is then regularised, see :meth:`_box_inverse`, and
+        the answer projected), on the CPU, with at most
         :data:`phisim._poisson_direct.MAX_RANK` cut faces. It is built once the operator has been solved more
         than ``max(DIRECT_BUILD_AFTER, k / DIRECT_FACES_PER_REQUEST)`` times (its ``k`` box solves then cost
         about as much as the PCG solves so far), so a layout that changes every step never builds one.
@@ -475,7 +485,8 @@ class MaskedPoisson:
             return None
         self._requests += 1
         if self._direct is None:
-            if (self.batch != 1 or self.null is not None or _singular(self.kinds) or self.active.device.type != "cpu"
+            one_closed_region = _singular(self.kinds) and self.null is not None and self.null.shape[1] == 1
+            if (self.batch != 1 or (self.null is not None and not one_closed_region) or self.active.device.type != "cpu"
                     or any(w.requires_grad for w in self.weights) or dtype not in (torch.float32, torch.float64)):
                 self._direct = False
                 return None
@@ -516,7 +527,7 @@ class MaskedPoisson:
         b = self.project(rhs * act)
         direct = self._direct_solver(rhs.dtype) if preconditioned else None
         if direct is not None:  # the exact answer as the start: CG checks it and polishes it if need be
-            x0 = direct.solve(b.detach()) * act
+            x0 = self.project(direct.solve(b.detach()) * act)
         elif x0 is not None:
             x0 = self.project(x0.detach().to(rhs.dtype) * act)
         params = tuple(w for w in self.weights if w.requires_grad)

@@ -175,6 +175,7 @@ DIRECT_CASES = [
     ("disc on a Dirichlet side", (16, 16), [(0.0, 0.5)], 0.3, (("dirichlet", "neumann"), ("neumann", "neumann"))),
     ("sphere", (10, 9, 8), [(0.5, 0.45, 0.4)], 0.25, (("neumann", "dirichlet"), ("periodic", "periodic"),
                                                      ("neumann", "neumann"))),
+    ("closed box", (20, 16), [(0.3, 0.4), (0.7, 0.5)], 0.12, (("neumann", "neumann"), ("neumann", "neumann"))),
 ]
 
 
@@ -199,15 +200,19 @@ def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radi
     # the direct answer alone meets the tolerance: CG, which checks it, takes no iteration
     assert info.iterations.tolist() == [0, 0]
     torch.testing.assert_close(p, ref, rtol=0, atol=1e-9 * float(ref.abs().max()))
-    # residual of the Woodbury solve itself, on the active cells
+    # residual of the Woodbury solve itself, on the active cells (a closed box: the compatible right-hand side)
     act = op.active.double()
-    x = op._direct.solve(rhs * act) * act
-    resid = (op.apply(x) - rhs) * act
-    assert float(resid.norm()) <= 1e-11 * float((rhs * act).norm())
+    b = op.project(rhs * act)
+    x = op.project(op._direct.solve(b) * act)
+    resid = (op.apply(x) - b) * act
+    assert float(resid.norm()) <= 1e-11 * float(b.norm())
     assert float(p[:, ~op.active[0]].abs().max()) == 0
+    if op.singular:  # zero mean over the fluid, as the PCG answer
+        assert float((p * act).sum(dim=(1, 2)).abs().max()) <= 1e-10 * float(p.abs().sum())
     # pins: one per block of solid cells that reaches no Dirichlet side
     pins = int((op._direct.d > 0).sum())
-    assert pins == {"channel disc": 1, "two discs, periodic": 2, "disc on a Dirichlet side": 0, "sphere": 1}[name]
+    assert pins == {"channel disc": 1, "two discs, periodic": 2, "disc on a Dirichlet side": 0, "sphere": 1,
+                    "closed box": 2}[name]
     # float32: the same solve in single precision
     p32, info32 = op.solve(rhs.float(), solve=Solve(rtol=1e-5))
     assert bool(info32.converged.all())
@@ -232,11 +237,13 @@ def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot
             break
         assert int(info.iterations[0]) > 0 and calls < 100  # PCG until then
     assert calls == max(pm.DIRECT_BUILD_AFTER, op._direct.rank // 4) + 1
-    # per-sample layouts, weights with gradient, a closed box, a rank too large for the grid: PCG only
+    # per-sample layouts, weights with gradient, two closed fluid regions, a rank too large for the grid: PCG
     two = [torch.cat([w, torch.ones_like(w)]) for w in weights]
     grad = [w.clone().requires_grad_(True) for w in weights]
     closed = (("neumann", "neumann"), ("neumann", "neumann"))
-    for ws, k, limit in ((two, kinds, 64), (grad, kinds, 64), (weights, closed, 64), (weights, kinds, 0)):
+    split = [w.clone() for w in weights]
+    split[0][:, 8] = 0.0  # a closed box cut in two by a wall: two fluid regions, two constants in the null space
+    for ws, k, limit in ((two, kinds, 64), (grad, kinds, 64), (split, closed, 64), (weights, kinds, 0)):
         monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", limit)
         op = MaskedPoisson(ws, 1 / 16, k)
         for _ in range(4):
