@@ -124,7 +124,7 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
             "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
 
 
-def wake_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
+def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     """Median ms per split step (implicit viscosity) of a cylinder wake on ``n x n`` cells over the last half
     of ``steps`` steps: inflow 0.5 on the left, open right side, walls, a disc of radius 0.06 n, Re 100 (the
     wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve."""
@@ -150,7 +150,7 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
     return 1e3 * statistics.median(times[steps // 2:])
 
 
-def plume_step_ms(n: int, dtype, direct: bool, steps: int = 80) -> float:
+def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     """Median ms per step of a smoke plume in a closed box with two box bodies (the ``plume_boxes`` scene of
     ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
