@@ -486,8 +486,9 @@ class MaskedPoisson:
         self._requests += 1
         if self._direct is None:
             one_closed_region = _singular(self.kinds) and self.null is not None and self.null.shape[1] == 1
-            if (self.batch != 1 or (self.null is not None and not one_closed_region) or self.active.device.type != "cpu"
-                    or any(w.requires_grad for w in self.weights) or dtype not in (torch.float32, torch.float64)):
+            if (self.batch != 1 or self.rank < 2 or (self.null is not None and not one_closed_region)
+                    or self.active.device.type != "cpu" or any(w.requires_grad for w in self.weights)
+                    or dtype not in (torch.float32, torch.float64)):
                 self._direct = False
                 return None
             if self._requests <= DIRECT_BUILD_AFTER:  # a layout used once or twice (moving bodies) costs nothing
