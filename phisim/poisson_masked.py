@@ -25,6 +25,11 @@ Either way, with fractional bodies this cuts the iterations about threefold agai
 the elimination also takes a quarter to a third off warm-started solves (plume and cylinder wake).
 :class:`MaskedPoisson` computes the labels, null space and eigenvalues once; a fluid solver keeps one per
 body layout and calls :meth:`MaskedPoisson.solve` every step.
+
+Direct solve. An operator solved again and again (a static body) switches from PCG to an exact solve by the box
+inverse and a capacitance matrix on its cut faces (:mod:`phisim._poisson_direct`; two box solves per call,
+built once the PCG solves have cost about as much as the build). Its answer is CG's start, so CG still checks
+it (zero iterations in float64, a couple in float32) and provides the gradient. :data:`DIRECT` switches it off.
 """
 
 from __future__ import annotations
