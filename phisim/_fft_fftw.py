@@ -120,7 +120,7 @@ class PyfftwR2R(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, kinds, axes, threads, effort):
         ctx.kinds, ctx.axes, ctx.threads, ctx.effort = kinds, axes, threads, effort
-        if use_pocket(x.dtype, kinds):  # one-axis pocketfft transforms
+        if use_pocket(x.dtype, kinds, tuple(x.shape[a] for a in axes)):  # one-axis pocketfft transforms
             return torch.from_numpy(pocket_r2rn(x.detach().numpy(), kinds, axes, threads))
         plan = get_plan("r2r", tuple(x.shape), np_dtype(x.dtype), axes, threads, effort, kinds)
         return torch.from_numpy(plan(as_numpy(x)))

@@ -28,15 +28,22 @@ TRANSPOSE_BYTES = 384 * 1024
 WALL_TRANSPOSE_BYTES = 384 * 1024
 
 
-def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...]) -> bool:
-    """Whether pocketfft beats FFTW for these real-to-real kinds (measured on the development CPU, 1 thread).
+def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...], lengths: tuple[int, ...] | None = None) -> bool:
+    """Whether pocketfft beats FFTW for these real-to-real kinds and transform lengths (measured on the
+    development CPU, 1 thread; transform, multiply and transform back).
 
-    float32: always (2-D DCT-II 256²: 0.12 vs 0.28 ms, 128²: 0.03 vs 0.05 ms; 64³: 1.0 vs 1.1 ms). float64: only
-    with a type-1 kind, which FFTW computes slowly (DST-I x DST-II 255x256: 0.74 vs 0.82 ms, 127x128: 0.14 vs 0.17
-    ms); for the other float64 kinds FFTW's plans are as fast or faster (DCT-II 256²: 0.28 vs 0.35 ms; 64³: 1.2 vs
-    2.0 ms).
+    float32: always (2-D DCT-II 256²: 0.12 vs 0.28 ms, 128²: 0.03 vs 0.05 ms; 64³: 1.0 vs 1.1 ms). float64: with a
+    type-1 kind, which FFTW computes slowly (DST-I x DST-II 255x256: 0.74 vs 0.82 ms, 127x128: 0.14 vs 0.17 ms), and
+    where a length is not a power of two (440x82: 0.46 vs 0.70 ms, 660x123: 1.05 vs 1.61, 192x96: 0.12 vs 0.16,
+    48³: 1.09 vs 1.41, 60x50x40: 1.02 vs 1.56). With powers of two only FFTW's plans are as fast or faster in
+    float64 (256²: 0.61 vs 0.72-0.75 ms, 512²: 2.7 vs 4.0, 32³: 0.30 vs 0.43, 64³: 2.5 vs 4.2; 128² and 256x128
+    within 10 %), and they keep it there.
     """
-    return _pocket is not None and bool(kinds) and (dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds)
+    if _pocket is None or not kinds:
+        return False
+    if dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds:
+        return True
+    return lengths is not None and any(n & (n - 1) for n in lengths)
 
 
 def _r2r(y: np.ndarray, kind: str, axis: int, threads: int, src: np.ndarray | None = None) -> None:

@@ -311,7 +311,7 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     axes = _norm_axes(x, axes)
     kinds, inverse = tuple(kinds), tuple(inverse)
     m = mult.detach().numpy()
-    if _use_pocket(x.dtype, kinds + inverse):
+    if _use_pocket(x.dtype, kinds + inverse, tuple(x.shape[a] for a in axes)):
         y = _pocket_multiply(x.detach().numpy(), kinds, inverse, axes, m,
                              None if pre is None else pre.detach().numpy(),
                              None if out is None else out.detach().numpy(), _SETTINGS.threads)
