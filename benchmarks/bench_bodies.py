@@ -108,20 +108,37 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     direct = {}
     if device.type == "cpu":
         pm.DIRECT = True
-        fresh = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
-        fresh._direct = None
-        fresh._requests = 10**9  # build on this request
+        op._direct = None  # the same operator: set the direct solve up anew and build it on this request
+        op._requests = 10**9
         t = time.perf_counter()
-        fresh.solve(rhs, solve=tol)
+        op.solve(rhs, solve=tol)
         t_build = time.perf_counter() - t
         with torch.no_grad():
-            t_direct = _best(lambda: fresh.solve(rhs, solve=tol), repeat, 3, device)
-        _, dinfo = fresh.solve(rhs, solve=tol)
-        direct = {"direct_ms": 1e3 * t_direct, "direct_build_ms": 1e3 * t_build, "rank": fresh._direct.rank,
+            t_direct = _best(lambda: op.solve(rhs, solve=tol), repeat, 3, device)
+        _, dinfo = op.solve(rhs, solve=tol)
+        direct = {"direct_ms": 1e3 * t_direct, "direct_build_ms": 1e3 * t_build, "rank": op._direct.rank,
                   "direct_iterations": int(dinfo.iterations[0])}
     return {"n": n, "dtype": str(dtype).replace("torch.", ""), "floor_ms": 1e3 * t_floor,
             "iteration_ms": 1e3 * per_iter, "ratio": per_iter / t_floor, "iterations_to_rtol": iters,
             "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
+
+
+def _median_step_ms(step, state, steps: int, direct: bool) -> float:
+    """Median ms of ``state = step(state)`` over the last half of ``steps`` steps, the pressure by PCG only or
+    with the direct solve (a fresh operator cache, so the direct solve is built within the run)."""
+    from phisim.fluid import projection
+
+    pm.DIRECT = direct
+    projection._OPS.clear()
+    times = []
+    try:
+        for k in range(steps):
+            t = time.perf_counter()
+            state = step(state, k)
+            times.append(time.perf_counter() - t)
+    finally:
+        pm.DIRECT = True
+    return 1e3 * statistics.median(times[steps // 2:])
 
 
 def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
@@ -130,24 +147,20 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve."""
     from phisim import Open, StaggeredGrid
     from phisim.boundary import Inflow
-    from phisim.fluid import navier_stokes_step, projection
+    from phisim.fluid import navier_stokes_step
 
-    pm.DIRECT = direct
-    projection._OPS.clear()
     u = 0.5
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
     v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], u),
                                                            torch.zeros_like(x[..., 0])], -1),
                                     grid, {"x": (Inflow((u, 0.0)), Open()), "y": "wall"}, dtype=dtype)
     body = Body(Sphere((0.25 * n, 0.52 * n), 0.06 * n))
-    p, times = None, []
-    for k in range(steps):
-        t = time.perf_counter()
-        v, p = navier_stokes_step(v, 1.0, viscosity=u * 0.12 * n / 100, advection="semi_lagrangian", obstacles=body,
-                                  pressure_guess=p, time=float(k), viscosity_scheme="implicit")
-        times.append(time.perf_counter() - t)
-    pm.DIRECT = True
-    return 1e3 * statistics.median(times[steps // 2:])
+
+    def step(state, k):
+        return navier_stokes_step(state[0], 1.0, viscosity=u * 0.12 * n / 100, advection="semi_lagrangian",
+                                  obstacles=body, pressure_guess=state[1], time=float(k), viscosity_scheme="implicit")
+
+    return _median_step_ms(step, (v, None), steps, direct)
 
 
 def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
@@ -156,10 +169,8 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
     from phisim import CenteredGrid, StaggeredGrid
     from phisim.advection import maccormack, semi_lagrangian
-    from phisim.fluid import buoyancy, make_incompressible, projection
+    from phisim.fluid import buoyancy, make_incompressible
 
-    pm.DIRECT = direct
-    projection._OPS.clear()
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
     x = grid.cell_centers(torch.float64)
     source = torch.exp(-((x[..., 0] - 0.45 * n) ** 2 + (x[..., 1] - 0.15 * n) ** 2) / (0.05 * n) ** 2)[None]
@@ -169,15 +180,14 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     boxes = [((round(0.35 * n), round(0.45 * n)), (round(0.55 * n), round(0.52 * n))),
              ((round(0.55 * n), round(0.68 * n)), (round(0.80 * n), round(0.74 * n)))]
     bodies = [Body(Box(lo, hi)) for lo, hi in boxes]
-    p, times = None, []
-    for _ in range(steps):
-        t = time.perf_counter()
-        smoke = maccormack(smoke, v, 1.0) + source
-        v = buoyancy(semi_lagrangian(v, v, 1.0), smoke, 1.0, strength=0.1)
-        v, p = make_incompressible(v, bodies, pressure_guess=p)
-        times.append(time.perf_counter() - t)
-    pm.DIRECT = True
-    return 1e3 * statistics.median(times[steps // 2:])
+
+    def step(state, k):
+        m, vel, p = state
+        m = maccormack(m, vel, 1.0) + source
+        vel = buoyancy(semi_lagrangian(vel, vel, 1.0), m, 1.0, strength=0.1)
+        return (m, *make_incompressible(vel, bodies, pressure_guess=p))
+
+    return _median_step_ms(step, (smoke, v, None), steps, direct)
 
 
 def main(argv=None) -> int:

@@ -165,10 +165,7 @@ def conservative_step(field: CenteredGrid, velocity, dt, *, limiter: str | None,
     # differences can still leave values like -1e-80 where a nearly empty cell borders fuller ones; negatives
     # within 64 ulp of the field's largest value are set to zero (a change of the total below its round-off).
     # Larger ones (a Courant number beyond the bound) are left visible.
-    with torch.no_grad():
-        top = float(values.abs().max()) if values.numel() else 0.0
-        nonneg = bool((values >= 0).all())
-    if nonneg:
-        tol = 64 * torch.finfo(q.dtype).eps * top
-        q = torch.where((q < 0) & (q >= -tol), torch.zeros_like(q), q)
+    if float(values.detach().min()) >= 0:
+        tol = 64 * torch.finfo(q.dtype).eps * float(values.detach().max())
+        q = q.masked_fill((q < 0) & (q >= -tol), 0.0)
     return field.with_values(q if field.is_vector else q[:, 0])

@@ -113,10 +113,9 @@ class _Component:
         self.kinds = kinds
         self.scale = scale
         self.eigs = eigs  # per axis, float64, times 1/dx²
-        # walls on both sides of the own axis: the box solve may run as periodic + one-face correction
-        self.walls = not boundary.is_periodic(i) and kinds[i] == ("dst1", "dst1") and not any(
-            k is None for k in kinds)
         self.periodic = [a for a in range(grid.rank) if kinds[a] is None]
+        # walls on both sides of the own axis: the box solve may run as periodic + one-face correction
+        self.walls = not self.periodic and kinds[i] == ("dst1", "dst1")
         self.r2r = [a for a in range(grid.rank) if kinds[a] is not None]
         self.fwd_kinds = tuple(kinds[a][0] for a in self.r2r)
         self.inv_kinds = tuple(kinds[a][1] for a in self.r2r)

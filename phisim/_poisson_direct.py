@@ -41,7 +41,8 @@ class WoodburySolve:
         active: ``(*resolution)`` bool, the active cells.
         dx: Cell size per axis.
         kinds: Box kinds per axis (``(lower, upper)`` pairs).
-        box_inverse: ``f -> B⁻¹ f`` on ``(B, *resolution)`` tensors of any float dtype.
+        box_inverse: ``f -> B⁻¹ f`` on ``(B, *resolution)`` tensors, in their dtype (the build passes float64;
+            the solves run in the working dtype, ``C⁻¹`` in float64).
     """
 
     def __init__(self, weights, active: torch.Tensor, dx, kinds, box_inverse):

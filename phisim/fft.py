@@ -280,10 +280,9 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     measured faster (float32, and float64 with a type-1 kind or a length that is not a power of two: 1.2-2.5x
     faster than FFTW's REDFT/RODFT kinds on the development CPU, see :func:`phisim._fft_pocket.use_pocket`; no
     plans, so the same round-off in every process); otherwise two FFTW plans share their buffers. ``kinds``
-    empty means a real FFT pair (``mult`` on the half spectrum). It
-    returns None when it does not apply (pyfftw missing or not the resolved engine, a non-CPU tensor, any of
-    ``x``, ``mult``, ``pre`` requiring grad, or a dtype other than float32/float64); the caller then composes
-    :func:`r2rn` calls itself.
+    empty means a real FFT pair (``mult`` on the half spectrum). It returns None when it does not apply (pyfftw
+    missing or not the resolved engine, a non-CPU tensor, any of ``x``, ``mult``, ``pre`` requiring grad, or a
+    dtype other than float32/float64); the caller then composes :func:`r2rn` calls itself.
 
     Args:
         x: Real tensor (float32/float64) on the CPU; any strides.

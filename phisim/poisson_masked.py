@@ -161,6 +161,7 @@ class MaskedPoisson:
         self._scale2 = tuple(1.0 / d**2 for d in self.dx)
         self._direct = None  # WoodburySolve once set up; False where the direct solve does not apply
         self._requests = 0
+        self._beta_inv = None  # 1 / smallest non-zero box eigenvalue (singular boxes, see _box_inverse)
 
     # ---- structure ---------------------------------------------------------------------------------------
 
@@ -420,19 +421,7 @@ class MaskedPoisson:
         else:
             rt = r
             act = self._cast("active", self.active, dtype)
-        y = None
-        r2r, per = _layout(self.kinds)
-        if not per and not r.requires_grad:
-            # walls and open sides only: mask, transform, multiply and transform back in one FFTW pass
-            key = ("mult", dtype)
-            mult = self._casts.get(key)
-            if mult is None:
-                mult = self._casts[key] = (-self._inv * _transform_scale(self.resolution, self.kinds)).to(dtype)
-            fwd = tuple(_TRANSFORM[self.kinds[a]][0] for a in r2r)
-            inv = tuple(_TRANSFORM[self.kinds[a]][1] for a in r2r)
-            y = r2r_multiply(rt, fwd, inv, tuple(1 + a for a in r2r), mult, pre=act, engine=self.engine)
-        if y is None:
-            y = -_apply_multiplier(rt * act, self.kinds, self._inv, self.engine)
+        y = self._box_pinv(rt, act)
         # Without leaves: additive Jacobi on the cut cells (whose diagonal the unweighted box operator
         # overestimates): 58 -> 19 iterations at 128^2 with a disc and two boxes, still symmetric positive
         # definite. Inactive cells keep r: y * active + (inactive + 1 / diag on cut cells) * r.
@@ -452,16 +441,10 @@ class MaskedPoisson:
 
     # ---- direct solve of a layout that keeps coming back --------------------------------------------------
 
-    def _box_inverse(self, f: torch.Tensor) -> torch.Tensor:
-        """``(-∇²_box)⁻¹ f`` of the unweighted box, exact. A singular box (no Dirichlet side) is made definite by
-        ``β 11ᵀ / N`` with ``β`` its smallest non-zero eigenvalue: its pseudo-inverse plus ``mean(f) / β``."""
-        y = self._box_pinv(f)
-        if _singular(self.kinds):
-            dims = tuple(range(1, f.ndim))
-            y = y + f.mean(dims, keepdim=True) * float(self._inv.abs().max())
-        return y
-
-    def _box_pinv(self, f: torch.Tensor) -> torch.Tensor:
+    def _box_pinv(self, f: torch.Tensor, pre: torch.Tensor | None = None) -> torch.Tensor:
+        """``(-∇²_box)⁺ (pre f)``: the exact (pseudo-)inverse of the unweighted box, the constant mode dropped
+        where the box is singular. Walls and open sides only, no autograd: mask, transform, multiply and
+        transform back in one pass (:func:`phisim.fft.r2r_multiply`)."""
         r2r, per = _layout(self.kinds)
         if not per and not f.requires_grad:
             key = ("mult", f.dtype)
@@ -470,10 +453,20 @@ class MaskedPoisson:
                 mult = self._casts[key] = (-self._inv * _transform_scale(self.resolution, self.kinds)).to(f.dtype)
             fwd = tuple(_TRANSFORM[self.kinds[a]][0] for a in r2r)
             inv = tuple(_TRANSFORM[self.kinds[a]][1] for a in r2r)
-            y = r2r_multiply(f, fwd, inv, tuple(1 + a for a in r2r), mult, engine=self.engine)
+            y = r2r_multiply(f, fwd, inv, tuple(1 + a for a in r2r), mult, pre=pre, engine=self.engine)
             if y is not None:
                 return y
-        return -_apply_multiplier(f, self.kinds, self._inv, self.engine)
+        return -_apply_multiplier(f if pre is None else f * pre, self.kinds, self._inv, self.engine)
+
+    def _box_inverse(self, f: torch.Tensor) -> torch.Tensor:
+        """``(-∇²_box)⁻¹ f`` of the unweighted box, exact. A singular box (no Dirichlet side) is made definite by
+        ``β 11ᵀ / N`` with ``β`` its smallest non-zero eigenvalue: its pseudo-inverse plus ``mean(f) / β``."""
+        y = self._box_pinv(f)
+        if _singular(self.kinds):
+            if self._beta_inv is None:
+                self._beta_inv = float(self._inv.abs().max())
+            y = y + f.mean(tuple(range(1, f.ndim)), keepdim=True) * self._beta_inv
+        return y
 
     def _direct_solver(self, dtype: torch.dtype):
         """The factored direct solve of this operator, or None (PCG).
@@ -499,7 +492,7 @@ class MaskedPoisson:
             if self._requests <= DIRECT_BUILD_AFTER:  # a layout used once or twice (moving bodies) costs nothing
                 return None
             self._direct = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
-                                         lambda f: self._box_inverse(f.to(torch.float64)))
+                                         self._box_inverse)
             k = self._direct.rank
             if k > MAX_RANK or k * k > MAX_RANK_SQUARED_PER_CELL * math.prod(self.resolution):
                 self._direct = False
@@ -508,7 +501,6 @@ class MaskedPoisson:
             if self._requests <= max(DIRECT_BUILD_AFTER, self._direct.rank // DIRECT_FACES_PER_REQUEST):
                 return None
             self._direct.factor()
-            self._direct.box_inverse = self._box_inverse  # per call in the working dtype (C⁻¹ in float64)
         return self._direct
 
     def solve(self, rhs: torch.Tensor, *, solve: Solve, x0: torch.Tensor | None = None,
