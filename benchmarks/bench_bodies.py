@@ -4,7 +4,7 @@ The floor of one iteration is one preconditioner transform round trip (the spect
 one fused FFTW pass where available) plus one application of the weighted stencil; an iteration also does a
 few vector updates, two dot products, the null-space projection and the leaf elimination's gathers. Measured at
 128^2 and 256^2 with a disc and two boxes (fractional faces), float64 and float32. On the CPU the direct solve
-that a layout solved again and again switches to (:mod:`phisim._poisson_direct`) is timed as well: its one-time
+that a layout solved again and again switches to (:mod:`phisim.solvers.direct`) is timed as well: its one-time
 build and one solve (two box solves, a small LU solve, CG's check of the answer).
 
 On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU-only) and every timed call is
@@ -30,15 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from timing import synchronize  # noqa: E402
 
-from phisim import poisson_masked as pm  # noqa: E402
 from phisim.boundary import Boundary  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fft import r2r_multiply  # noqa: E402
 from phisim.fluid import Body, Box, Sphere, solid_layout  # noqa: E402
 from phisim.fluid.projection import _operator, _pressure_kinds  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
-from phisim.linalg import Solve  # noqa: E402
-from phisim.poisson import _TRANSFORM, _apply_multiplier, _layout, _transform_scale  # noqa: E402
+from phisim.solvers import masked as pm  # noqa: E402
+from phisim.solvers.linalg import Solve  # noqa: E402
+from phisim.solvers.poisson import _TRANSFORM, _apply_multiplier, _layout, _transform_scale  # noqa: E402
+from phisim.spectral.fft import r2r_multiply  # noqa: E402
 
 
 def _best(fn, repeat: int, number: int, device="cpu") -> float:
@@ -168,8 +168,8 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
     from phisim import CenteredGrid, StaggeredGrid
-    from phisim.advection import maccormack, semi_lagrangian
     from phisim.fluid import buoyancy, make_incompressible
+    from phisim.ops.advection import maccormack, semi_lagrangian
 
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
     x = grid.cell_centers(torch.float64)

@@ -1,4 +1,4 @@
-"""Time per CG solve of ``phisim.linalg.cg`` on the 2-D zero-Dirichlet 5-point Laplacian.
+"""Time per CG solve of ``phisim.solvers.linalg.cg`` on the 2-D zero-Dirichlet 5-point Laplacian.
 
 Usage: ``.venv/bin/python benchmarks/bench_cg.py [--repeats 5] [--sizes 64 128 256] [--device cpu]``
 prints a markdown table. The functions are importable by the benchmark runner:
@@ -28,7 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import SolveError  # noqa: E402
-from phisim.linalg import Solve, cg  # noqa: E402
+from phisim.solvers.linalg import Solve, cg  # noqa: E402
 
 MODES = ("float64", "float32", "float32-plain", "float64-mixed")
 

@@ -114,14 +114,15 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
     sys.path.insert(0, HERE)
     import inputs
 
-    from phisim import CenteredGrid, Grid, Open, StaggeredGrid, poisson_masked
-    from phisim.advection import maccormack, semi_lagrangian
+    from phisim import CenteredGrid, Grid, Open, StaggeredGrid
     from phisim.boundary import Inflow
     from phisim.checks import check_device
-    from phisim.differential import divergence
     from phisim.fluid import Body, Box, Obstacle, Sphere, buoyancy, make_incompressible, navier_stokes_step
-    from phisim.linalg import Solve
-    from phisim.poisson_masked import MaskedPoisson
+    from phisim.ops.advection import maccormack, semi_lagrangian
+    from phisim.ops.differential import divergence
+    from phisim.solvers import masked as poisson_masked
+    from phisim.solvers.linalg import Solve
+    from phisim.solvers.masked import MaskedPoisson
 
     # Like for like: both codes iterate (CG) to the same stopping rule; phisim's direct solve of a layout that
     # keeps coming back (the wake's static disc) is measured by benchmarks/bench_bodies.py instead.

@@ -40,8 +40,9 @@ from timing import set_threads, time_fn  # noqa: E402
 def _planner_child(effort: str) -> list[dict]:
     import torch
 
-    from phisim import fft, poisson
-    from phisim.diffusion import fourier_heat
+    from phisim.solvers import poisson
+    from phisim.solvers.diffusion import fourier_heat
+    from phisim.spectral import fft
 
     fft.set_fft_settings(engine="pyfftw", planner_effort=effort)
     cases = []

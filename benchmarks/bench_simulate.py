@@ -82,8 +82,8 @@ def _size_row(res: tuple[int, ...], steps: int, rounds: int, dtype: str, device:
     """One row of :func:`step_cost`."""
     import torch
 
-    from phisim.advection import advect
     from phisim.fluid import buoyancy, make_incompressible, step
+    from phisim.ops.advection import advect
 
     state = _smoke_state(res, {"float32": torch.float32, "float64": torch.float64}[dtype], device)
     sync = torch.cuda.synchronize if str(device).startswith("cuda") else (lambda: None)

@@ -21,10 +21,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from timing import time_fn  # noqa: E402
 
-from phisim import fft  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.diffusion import fourier_heat, heat_decay_factors  # noqa: E402
-from phisim.poisson import laplacian_eigenvalues, spectral_poisson_solve  # noqa: E402
+from phisim.solvers.diffusion import fourier_heat, heat_decay_factors  # noqa: E402
+from phisim.solvers.poisson import laplacian_eigenvalues, spectral_poisson_solve  # noqa: E402
+from phisim.spectral import fft  # noqa: E402
 
 
 def engines_for(device: torch.device) -> tuple[str, ...]:
@@ -34,7 +34,7 @@ def engines_for(device: torch.device) -> tuple[str, ...]:
         device: The torch device of the inputs.
 
     Returns:
-        Engine names, as :func:`phisim.fft.available_engines` gives them.
+        Engine names, as :func:`phisim.spectral.fft.available_engines` gives them.
     """
     return fft.available_engines() if device.type == "cpu" else ("torch",)
 

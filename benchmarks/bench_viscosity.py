@@ -10,7 +10,7 @@ explicit limit; the explicit step is timed at its own stable size, the cost per 
 
 * ``explicit``: forward Euler ``u + ν dt ∇²u`` (one stencil per component), the reference the issue sets:
   an implicit step should cost at most twice as much;
-* ``implicit (spectral)``: :func:`phisim.diffusion.diffuse_staggered`, backward Euler solved exactly by
+* ``implicit (spectral)``: :func:`phisim.solvers.diffusion.diffuse_staggered`, backward Euler solved exactly by
   one DST-I x DST-II transform pair per component (pocketfft one-axis transforms, in place);
 * ``crank_nicolson``: the same with the explicit half folded into the multiplier;
 * ``implicit, body (capacitance)``: backward Euler with the faces of a disc body fixed, solved directly
@@ -39,13 +39,15 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from timing import synchronize  # noqa: E402
 
-from phisim import Grid, StaggeredGrid, _mac_diffusion, fft  # noqa: E402
+from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.diffusion import diffuse_staggered  # noqa: E402
 from phisim.fluid import navier_stokes_step  # noqa: E402
 from phisim.fluid.bodies import Body  # noqa: E402
 from phisim.fluid.geometry import Sphere  # noqa: E402
-from phisim.linalg import Solve  # noqa: E402
+from phisim.solvers import mac_diffusion as _mac_diffusion  # noqa: E402
+from phisim.solvers.diffusion import diffuse_staggered  # noqa: E402
+from phisim.solvers.linalg import Solve  # noqa: E402
+from phisim.spectral import fft  # noqa: E402
 
 NU = 1.0  # viscosity of the single-step table
 #: Statistic of the repeats: "min" (default: on a shared machine other load only adds time, so the fastest
@@ -64,7 +66,7 @@ NOTES = """Reading the tables:
   against 0.05 / 0.07 ms for a real FFT of 256). From about 90² up (`WALL_SOLVE_MIN_SAMPLES`) that axis is now
   solved as periodic over the faces 0..n-1, an FFT of length n, and one exact correction per transverse mode
   puts face 0 back to zero: the periodic Green's function of face 0, scaled by the value found there
-  (`phisim.fft.wall_solve`; the other faces then satisfy exactly the wall problem, tests compare with the
+  (`phisim.spectral.fft.wall_solve`; the other faces then satisfy exactly the wall problem, tests compare with the
   dense θ-scheme and with the DST-I route to round-off). Per 255x256 component: 0.33 -> 0.26 ms float32,
   0.72/0.56 -> 0.51/0.42 ms float64 (the float64 FFT along the outer axis runs on a transposed copy). The
   previous run of this script (DST-I route) measured 0.688 ms (2.17x) float32 and 1.317 ms (2.50x) float64

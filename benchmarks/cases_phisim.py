@@ -105,7 +105,7 @@ def advect(size: str, dtype: str, repeats: int, device: str, scheme: str) -> dic
 
 def poisson_cg(size: str, dtype: str, repeats: int, device: str) -> dict:
     """CG (``linalg.cg``) on phisim's zero-Dirichlet Laplacian, rtol 1e-5, with iteration count."""
-    from phisim.linalg import Solve, cg
+    from phisim.solvers.linalg import Solve, cg
 
     lap = _need("differential", "laplace")
     res, nb = inputs.parse_size(size)
@@ -147,7 +147,7 @@ def poisson_cg(size: str, dtype: str, repeats: int, device: str) -> dict:
 
 
 def poisson_direct(size: str, dtype: str, repeats: int, device: str) -> dict:
-    """The fast direct (DST) zero-Dirichlet Poisson solve of ``phisim.poisson``."""
+    """The fast direct (DST) zero-Dirichlet Poisson solve of ``phisim.solvers.poisson``."""
     solve = _need("poisson", "solve_poisson")
     res, nb = inputs.parse_size(size)
     f = _centered(inputs.poisson_rhs(res, nb, dtype=dtype), "dirichlet", dtype, device)
@@ -179,7 +179,7 @@ def _smoke_setup(size: str, dtype: str, device: str, method: str):
     """Inputs and a step function mirroring the PhiFlow side's step (see inputs.SMOKE)."""
     maccormack, semi_lagrangian = _need("advection", "maccormack", "semi_lagrangian")
     buoyancy, make_incompressible = _need("fluid", "buoyancy", "make_incompressible")
-    from phisim.linalg import Solve
+    from phisim.solvers.linalg import Solve
 
     res, nb = inputs.parse_size(size)
     init = inputs.smoke_initial(res, nb, dtype=dtype)

@@ -230,7 +230,7 @@ def fft_round_trips(size: str, dtype: str, threads_list=(1, 2), repeats: int = 7
     except ImportError:
         out.append({**base, "engine": "pyfftw planned", "error": "pyfftw not installed"})
     try:
-        from phisim import fft as pfft
+        from phisim.spectral import fft as pfft
 
         for eng in pfft.available_engines():
             for t in threads_list:
@@ -241,10 +241,10 @@ def fft_round_trips(size: str, dtype: str, threads_list=(1, 2), repeats: int = 7
                         return pfft.irfftn(spec * dt_, s=res, axes=axes, engine=eng).numpy()
 
                 torch.set_num_threads(t)
-                add(f"phisim.fft engine={eng}", t, via_phisim)
+                add(f"phisim.spectral.fft engine={eng}", t, via_phisim)
         torch.set_num_threads(old)
-    except Exception as e:  # the phisim.fft API is optional here
-        out.append({**base, "engine": "phisim.fft", "error": f"n/a: {type(e).__name__}: {str(e)[:120]}"})
+    except Exception as e:  # the phisim.spectral.fft API is optional here
+        out.append({**base, "engine": "phisim.spectral.fft", "error": f"n/a: {type(e).__name__}: {str(e)[:120]}"})
     return out
 
 
@@ -559,7 +559,7 @@ def _fft_decision(base: str) -> list[str]:
     lines = [
         "| size | dtype | numpy.fft | scipy.fft 1 thr | scipy.fft 2 thr | torch.fft 1 thr | torch.fft 2 thr "
         "| "
-        "pyfftw 1 thr | pyfftw 2 thr | phisim.fft (pyfftw, 1 thr) | fastest |",
+        "pyfftw 1 thr | pyfftw 2 thr | phisim.spectral.fft (pyfftw, 1 thr) | fastest |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     idx = {(r["size"], r["dtype"], r.get("engine"), r.get("threads")): r for r in data["results"]}
@@ -578,7 +578,7 @@ def _fft_decision(base: str) -> list[str]:
                 ("torch.fft", 2),
                 ("pyfftw planned", 1),
                 ("pyfftw planned", 2),
-                ("phisim.fft engine=pyfftw", 1),
+                ("phisim.spectral.fft engine=pyfftw", 1),
             ]
         ]
         f = _fastest(data, s, d, "engine")
@@ -592,7 +592,7 @@ def _fft_decision(base: str) -> list[str]:
         "",
         f"- made by {cmd} ({runs}{m['date']}, {m['machine']}); "
         "one step = rfftn, multiply by the precomputed decay, irfftn; inputs from `benchmarks/inputs.py`.",
-        "- `phisim.fft` rows call `phisim.fft.rfftn/irfftn` (torch tensors in and out, autograd wrappers, "
+        "- `phisim.spectral.fft` rows call `phisim.spectral.fft.rfftn/irfftn` (torch tensors in and out, autograd wrappers, "
         "plan cache) with the same multiply; the gap to the raw engine is the wrapper's cost.",
         "",
     ]
@@ -607,7 +607,7 @@ def _fft_decision(base: str) -> list[str]:
         one, two = idx.get((s_, d, "pyfftw planned", 1)), idx.get((s_, d, "pyfftw planned", 2))
         if one and two and "median_s" in one and "median_s" in two:
             gains.append((s_, d, one["median_s"] / two["median_s"]))
-        ph = idx.get((s_, d, "phisim.fft engine=pyfftw", 1))
+        ph = idx.get((s_, d, "phisim.spectral.fft engine=pyfftw", 1))
         if one and ph and "median_s" in ph and "median_s" in one:
             overheads.append((s_, d, ph["median_s"] / one["median_s"]))
     if wins:
@@ -626,7 +626,7 @@ def _fft_decision(base: str) -> list[str]:
             )
         if overheads:
             o = ", ".join(f"{s_} {d} {x:.2f}x" for s_, d, x in overheads)
-            lines.append(f"phisim.fft (pyfftw engine) relative to the raw planned pyfftw round trip: {o}.")
+            lines.append(f"phisim.spectral.fft (pyfftw engine) relative to the raw planned pyfftw round trip: {o}.")
     return lines
 
 

@@ -33,11 +33,11 @@ from torch import nn
 from inverse.custom import make_problem
 from inverse.nets import MLP
 from inverse.train import train
-from phisim.advection import advect
 from phisim.checks import check_device
-from phisim.diffusion import diffuse
 from phisim.field import CenteredGrid
 from phisim.grid import Grid
+from phisim.ops.advection import advect
+from phisim.solvers.diffusion import diffuse
 
 
 def burgers_physics(resolution: int = 32, steps: int = 8, dt: float = 0.1, viscosity: float = 0.1):

@@ -40,8 +40,8 @@ from inverse.train import train
 from phisim import CenteredGrid, Grid, StaggeredGrid, divergence
 from phisim.fluid import FluidState, Obstacle, obstacle_mask, step
 from phisim.io import SimulationWriter
-from phisim.plot import animate, plot_field, plot_training_curves, save_figure
-from phisim.wellstats import write_statistics
+from phisim.io.stats import write_statistics
+from phisim.viz.plot import animate, plot_field, plot_training_curves, save_figure
 
 SPLITS = ("train", "valid")
 

@@ -29,7 +29,7 @@ import torch
 from inverse.fluid_inverse import FluidProblem
 from inverse.train import batch_generator, train
 from phisim.checks import check_device
-from phisim.plot import new_figure, plot_curves, plot_field, plot_vector_field, save_figure
+from phisim.viz.plot import new_figure, plot_curves, plot_field, plot_vector_field, save_figure
 
 METHODS = ("adam", "pg")
 LABELS = {"adam": "Adam", "pg": "Adam + PG"}

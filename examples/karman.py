@@ -41,12 +41,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim.boundary import Inflow, Open  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.differential import curl  # noqa: E402
 from phisim.field import StaggeredGrid  # noqa: E402
 from phisim.fluid import Body, FluidState, Sphere, body_forces, cfl_dt, solid_layout, step  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
 from phisim.io import SimulationWriter  # noqa: E402
-from phisim.plot import new_figure, save_figure  # noqa: E402
+from phisim.ops.differential import curl  # noqa: E402
+from phisim.viz.plot import new_figure, save_figure  # noqa: E402
 
 H, LENGTH, D = 0.41, 2.2, 0.1
 

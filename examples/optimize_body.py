@@ -38,7 +38,7 @@ from phisim.checks import check_device  # noqa: E402
 from phisim.field import StaggeredGrid  # noqa: E402
 from phisim.fluid import Body, FluidState, RotatedBox, body_forces, step  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
-from phisim.plot import new_figure, save_figure  # noqa: E402
+from phisim.viz.plot import new_figure, save_figure  # noqa: E402
 
 
 def parse_args(argv=None) -> argparse.Namespace:

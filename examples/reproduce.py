@@ -57,7 +57,7 @@ from inverse.train import batch_generator, train  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError, PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
-from phisim.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
+from phisim.viz.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
 
 X_L1 = "x L1 per sample (sum over cells), training batch"
 EXPERIMENTS: dict[str, dict] = {

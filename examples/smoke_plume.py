@@ -46,7 +46,6 @@ matplotlib.use("Agg")
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from phisim.advection import SCALAR_SCHEMES  # noqa: E402
 from phisim.boundary import Boundary  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.field import CenteredGrid, StaggeredGrid  # noqa: E402
@@ -62,7 +61,8 @@ from phisim.fluid import (  # noqa: E402
 )
 from phisim.grid import Grid  # noqa: E402
 from phisim.io import SimulationWriter  # noqa: E402
-from phisim.plot import animate, new_figure, plot_field, save_figure  # noqa: E402
+from phisim.ops.advection import SCALAR_SCHEMES  # noqa: E402
+from phisim.viz.plot import animate, new_figure, plot_field, save_figure  # noqa: E402
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 

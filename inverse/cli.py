@@ -85,7 +85,7 @@ def describe_file(path: Path) -> str:
     import h5py
     import numpy as np
 
-    from phisim._h5util import open_for_read
+    from phisim.io.h5util import open_for_read
 
     f = open_for_read(path)  # typed errors for missing files, folders, pipes, truncated or locked files
     lines = [f"{path}"]
@@ -146,9 +146,9 @@ def _train(args, problem, method):
 
 def _check_args(args) -> None:
     """Check output paths and the device before any work starts (a bad --out must not fail after training)."""
-    from phisim._h5util import check_output_path
     from phisim.checks import check_device
     from phisim.errors import ParameterError
+    from phisim.io.h5util import check_output_path
 
     if getattr(args, "device", None) is not None:
         check_device(args.device)
@@ -230,7 +230,7 @@ def _dispatch(args) -> int:
             return 0
         results = {m: _train(args, problem, m) for m in args.methods}
         if args.plot is not None and is_main_process():
-            from phisim.plot import plot_training_curves, save_figure
+            from phisim.viz.plot import plot_training_curves, save_figure
 
             ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
                                       title=f"{problem.name}: {problem.metric_name}")

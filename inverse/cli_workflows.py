@@ -126,7 +126,7 @@ def run_workflow(args: argparse.Namespace) -> int:
                               "stats": str(r["stats"])}))
         return 0
     if args.command == "plot":
-        from phisim.plotfile import plot_file
+        from phisim.viz.plotfile import plot_file
 
         anim = None if args.animation == "none" else args.animation
         for p in plot_file(args.path, args.out, field=args.field, sample=args.sample, frames=args.frames,

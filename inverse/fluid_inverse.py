@@ -7,7 +7,7 @@ The initial marker ``m0`` is a per-sample parameter of the operator.
 
 Forward (:class:`FluidMarkerOperator`): ``v0`` is resampled to the MAC faces (average of the two adjacent
 cells), projected to be divergence-free (as the reference does before simulating a prediction), and then
-``steps`` E5 steps (:func:`phisim.scenarios.e5_step`: MacCormack self-advection, projection, energy rescale,
+``steps`` E5 steps (:func:`inverse.fluid_scene.e5_step`: MacCormack self-advection, projection, energy rescale,
 MacCormack marker advection) carry ``m0`` to ``m_t``.
 
 Local inverse (the reference's ``estimate_v0``): the solution is assumed to lie on the low-dimensional prior
@@ -60,12 +60,12 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from inverse.fluid_scene import E5_DT, E5_STEPS, e5_grid, e5_step
 from phisim.errors import ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import make_incompressible
 from phisim.grid import Grid
-from phisim.noise import gaussian_vortex, spectral_noise
-from phisim.scenarios import E5_DT, E5_STEPS, e5_grid, e5_step
+from phisim.simulate.noise import gaussian_vortex, spectral_noise
 
 from .nets import UNet
 from .operators import PhysicsOperator
@@ -290,7 +290,7 @@ class FluidMarkerOperator(PhysicsOperator):
 
     Args:
         marker0: Initial markers ``(B, nx, ny)`` (one per sample; the grid is
-            :func:`phisim.scenarios.e5_grid`, ``dx = 2``, periodic).
+            :func:`inverse.fluid_scene.e5_grid`, ``dx = 2``, periodic).
         steps: Simulation steps (8 in E5).
         dt: Time step (0.25 in E5).
         sigma: Falloff length of the prior's vortex (default ``20 * size / 128``: 20 in E5).
@@ -517,7 +517,7 @@ class FluidProblem(Problem):
 
     Data on the fly (lengths scale with the domain size ``L = 2 * resolution``; E5: ``L = 128``): a box of
     ``56/128 L`` at a centre uniform in ``[L/4, 3L/4]^2``; the marker marks the ``round(f * cells)`` box cells
-    of largest spectral noise (:func:`phisim.noise.spectral_noise`, the E3/PhiFlow recipe), ``f`` uniform in
+    of largest spectral noise (:func:`phisim.simulate.noise.spectral_noise`, the E3/PhiFlow recipe), ``f`` uniform in
     ``fill_range`` per sample; ``v0* = u + vortex(s) + 0.1 * noise`` with ``u = (c - com(m0)) / t``, ``s``
     uniform in ``strength_range``, the vortex falloff ``sigma = 20/128 L``, and unit-std spectral noise per
     component; ``m_t = P(v0*)``. Network: U-net 5 levels, 16 filters, circular padding, input

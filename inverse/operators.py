@@ -23,10 +23,10 @@ from collections.abc import Sequence
 
 import torch
 
-from phisim.diffusion import fourier_heat, fourier_k2
 from phisim.errors import NonFiniteError, ParameterError, ShapeError
-from phisim.linalg import Solve, cg, remove_mean
-from phisim.poisson import normalize_kinds, spectral_poisson_solve, stencil_laplacian
+from phisim.solvers.diffusion import fourier_heat, fourier_k2
+from phisim.solvers.linalg import Solve, cg, remove_mean
+from phisim.solvers.poisson import normalize_kinds, spectral_poisson_solve, stencil_laplacian
 
 __all__ = [
     "PhysicsOperator",
@@ -389,10 +389,10 @@ def _check_compute_dtype(dtype: torch.dtype | None) -> torch.dtype | None:
 class Poisson(PhysicsOperator):
     """E3 pair: forward ``y = ∇⁻²x`` by conjugate gradients, local inverse the 5-point Laplacian ``x = ∇²y``.
 
-    The forward solves ``∇²_h y = x`` with :func:`phisim.linalg.cg` on the SPD system ``−∇²_h y = −x``
+    The forward solves ``∇²_h y = x`` with :func:`phisim.solvers.linalg.cg` on the SPD system ``−∇²_h y = −x``
     (start ``y = 0``; tolerance from ``solve``, E3 uses ``rtol = 1e-5``); its gradient is the implicit
-    adjoint solve of :func:`~phisim.linalg.cg` (no backpropagation through the iterations). ``∇²_h`` is
-    :func:`phisim.poisson.stencil_laplacian`: the second-order cell-centred stencil with boundary values
+    adjoint solve of :func:`~phisim.solvers.linalg.cg` (no backpropagation through the iterations). ``∇²_h`` is
+    :func:`phisim.solvers.poisson.stencil_laplacian`: the second-order cell-centred stencil with boundary values
     on the cell faces (phisim's convention; the reference code puts the zero Dirichlet value in the ghost
     cell instead). The local inverse is the exact inverse of the discrete forward (``∇²_h``), independent
     of ``x0``; it recovers ``x`` from ``P(x)`` to the CG tolerance.
@@ -403,7 +403,7 @@ class Poisson(PhysicsOperator):
 
     Args:
         dx: Cell spacing (float or one per axis; E3: 1).
-        kinds: Boundary kinds per axis (see :func:`phisim.poisson.normalize_kinds`); E3: ``"dirichlet"``
+        kinds: Boundary kinds per axis (see :func:`phisim.solvers.poisson.normalize_kinds`); E3: ``"dirichlet"``
             (zero values).
         solve: CG settings (default ``Solve(rtol=1e-5)`` as in E3).
         preconditioner: ``None`` (plain CG, as the reference) or ``"spectral"`` (the exact fast solver as
@@ -439,7 +439,7 @@ class Poisson(PhysicsOperator):
         self.convention = convention
         solve = Solve(rtol=1e-5) if solve is None else solve
         if not isinstance(solve, Solve):
-            raise ParameterError(f"solve must be a phisim.linalg.Solve, got {type(solve).__name__}")
+            raise ParameterError(f"solve must be a phisim.solvers.linalg.Solve, got {type(solve).__name__}")
         self.dx = dx
         self.kinds = kinds
         self.solve = solve
@@ -516,7 +516,7 @@ def ghost_dirichlet_laplacian(u: torch.Tensor, dx=1.0) -> torch.Tensor:
 
 def ghost_dirichlet_solve(x: torch.Tensor, dx=1.0) -> torch.Tensor:
     """Exact inverse of :func:`ghost_dirichlet_laplacian` by DST type I on every axis (``(B, *res)``)."""
-    from phisim.fft import r2rn
+    from phisim.spectral.fft import r2rn
 
     res = tuple(x.shape[1:])
     rank = len(res)
@@ -541,7 +541,7 @@ def ghost_dirichlet_solve(x: torch.Tensor, dx=1.0) -> torch.Tensor:
 class Heat(PhysicsOperator):
     """E4 pair: exact periodic diffusion ``ŷ(k) = x̂(k)·exp(−4π²|k|²·νt)`` and its Bayes-damped inverse.
 
-    Forward: :func:`phisim.diffusion.fourier_heat` (numpy's ``fftfreq`` wavenumbers in cycles per cell,
+    Forward: :func:`phisim.solvers.diffusion.fourier_heat` (numpy's ``fftfreq`` wavenumbers in cycles per cell,
     dx = 1, periodic; E4: 64×64, ``νt = 8``, float64).
 
     Local inverse (paper appendix B.3, as written in EXPERIMENTS.md E4), per sample: residual

@@ -187,7 +187,7 @@ class PoissonProblem(_UNetGridProblem):
             raise ParameterError(f"boundary must be 'face' or 'ghost', got {self.boundary!r}")
 
     def _make_operator(self) -> PhysicsOperator:
-        from phisim.linalg import Solve
+        from phisim.solvers.linalg import Solve
 
         from .operators import Poisson
 
@@ -201,7 +201,7 @@ class PoissonProblem(_UNetGridProblem):
         With ``data_solver='spectral'`` (default) ``y*`` is the exact discrete solution (DST, float64,
         round-off accurate); ``'cg'`` solves it with the training operator's CG instead (to ``rtol``).
         """
-        from phisim.noise import spectral_noise
+        from phisim.simulate.noise import spectral_noise
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
                            normalize=self.normalize, dtype=torch.float64).values.to(device=device, dtype=self.dtype)
@@ -238,7 +238,7 @@ class HeatProblem(_UNetGridProblem):
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` hot rectangles, ``y* = P(x*)`` in float64."""
-        from phisim.noise import random_rectangles
+        from phisim.simulate.noise import random_rectangles
 
         x = random_rectangles(self.grid, batch_size, generator=generator, dtype=torch.float64).values.to(device)
         op = self.operator()

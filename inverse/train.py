@@ -36,11 +36,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from phisim._h5util import check_output_path
-from phisim._journal import write_failure
 from phisim.checks import check_device
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
 from phisim.io import TrainingLog, recover_file
+from phisim.io.h5util import check_output_path
+from phisim.io.journal import write_failure
 
 from .distributed import convert_sync_batchnorm, init_from_env, launched_by_torchrun, rank_device
 from .hig import HIG, GaussNewton

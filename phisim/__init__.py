@@ -1,7 +1,26 @@
-"""phisim: differentiable PDE simulation on PyTorch (grids, fields, operators, solvers, fluids, I/O)."""
+"""phisim: differentiable PDE simulation on PyTorch (grids, fields, operators, solvers, fluids, I/O).
 
-from .advection import advect, conservative, maccormack, semi_lagrangian
-from .boundary import (
+The package is one folder per layer; each layer imports only the layers listed before it:
+
+==================  ==========================================================================================
+``phisim``          errors, argument checks, ``Grid``, boundary conditions, padding, ``CenteredGrid`` /
+                    ``StaggeredGrid`` (the vocabulary every layer shares)
+``phisim.spectral`` FFT engines and plans, real-to-real transforms, box eigen-multipliers
+``phisim.ops``      stencils, gradient / divergence / laplace / curl, advection
+``phisim.solvers``  CG with ``Solve`` / ``SolveInfo``, Poisson (spectral, masked, direct), diffusion
+``phisim.fluid``    geometry, bodies, projection, viscosity, forces, the ``FluidStepper``
+``phisim.pde``      spectral (ETDRK) steppers of semi-linear PDEs
+``phisim.io``       HDF5 in The Well's layout, training logs, journal and recovery, statistics
+``phisim.viz``      pictures and animations
+``phisim.simulate`` initial states, scenarios and the parallel dataset writer
+==================  ==========================================================================================
+
+Old flat module paths (``phisim.poisson``, ``phisim.advection``, ...) still import; see :mod:`phisim.compat`.
+"""
+
+
+from phisim import compat as _compat
+from phisim.boundary import (
     Boundary,
     BoundaryCondition,
     Dirichlet,
@@ -15,7 +34,7 @@ from .boundary import (
     pad_staggered_component,
     set_boundary_faces,
 )
-from .checks import (
+from phisim.checks import (
     all_finite,
     check_device,
     check_dt,
@@ -24,16 +43,7 @@ from .checks import (
     check_nonnegative,
     check_positive,
 )
-from .differential import curl, divergence, gradient, laplace, velocity_from_stream_function
-from .diffusion import (
-    diffuse,
-    diffuse_staggered,
-    diffuse_values,
-    explicit_stability_limit,
-    fourier_heat,
-    heat_decay_factors,
-)
-from .errors import (
+from phisim.errors import (
     BoundaryError,
     FileFormatError,
     GridMismatchError,
@@ -44,9 +54,8 @@ from .errors import (
     ShapeError,
     SolveError,
 )
-from .fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
-from .field import CenteredGrid, Field, StaggeredGrid, sample_padded
-from .fluid import (
+from phisim.field import CenteredGrid, Field, StaggeredGrid, sample_padded
+from phisim.fluid import (
     FluidState,
     Obstacle,
     buoyancy,
@@ -61,8 +70,8 @@ from .fluid import (
     relative_divergence,
     step,
 )
-from .grid import Grid
-from .io import (
+from phisim.grid import Grid
+from phisim.io.simulation import (
     SimulationData,
     SimulationWriter,
     TrainingLog,
@@ -71,10 +80,20 @@ from .io import (
     recover_file,
     well_bc_type,
 )
-from .linalg import Solve, SolveInfo, cg, remove_mean
-from .noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
-from .poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
-from .scenarios import e5_simulation
+from phisim.ops.advection import advect, conservative, maccormack, semi_lagrangian
+from phisim.ops.differential import curl, divergence, gradient, laplace, velocity_from_stream_function
+from phisim.simulate.noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
+from phisim.solvers.diffusion import (
+    diffuse,
+    diffuse_staggered,
+    diffuse_values,
+    explicit_stability_limit,
+    fourier_heat,
+    heat_decay_factors,
+)
+from phisim.solvers.linalg import Solve, SolveInfo, cg, remove_mean
+from phisim.solvers.poisson import masked_poisson_solve, solve_poisson, spectral_poisson_solve
+from phisim.spectral.fft import FFTSettings, fft_settings, get_fft_settings, set_fft_settings
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
@@ -97,9 +116,10 @@ __all__ = [
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
     "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
     "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "navier_stokes_rk_step", "FluidState", "step",
-    "e5_simulation",
 ]
 
+
+_compat.install()
 
 _PLOT_NAMES = ("plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure")
 
@@ -107,7 +127,7 @@ _PLOT_NAMES = ("plot_field", "plot_vector_field", "plot_curves", "animate", "sav
 def __getattr__(name):
     """Import the plotting functions (and matplotlib) only when first used."""
     if name in _PLOT_NAMES:
-        from . import plot
+        from phisim.viz import plot
 
         return getattr(plot, name)
     raise AttributeError(f"module 'phisim' has no attribute {name!r}")

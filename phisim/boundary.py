@@ -42,10 +42,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ._padplan import fast_face_plan as _fast_face_plan
-from ._padplan import fast_plan as _fast_plan
-from .errors import BoundaryError, NonFiniteError, ShapeError
-from .grid import AXIS_NAMES
+from phisim.errors import BoundaryError, NonFiniteError, ShapeError
+from phisim.grid import AXIS_NAMES
+from phisim.padding import fast_face_plan as _fast_face_plan
+from phisim.padding import fast_plan as _fast_plan
 
 __all__ = [
     "BoundaryCondition",
@@ -63,7 +63,7 @@ __all__ = [
 ]
 
 SCALAR, NORMAL, TANGENTIAL = "scalar", "normal", "tangential"
-#: Pad and set boundary faces by the cached gather plans of :mod:`phisim._padplan` wherever every rule is
+#: Pad and set boundary faces by the cached gather plans of :mod:`phisim.padding` wherever every rule is
 #: constant (bit-identical to the general per-side path, which tests select by setting this to False).
 _FAST_PADDING = True
 #: ... for arrays of at most this many samples per batch entry: the plans save per-operation overhead, which

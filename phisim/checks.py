@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from .errors import NonFiniteError, ParameterError
+from phisim.errors import NonFiniteError, ParameterError
 
 __all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
            "check_finite_number"]

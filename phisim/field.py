@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
-from .errors import GridMismatchError, ParameterError, ShapeError
-from .grid import Grid
+from phisim.boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
+from phisim.errors import GridMismatchError, ParameterError, ShapeError
+from phisim.grid import Grid
 
 __all__ = ["CenteredGrid", "StaggeredGrid", "Field", "sample_padded"]
 

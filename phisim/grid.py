@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .errors import ParameterError
+from phisim.errors import ParameterError
 
 __all__ = ["Grid", "AXIS_NAMES"]
 

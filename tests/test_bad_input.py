@@ -19,7 +19,6 @@ import phisim as ps
 from inverse.cli import main as cli_main
 from inverse.problems import Method, get_problem
 from inverse.train import train
-from phisim import poisson
 from phisim.errors import (
     BoundaryError,
     FileFormatError,
@@ -29,6 +28,7 @@ from phisim.errors import (
     PhisimError,
     ShapeError,
 )
+from phisim.solvers import poisson
 
 G = ps.Grid((8, 6))
 G3 = ps.Grid((4, 4, 4))

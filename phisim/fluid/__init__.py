@@ -15,13 +15,19 @@ Modules:
   ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
 """
 
-from .bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
-from .forces import BodyForces, body_forces, probe_pressure
-from .geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
-from .integrators import INTEGRATORS, convection, navier_stokes_rk_step
-from .projection import PRESSURE_SOLVE, impose_solids, make_incompressible, net_boundary_flux, relative_divergence
-from .step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
-from .viscosity import VISCOSITY_SCHEMES, diffuse_velocity
+from phisim.fluid.bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
+from phisim.fluid.forces import BodyForces, body_forces, probe_pressure
+from phisim.fluid.geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
+from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
+from phisim.fluid.projection import (
+    PRESSURE_SOLVE,
+    impose_solids,
+    make_incompressible,
+    net_boundary_flux,
+    relative_divergence,
+)
+from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
+from phisim.fluid.viscosity import VISCOSITY_SCHEMES, diffuse_velocity
 
 __all__ = [
     "Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction",

@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..boundary import Boundary, Inflow
-from ..errors import BoundaryError, ParameterError, ShapeError
-from ..grid import Grid
-from .geometry import Geometry, fluid_fraction, rotation_matrix
+from phisim.boundary import Boundary, Inflow
+from phisim.errors import BoundaryError, ParameterError, ShapeError
+from phisim.fluid.geometry import Geometry, fluid_fraction, rotation_matrix
+from phisim.grid import Grid
 
 __all__ = ["Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks"]
 

@@ -31,12 +31,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ..checks import check_positive
-from ..errors import ParameterError, ShapeError
-from ..field import CenteredGrid, StaggeredGrid
-from .bodies import Body, Obstacle, _body_fraction, unit_normal
-from .geometry import Geometry
-from .projection import _check_velocity
+from phisim.checks import check_positive
+from phisim.errors import ParameterError, ShapeError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid.bodies import Body, Obstacle, _body_fraction, unit_normal
+from phisim.fluid.geometry import Geometry
+from phisim.fluid.projection import _check_velocity
 
 __all__ = ["BodyForces", "body_forces", "probe_pressure"]
 

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from ..errors import ParameterError, ShapeError
+from phisim.errors import ParameterError, ShapeError
 
 __all__ = ["Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction", "rotation_matrix"]
 

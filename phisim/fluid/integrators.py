@@ -17,7 +17,7 @@ explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equatio
   ``j ≠ i``); boundary ghosts follow the velocity boundary (walls, moving lids, open sides, periodic).
   For a discretely divergence-free field it conserves momentum and kinetic energy in a periodic box
   (Morinishi et al. 1998, J. Comput. Phys. 143).
-* ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.differential.laplace`).
+* ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.ops.differential.laplace`).
 * ``f(t)`` is a body force (a StaggeredGrid, or a callable of time for time-dependent forcing).
 * obstacles: faces touching solid cells are set to zero before every projection (resting no-slip bodies).
 
@@ -47,7 +47,7 @@ and ``q`` the previous step's pressure potential (``pressure_guess``, in the ``d
     ``(I - ν dt/2 L) u** = u_n + dt/2 (E(u_n, t_n) + E(u1, t_n + dt)) + ν dt/2 L u_n - G q``,
     ``u_{n+1} = P u**``,  ``q_{n+1} = q + φ`` (``φ`` the potential of the last projection).
 
-The implicit solves are :func:`phisim.diffusion.diffuse_staggered` (exact spectral box solves; with the
+The implicit solves are :func:`phisim.solvers.diffusion.diffuse_staggered` (exact spectral box solves; with the
 faces touching obstacles held at 0 a direct capacitance solve, or PCG on the first step with a new body
 or dt). The incremental pressure ``-G q`` makes the splitting error of viscosity and projection at walls
 second order: pass the returned pressure back as ``pressure_guess``
@@ -64,14 +64,14 @@ from collections.abc import Callable
 
 import torch
 
-from ..boundary import pad_staggered_component
-from ..checks import check_dt, check_nonnegative
-from ..differential import gradient, laplace
-from ..errors import GridMismatchError, ParameterError
-from ..field import CenteredGrid, StaggeredGrid
-from .bodies import solid_layout
-from .projection import impose_solids, make_incompressible
-from .step import _to_time, kinetic_energy, normalize_energy
+from phisim.boundary import pad_staggered_component
+from phisim.checks import check_dt, check_nonnegative
+from phisim.errors import GridMismatchError, ParameterError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid.bodies import solid_layout
+from phisim.fluid.projection import impose_solids, make_incompressible
+from phisim.fluid.step import _to_time, kinetic_energy, normalize_energy
+from phisim.ops.differential import gradient, laplace
 
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
 
@@ -242,7 +242,7 @@ def navier_stokes_rk_step(
 
 def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
     """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
-    from ..diffusion import diffuse_staggered
+    from phisim.solvers.diffusion import diffuse_staggered
 
     grid = velocity.grid
     t_new = time + float(dt)

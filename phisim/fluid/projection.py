@@ -28,8 +28,8 @@ Boundary conditions per side (from the velocity boundary, :meth:`~phisim.boundar
 A domain without an open side must balance its prescribed fluxes (net inflow 0); otherwise no divergence-
 free field exists and :class:`~phisim.errors.ParameterError` says so.
 
-Solvers: without bodies the spectral solver of :mod:`phisim.poisson` (exact, ``O(N log N)``); with bodies
-conjugate gradients on :class:`~phisim.poisson_masked.MaskedPoisson` (kept per body layout) with the
+Solvers: without bodies the spectral solver of :mod:`phisim.solvers.poisson` (exact, ``O(N log N)``); with bodies
+conjugate gradients on :class:`~phisim.solvers.masked.MaskedPoisson` (kept per body layout) with the
 spectral preconditioner, warm-started from ``pressure_guess``; gradients by the implicit adjoint solve.
 
 References: Harlow & Welch (1965), Phys. Fluids 8 (the MAC grid); Chorin (1968), Math. Comp. 22
@@ -44,16 +44,16 @@ from dataclasses import replace
 
 import torch
 
-from .._padplan import const
-from ..boundary import NORMAL, Boundary, pad
-from ..checks import all_finite
-from ..differential import _diff, divergence
-from ..errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
-from ..field import CenteredGrid, StaggeredGrid
-from ..linalg import Solve
-from ..poisson import _solve_trusted, field_kinds_and_values, normalize_kinds
-from ..poisson_masked import MaskedPoisson
-from .bodies import SolidLayout, solid_layout
+from phisim.boundary import NORMAL, Boundary, pad
+from phisim.checks import all_finite
+from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid.bodies import SolidLayout, solid_layout
+from phisim.ops.differential import _diff, divergence
+from phisim.padding import const
+from phisim.solvers.linalg import Solve
+from phisim.solvers.masked import MaskedPoisson
+from phisim.solvers.poisson import _solve_trusted, field_kinds_and_values, normalize_kinds
 
 __all__ = ["PRESSURE_SOLVE", "make_incompressible", "relative_divergence", "impose_solids", "net_boundary_flux"]
 
@@ -235,7 +235,7 @@ def make_incompressible(
             tensor ``(B, *res)``. The direct solve ignores it.
         method: ``'auto'`` (spectral without solids, CG with them), ``'spectral'`` (rejects solids) or
             ``'cg'`` (weighted CG with spectral preconditioner even without solids).
-        return_info: Also return the :class:`~phisim.linalg.SolveInfo` of the CG solve (None for the
+        return_info: Also return the :class:`~phisim.solvers.linalg.SolveInfo` of the CG solve (None for the
             direct solve).
         time: Simulation time: positions and velocities of moving bodies.
 
@@ -290,7 +290,7 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     dx = grid.dx
     dxt = [const(d, v.dtype, v.device) for d in dx]
     div = None
-    for a, c in enumerate(v.values):  # the MAC divergence (as phisim.differential.divergence)
+    for a, c in enumerate(v.values):  # the MAC divergence (as phisim.ops.differential.divergence)
         t = _diff(c, 1 + a) / dxt[a]
         div = t if div is None else div + t
     if check and not math.isfinite(float(div.sum())) and not all_finite(div):  # one reduction unless suspect
@@ -298,7 +298,7 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     p = _solve_trusted(div, dx, kinds)
     pressure = CenteredGrid._trusted(p, grid, p_boundary)
     comps = []
-    for a, c in enumerate(v.values):  # face gradient (as phisim.differential.gradient(at='face'))
+    for a, c in enumerate(v.values):  # face gradient (as phisim.ops.differential.gradient(at='face'))
         g = _diff(pad(p, p_boundary, dx, 1, axes=[a]), 1 + a) / dxt[a]
         comps.append(c - g)
     out = StaggeredGrid._trusted(tuple(comps), grid, boundary).with_boundary_faces()

@@ -1,6 +1,6 @@
 """Navier-Stokes time steps: self-advection, buoyancy, viscosity, projection; energy, CFL time step.
 
-:func:`navier_stokes_step` composes pure functions: self-advection (:func:`phisim.advection.advect`,
+:func:`navier_stokes_step` composes pure functions: self-advection (:func:`phisim.ops.advection.advect`,
 semi-Lagrangian or MacCormack), a body force (e.g. :func:`buoyancy`), the solids' velocity
 (:func:`~phisim.fluid.projection.impose_solids`), viscosity (:func:`~phisim.fluid.viscosity.diffuse_velocity`,
 explicit or implicit), projection (:func:`~phisim.fluid.projection.make_incompressible`), and optionally a
@@ -21,18 +21,18 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .._padplan import const
-from ..advection import SCALAR_SCHEMES, SCHEMES, _advect, advect
-from ..advection import _validate as _validate_advection
-from ..boundary import Boundary, Inflow, pad
-from ..checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
-from ..errors import GridMismatchError, ParameterError, ShapeError
-from ..field import CenteredGrid, StaggeredGrid
-from ..grid import Grid
-from ..linalg import Solve
-from .bodies import solid_layout
-from .projection import _check_velocity, _project_box, impose_solids, make_incompressible
-from .viscosity import diffuse_velocity
+from phisim.boundary import Boundary, Inflow, pad
+from phisim.checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
+from phisim.errors import GridMismatchError, ParameterError, ShapeError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid.bodies import solid_layout
+from phisim.fluid.projection import _check_velocity, _project_box, impose_solids, make_incompressible
+from phisim.fluid.viscosity import diffuse_velocity
+from phisim.grid import Grid
+from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, _advect, advect
+from phisim.ops.advection import _validate as _validate_advection
+from phisim.padding import const
+from phisim.solvers.linalg import Solve
 
 __all__ = [
     "buoyancy",
@@ -237,7 +237,7 @@ def navier_stokes_step(
     if advection not in SCHEMES:
         raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
     if integrator != "split":
-        from .integrators import navier_stokes_rk_step
+        from phisim.fluid.integrators import navier_stokes_rk_step
 
         if force is not None:
             _check_velocity(force, "force")
@@ -342,7 +342,7 @@ def step(
             time for the velocity; see :mod:`phisim.fluid.integrators`). The buoyancy of the new marker is
             then a force held constant over the step.
         marker_advection: Scheme of the marker transport: one of
-            :data:`phisim.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
+            :data:`phisim.ops.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
             in closed boxes and periodic domains and never makes it negative. Default: ``advection``.
 
     Returns:
@@ -383,7 +383,7 @@ def step(
         _scalar_values(state.marker, v0.grid)  # a scalar CenteredGrid on the velocity's grid
     t_new = state.time + float(dt)
     if integrator != "split":
-        from .integrators import navier_stokes_rk_step
+        from phisim.fluid.integrators import navier_stokes_rk_step
 
         force = None
         if marker is not None and buoyancy_strength != 0:

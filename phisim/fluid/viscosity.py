@@ -3,22 +3,22 @@
 Wall and inflow velocities enter through the ghost samples of the velocity boundary; bodies enter through
 :func:`phisim.fluid.projection.impose_solids`, applied before this step, which puts each body's velocity on
 the faces it covers, so the viscous stencil sees it at the body's surface. The work is done by
-:func:`phisim.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one DST/DCT/FFT pair per
+:func:`phisim.solvers.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one DST/DCT/FFT pair per
 component (about the cost of an explicit step at small sizes; see ``docs/BENCHMARKS.md``).
 """
 
 from __future__ import annotations
 
-from ..checks import check_dt, check_nonnegative
-from ..diffusion import diffuse_staggered
-from ..errors import ParameterError
-from ..field import StaggeredGrid
-from ..linalg import Solve
-from .projection import _check_velocity
+from phisim.checks import check_dt, check_nonnegative
+from phisim.errors import ParameterError
+from phisim.field import StaggeredGrid
+from phisim.fluid.projection import _check_velocity
+from phisim.solvers.diffusion import diffuse_staggered
+from phisim.solvers.linalg import Solve
 
 __all__ = ["diffuse_velocity", "VISCOSITY_SCHEMES"]
 
-#: Schemes of :func:`diffuse_velocity` (the methods of :func:`phisim.diffusion.diffuse_staggered`).
+#: Schemes of :func:`diffuse_velocity` (the methods of :func:`phisim.solvers.diffusion.diffuse_staggered`).
 VISCOSITY_SCHEMES = ("explicit", "implicit", "crank_nicolson", "spectral")
 
 
@@ -39,10 +39,10 @@ def diffuse_velocity(
             ``viscosity * dt * sum(2 / dx_i^2) <= 1``), ``'implicit'`` (backward Euler, first order,
             unconditionally stable), ``'crank_nicolson'`` (second order, unconditionally stable) or
             ``'spectral'`` (exact in time; no ``fixed`` faces). Implicit schemes are exact box solves by
-            DST/DCT/FFT (:func:`phisim.diffusion.diffuse_staggered`).
+            DST/DCT/FFT (:func:`phisim.solvers.diffusion.diffuse_staggered`).
         solve: CG settings of the solve with ``fixed`` faces (unused otherwise).
         fixed: Optional per-component face masks held at their current value (bodies), see
-            :func:`phisim.diffusion.diffuse_staggered`.
+            :func:`phisim.solvers.diffusion.diffuse_staggered`.
 
     Returns:
         The diffused velocity with boundary faces re-imposed.

@@ -4,7 +4,7 @@ See :mod:`phisim.simulate.scenarios` for the scenarios and :mod:`phisim.simulate
 layout (The Well's ``data/<split>/*.h5`` plus ``stats.yaml``), seeding, workers and resuming.
 """
 
-from .dataset import (
+from phisim.simulate.dataset import (
     SPLITS,
     ChunkPlan,
     check_dataset_dir,
@@ -15,7 +15,7 @@ from .dataset import (
     simulate_chunk,
     simulate_dataset,
 )
-from .scenarios import COMMON_PARAMETERS, SCENARIOS, Param, Scenario, Simulation
+from phisim.simulate.scenarios import COMMON_PARAMETERS, SCENARIOS, Param, Scenario, Simulation
 
 __all__ = [
     "SCENARIOS", "COMMON_PARAMETERS", "Param", "Scenario", "Simulation", "SPLITS", "ChunkPlan",

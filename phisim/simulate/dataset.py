@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import FileFormatError, ParameterError
-from .scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
+from phisim.errors import FileFormatError, ParameterError
+from phisim.simulate.scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
 
 __all__ = ["ChunkPlan", "get_scenario", "resolve_config", "load_config_file", "plan_chunks", "simulate_chunk",
            "simulate_dataset", "check_dataset_dir", "SPLITS"]
@@ -224,7 +224,7 @@ def _draw_parameters(sc: Scenario, cfg: Mapping[str, Any], g: torch.Generator) -
 
 
 def _writer_supports(name: str) -> bool:
-    from ..io import SimulationWriter
+    from phisim.io.simulation import SimulationWriter
 
     return name in inspect.signature(SimulationWriter.__init__).parameters
 
@@ -240,7 +240,7 @@ def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.Path
     Returns:
         The path of the written file.
     """
-    from ..io import SimulationWriter
+    from phisim.io.simulation import SimulationWriter
 
     sc = get_scenario(cfg["scenario"])
     g = _generator(cfg["seed"], chunk.index)
@@ -335,8 +335,8 @@ def _prepare_root(root: Path, cfg: dict, overwrite: bool, rank: int) -> None:
 
 
 def _write_statistics(root: Path) -> Path:
-    """The loader's ``stats.yaml`` over the training split (:func:`phisim.wellstats.write_statistics`)."""
-    from ..wellstats import write_statistics
+    """The loader's ``stats.yaml`` over the training split (:func:`phisim.io.stats.write_statistics`)."""
+    from phisim.io.stats import write_statistics
 
     return write_statistics(root)
 

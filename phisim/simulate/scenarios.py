@@ -36,10 +36,10 @@ from typing import Any
 
 import torch
 
-from ..boundary import Boundary, Dirichlet, NoSlipWall
-from ..errors import ParameterError
-from ..field import CenteredGrid, StaggeredGrid
-from ..grid import Grid
+from phisim.boundary import Boundary, Dirichlet, NoSlipWall
+from phisim.errors import ParameterError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.grid import Grid
 
 __all__ = ["Param", "Simulation", "Scenario", "SCENARIOS", "COMMON_PARAMETERS"]
 
@@ -147,7 +147,7 @@ def _uniform(g: torch.Generator, shape, lo: float, hi: float, dtype=torch.float6
 
 
 def _build_smoke(cfg, p, batch, g, dtype, device) -> Simulation:
-    from ..fluid import FluidState, Obstacle, obstacle_mask, step
+    from phisim.fluid import FluidState, Obstacle, obstacle_mask, step
 
     dim = cfg["dim"]
     n = _resolution(cfg, dim)
@@ -193,8 +193,8 @@ def _build_smoke(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _divergence_free_noise(grid, boundary, batch, amplitude, g, dtype, device) -> StaggeredGrid:
-    from ..fluid import make_incompressible
-    from ..noise import spectral_noise
+    from phisim.fluid import make_incompressible
+    from phisim.simulate.noise import spectral_noise
 
     noise = spectral_noise(grid, batch, scale=4.0, channels=grid.rank, generator=g, dtype=dtype, device=device)
     v = CenteredGrid(amplitude * noise.values, grid, boundary).to_staggered()
@@ -203,7 +203,7 @@ def _divergence_free_noise(grid, boundary, batch, amplitude, g, dtype, device) -
 
 
 def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
-    from ..fluid import navier_stokes_step
+    from phisim.fluid import navier_stokes_step
 
     res = _resolution(cfg, 2)
     grid = Grid(res, bounds=(1.0, 1.0))
@@ -224,7 +224,7 @@ def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _periodic_flow(grid, v0, p, dt, integrator: str = "split") -> Simulation:
-    from ..fluid import navier_stokes_step
+    from phisim.fluid import navier_stokes_step
 
     def advance(s):
         v, _ = navier_stokes_step(s, dt, viscosity=p["viscosity"], advection="maccormack", integrator=integrator)
@@ -279,8 +279,8 @@ def _build_turbulence(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _build_heat(cfg, p, batch, g, dtype, device) -> Simulation:
-    from ..diffusion import diffuse
-    from ..noise import random_rectangles
+    from phisim.simulate.noise import random_rectangles
+    from phisim.solvers.diffusion import diffuse
 
     dim = cfg["dim"]
     res = _resolution(cfg, dim)
@@ -303,9 +303,9 @@ def _build_heat(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _build_burgers(cfg, p, batch, g, dtype, device) -> Simulation:
-    from ..advection import advect
-    from ..diffusion import diffuse
-    from ..noise import spectral_noise
+    from phisim.ops.advection import advect
+    from phisim.simulate.noise import spectral_noise
+    from phisim.solvers.diffusion import diffuse
 
     dim = cfg["dim"]
     res = _resolution(cfg, dim)
@@ -324,9 +324,9 @@ def _build_burgers(cfg, p, batch, g, dtype, device) -> Simulation:
 
 def _build_karman(cfg, p, batch, g, dtype, device) -> Simulation:
     """Flow past a cylinder in a channel (the DFG geometry, scaled by ``resolution`` cells across)."""
-    from ..boundary import Inflow, Open
-    from ..fluid import Body, FluidState, Sphere, cfl_dt, make_incompressible, solid_layout, step
-    from ..noise import spectral_noise
+    from phisim.boundary import Inflow, Open
+    from phisim.fluid import Body, FluidState, Sphere, cfl_dt, make_incompressible, solid_layout, step
+    from phisim.simulate.noise import spectral_noise
 
     height, length, diameter = 0.41, 2.2, 0.1
     ny = _resolution(cfg, 2)[1] if not isinstance(cfg["resolution"], int) else cfg["resolution"]

@@ -223,8 +223,8 @@ def load_problem_well(root):
 
 def test_plot_file_vorticity_mask_and_curves(tmp_path):
     from phisim.io import read_simulation
-    from phisim.plotfile import field_frames, obstacle_of, plot_file
     from phisim.simulate import resolve_config, simulate_dataset
+    from phisim.viz.plotfile import field_frames, obstacle_of, plot_file
 
     cfg = resolve_config("taylor_green", trajectories=1, trajectories_per_file=1, steps=2, resolution=32,
                          valid_fraction=0, test_fraction=0, dtype="float64")

@@ -14,11 +14,11 @@ from inverse.fluid_inverse import (
     vortex_strength,
     vortex_velocity,
 )
+from inverse.fluid_scene import e5_grid, e5_simulation
 from inverse.physgrad import physical_update
 from inverse.problems import PROBLEMS, get_problem
 from inverse.train import train
 from phisim.errors import ParameterError, PhisimError, ShapeError
-from phisim.scenarios import e5_grid, e5_simulation
 
 
 def _blob_marker(res: int, batch: int, dtype=torch.float64) -> torch.Tensor:

@@ -9,7 +9,7 @@ from inverse.operators import Poisson, ghost_dirichlet_laplacian, ghost_dirichle
 from inverse.problems import PoissonProblem
 from inverse.train import _identity_diff, _run_identity
 from phisim.errors import ParameterError
-from phisim.poisson import stencil_laplacian
+from phisim.solvers.poisson import stencil_laplacian
 
 
 def _ghost_matrix(n, m, dx, dy):

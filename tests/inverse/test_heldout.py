@@ -12,7 +12,7 @@ from inverse.cli import main as cli_main
 from inverse.problems import HELDOUT_SEED, get_problem
 from inverse.train import batch_generator, evaluate, train
 from phisim.errors import ParameterError
-from phisim.plot import plot_training_curves
+from phisim.viz.plot import plot_training_curves
 
 
 def _poisson(**kw):

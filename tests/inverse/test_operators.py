@@ -10,7 +10,7 @@ import torch
 
 from inverse.operators import Heat, PhysicsOperator, Poisson, ScaleToy, Sine, SquareToy
 from phisim.errors import NonFiniteError, ParameterError, PhisimError, ShapeError
-from phisim.linalg import Solve
+from phisim.solvers.linalg import Solve
 
 F64 = torch.float64
 
@@ -212,7 +212,7 @@ def _smooth_field(b: int, shape: tuple[int, int], seed: int) -> torch.Tensor:
 
 
 def test_poisson_forward_solves_the_stencil_and_inverse_recovers_x():
-    from phisim.poisson import spectral_poisson_solve, stencil_laplacian
+    from phisim.solvers.poisson import spectral_poisson_solve, stencil_laplacian
 
     x = _smooth_field(3, (32, 24), 0)
     op = Poisson()  # E3: CG, rtol 1e-5, zero Dirichlet
@@ -271,7 +271,7 @@ def test_poisson_settings_errors():
 
 def _rectangles(b: int, seed: int) -> torch.Tensor:
     from phisim.grid import Grid
-    from phisim.noise import random_rectangles
+    from phisim.simulate.noise import random_rectangles
 
     return random_rectangles(Grid((64, 64)), b, seed=seed, dtype=F64).values
 

@@ -8,7 +8,7 @@ import torch
 from inverse.problems import get_problem
 from inverse.train import batch_generator, train
 from phisim.errors import ParameterError
-from phisim.poisson import stencil_laplacian
+from phisim.solvers.poisson import stencil_laplacian
 
 
 def test_spectral_data_are_exact_and_agree_with_cg_data():

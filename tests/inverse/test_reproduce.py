@@ -151,7 +151,7 @@ def test_headline_pg_ahead_of_adam(case):
 def test_seed_table_ratios_of_running_means(tmp_path):
     import sys
 
-    from phisim.traininglog import TrainingLog
+    from phisim.io.traininglog import TrainingLog
 
     sys.path.insert(0, str(ROOT / "examples"))
     spec = importlib.util.spec_from_file_location("seed_table", ROOT / "examples" / "seed_table.py")

@@ -1,4 +1,4 @@
-"""Tests of phisim.advection: convergence orders, extrema, invariants, boundaries, 3-D, gradients, errors."""
+"""Tests of phisim.ops.advection: convergence orders, extrema, invariants, boundaries, 3-D, gradients, errors."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from phisim import CenteredGrid, Dirichlet, Grid, Neumann, NoSlipWall, StaggeredGrid
-from phisim.advection import advect, maccormack, semi_lagrangian
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError
+from phisim.ops.advection import advect, maccormack, semi_lagrangian
 
 F64 = torch.float64
 

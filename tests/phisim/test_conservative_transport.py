@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from phisim import CenteredGrid, Dirichlet, Grid, StaggeredGrid
-from phisim.advection import advect, conservative
-from phisim.differential import divergence, velocity_from_stream_function
 from phisim.errors import ParameterError, ShapeError
 from phisim.fluid import Obstacle, make_incompressible, obstacle_mask
+from phisim.ops.advection import advect, conservative
+from phisim.ops.differential import divergence, velocity_from_stream_function
 
 F64 = torch.float64
 

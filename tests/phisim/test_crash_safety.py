@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from phisim import _journal
 from phisim.errors import FileFormatError, IncompleteFileWarning, PhisimError
 from phisim.io import SimulationWriter, TrainingLog, read_simulation, read_training, recover_file
+from phisim.io import journal as _journal
 
 sys.path.insert(0, str(Path(__file__).parent))
 from crash_harness import GRID, check_file, frame_values, kill_once  # noqa: E402

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from phisim import fft
-from phisim.diffusion import (
+from phisim.errors import ParameterError
+from phisim.solvers.diffusion import (
     diffuse,
     diffuse_values,
     explicit_stability_limit,
@@ -15,9 +15,9 @@ from phisim.diffusion import (
     fourier_k2,
     heat_decay_factors,
 )
-from phisim.errors import ParameterError
-from phisim.linalg import Solve
-from phisim.poisson import stencil_laplacian
+from phisim.solvers.linalg import Solve
+from phisim.solvers.poisson import stencil_laplacian
+from phisim.spectral import fft
 
 
 @pytest.fixture(autouse=True)

@@ -1,6 +1,6 @@
 """The fast paths of a smoke step agree with the general ones.
 
-* Padding and boundary faces by cached gather plans (``phisim._padplan``) against the per-side
+* Padding and boundary faces by cached gather plans (``phisim.padding``) against the per-side
   narrow/flip/concatenate path, for every boundary kind, 1-3 D, float32/float64, widths 1 and 2, all axes
   and single axes: bit-identical values, equal gradients, gradcheck in float64.
 * The MacCormack limiter bounds from stacked indices against the per-axis formulation.
@@ -16,7 +16,6 @@ import pytest
 import torch
 
 import phisim.boundary as bmod
-from phisim.advection import _location, advect
 from phisim.boundary import (
     Boundary,
     Dirichlet,
@@ -34,6 +33,7 @@ from phisim.errors import GridMismatchError, NonFiniteError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import FluidState, buoyancy, make_incompressible, step
 from phisim.grid import Grid
+from phisim.ops.advection import _location, advect
 
 CONDITIONS = [Dirichlet(0.0), Dirichlet(1.5), Neumann(0.0), Neumann(-0.3), NoSlipWall(), FreeSlipWall(), Open(),
               Inflow(0.7)]

@@ -5,8 +5,9 @@ import pytest
 import scipy.fft as sfft
 import torch
 
-from phisim import _fft_pocket, fft
 from phisim.errors import ParameterError, ShapeError
+from phisim.spectral import fft
+from phisim.spectral import pocket as _fft_pocket
 
 ENGINES = fft.available_engines()
 
@@ -144,7 +145,7 @@ def test_cuda_dct_dst_match_scipy():
 
 
 def test_fourier_multiply_matches_reference_and_is_self_adjoint():
-    from phisim.fft import available_engines, fourier_multiply
+    from phisim.spectral.fft import available_engines, fourier_multiply
 
     gen = torch.Generator().manual_seed(4)
     x = torch.randn(3, 8, 6, dtype=torch.float64, generator=gen)

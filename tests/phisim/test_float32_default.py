@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import phisim as ps
-from phisim.poisson import masked_laplacian, stencil_laplacian
+from phisim.solvers.poisson import masked_laplacian, stencil_laplacian
 
 SIZES = [pytest.param(n, marks=pytest.mark.slow) if n > 128 else n for n in (64, 128, 256, 512)]
 

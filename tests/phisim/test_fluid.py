@@ -1,4 +1,4 @@
-"""Tests of phisim.fluid and phisim.scenarios: projection invariants, analytic flows, gradients."""
+"""Tests of phisim.fluid and inverse.fluid_scene: projection invariants, analytic flows, gradients."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from phisim.advection import advect
+from inverse.fluid_scene import e5_grid, e5_simulation
 from phisim.boundary import Boundary, NoSlipWall
-from phisim.differential import curl
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import (
@@ -29,8 +28,9 @@ from phisim.fluid import (
     step,
 )
 from phisim.grid import Grid
-from phisim.linalg import Solve
-from phisim.scenarios import e5_grid, e5_simulation
+from phisim.ops.advection import advect
+from phisim.ops.differential import curl
+from phisim.solvers.linalg import Solve
 
 F64 = torch.float64
 TIGHT = Solve(rtol=1e-12)
@@ -164,7 +164,7 @@ def test_projection_leaves_divergence_free_field_and_removes_gradient():
         grid,
         Boundary.create("wall", 2).for_pressure(),
     )
-    from phisim.differential import gradient
+    from phisim.ops.differential import gradient
 
     g = gradient(phi, at="face", boundary=Boundary.create("wall", 2))
     out, _ = make_incompressible(g)
@@ -370,7 +370,7 @@ def test_buoyancy_adds_force_on_vertical_faces():
 def test_implicit_viscosity_solves_backward_euler():
     grid = Grid((12, 10), bounds=[1.2, 1.0])
     lid = Boundary.create({"x": ("open", "wall"), "y": ("free_slip", NoSlipWall(velocity=(0.5, 0.0)))}, 2)
-    from phisim.differential import laplace
+    from phisim.ops.differential import laplace
 
     for b in ["wall", "periodic", "open", lid]:
         v = _random_velocity(grid, b, batch=2).with_boundary_faces()

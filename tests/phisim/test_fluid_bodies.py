@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from phisim.boundary import Boundary, Dirichlet, Inflow, Open
-from phisim.differential import divergence
 from phisim.errors import BoundaryError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import (
@@ -29,7 +28,8 @@ from phisim.fluid import (
     step,
 )
 from phisim.grid import Grid
-from phisim.linalg import Solve
+from phisim.ops.differential import divergence
+from phisim.solvers.linalg import Solve
 
 F64 = torch.float64
 TIGHT = Solve(rtol=1e-12)
@@ -370,10 +370,10 @@ def test_inflow_on_any_side(rank):
 @pytest.mark.parametrize("closed", [False, True])
 def test_static_body_runs_switch_to_the_direct_pressure_solve_and_agree_with_pcg(closed, monkeypatch):
     # A flow past a static body repeats the same projection: after a few steps the pressure is solved directly
-    # (phisim._poisson_direct). Over a run the velocities must agree with an all-PCG run to the PCG tolerance,
+    # (phisim.solvers.direct). Over a run the velocities must agree with an all-PCG run to the PCG tolerance,
     # in a channel (inflow / outflow) and in a closed box (a singular pressure system).
-    from phisim import poisson_masked
     from phisim.fluid import projection
+    from phisim.solvers import masked as poisson_masked
 
     monkeypatch.setattr(poisson_masked, "DIRECT_FACES_PER_REQUEST", 8)
     grid = Grid((32, 16), bounds=[(0, 2.0), (0, 1.0)])

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from phisim import Grid, StaggeredGrid
-from phisim.differential import divergence
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.fluid import Obstacle, kinetic_energy, make_incompressible, navier_stokes_step
 from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
+from phisim.ops.differential import divergence
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""Tests of phisim.linalg: batched preconditioned CG, implicit gradients, float32 refinement, failures."""
+"""Tests of phisim.solvers.linalg: batched preconditioned CG, implicit gradients, float32 refinement, failures."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from phisim.errors import NonFiniteError, ParameterError, ShapeError, SolveError
-from phisim.linalg import Solve, SolveInfo, cg, remove_mean
+from phisim.solvers.linalg import Solve, SolveInfo, cg, remove_mean
 
 # --------------------------------------------------------------------------------------------------
 # local stencils (the grid/field modules are not used here on purpose)
@@ -388,7 +388,7 @@ def test_cuda(dtype):
 
 
 def test_public_names_have_docstrings():
-    import phisim.linalg as m
+    import phisim.solvers.linalg as m
     for name in m.__all__:
         assert getattr(m, name).__doc__, name
 

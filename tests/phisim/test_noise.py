@@ -1,4 +1,4 @@
-"""Tests of phisim.noise: E3 spectral noise statistics and spectrum, E4 rectangles, E5 vortex, uniform flow."""
+"""Tests of phisim.simulate.noise: E3 spectral noise statistics and spectrum, E4 rectangles, E5 vortex, uniform flow."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 from phisim import CenteredGrid, Grid, StaggeredGrid
 from phisim.errors import ParameterError, ShapeError
-from phisim.noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
+from phisim.simulate.noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""Tests of phisim.plot: files are written, images show x to the right and y up, bad input fails."""
+"""Tests of phisim.viz.plot: files are written, images show x to the right and y up, bad input fails."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from PIL import Image
 
 from phisim import CenteredGrid, Grid, StaggeredGrid
 from phisim.errors import ParameterError, ShapeError
-from phisim.plot import (
+from phisim.viz.plot import (
     animate,
     ffmpeg_available,
     new_figure,
@@ -193,7 +193,7 @@ def test_log_axis_has_several_readable_labels(lo, hi, at_least):
 
 
 def test_training_curves_and_masks(tmp_path):
-    from phisim.plot import draw_mask, plot_training_curves
+    from phisim.viz.plot import draw_mask, plot_training_curves
 
     curves = {"iteration": np.arange(6), "metric": np.array([800.0, 700, 650, 600, 640, 620]),
               "eval_metric": np.array([np.nan, 720, np.nan, 630, np.nan, 610])}

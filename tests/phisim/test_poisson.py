@@ -6,16 +6,16 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 import torch
 
-from phisim import fft
 from phisim.errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
-from phisim.linalg import Solve
-from phisim.poisson import (
+from phisim.solvers.linalg import Solve
+from phisim.solvers.poisson import (
     masked_laplacian,
     masked_poisson_solve,
     solve_poisson,
     spectral_poisson_solve,
     stencil_laplacian,
 )
+from phisim.spectral import fft
 
 ENGINES = fft.available_engines()
 
@@ -295,7 +295,7 @@ def test_field_wrapper_uses_field_boundary():
 
 def test_masked_solve_handles_enclosed_pockets_per_region():
     """A ring of obstacle cells encloses a pocket: each closed region gets its own compatibility and gauge."""
-    from phisim.poisson import masked_laplacian, masked_poisson_solve
+    from phisim.solvers.poisson import masked_laplacian, masked_poisson_solve
 
     _t = torch
 
@@ -327,7 +327,7 @@ def test_masked_solve_handles_enclosed_pockets_per_region():
     ((("neumann", "dirichlet"), ("dirichlet", "dirichlet"), ("periodic", "periodic")), (2, 3, 4, 5)),
 ])
 def test_fused_stencil_equals_face_flux_form(kinds, shape):
-    from phisim.poisson import _laplace_zero, _open_faces, normalize_kinds
+    from phisim.solvers.poisson import _laplace_zero, _open_faces, normalize_kinds
 
     rank = len(shape) - 1
     k = normalize_kinds(kinds, rank)

@@ -4,8 +4,8 @@ gradient/weights/divergence form, and the closed-box null-space projection."""
 import pytest
 import torch
 
-from phisim.poisson import _apply_multiplier
-from phisim.poisson_masked import MaskedPoisson
+from phisim.solvers.masked import MaskedPoisson
+from phisim.solvers.poisson import _apply_multiplier
 
 KINDS = [
     (("neumann", "neumann"), ("neumann", "neumann")),
@@ -125,7 +125,7 @@ def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_
     assert bool((quad > 0).all())
     # and it is a good preconditioner: the preconditioned operator's spectrum on the range is clustered
     b = op.project(torch.randn(1, *op.resolution, dtype=torch.float64, generator=gen) * op.active)
-    from phisim.linalg import Solve
+    from phisim.solvers.linalg import Solve
 
     _, info = op.solve(b, solve=Solve(rtol=1e-8))
     _, info_plain = op.solve(b, solve=Solve(rtol=1e-8), preconditioned=False)
@@ -133,7 +133,7 @@ def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_
 
 
 def test_scatter_add_in_rounds_equals_index_add():
-    from phisim.poisson_masked import _scatter_add
+    from phisim.solvers.masked import _scatter_add
 
     gen = torch.Generator().manual_seed(9)
     index = torch.randint(0, 7, (40,), generator=gen)
@@ -181,8 +181,8 @@ DIRECT_CASES = [
 
 @pytest.mark.parametrize("name, res, centres, radius, kinds", DIRECT_CASES, ids=[c[0] for c in DIRECT_CASES])
 def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radius, kinds, monkeypatch):
-    from phisim import poisson_masked as pm
-    from phisim.linalg import Solve
+    from phisim.solvers import masked as pm
+    from phisim.solvers.linalg import Solve
 
     weights = _disc_weights(res, centres, radius)
     dx = tuple(1.0 / res[0] for _ in res)
@@ -220,8 +220,8 @@ def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radi
 
 
 def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot_do(monkeypatch):
-    from phisim import poisson_masked as pm
-    from phisim.linalg import Solve
+    from phisim.solvers import masked as pm
+    from phisim.solvers.linalg import Solve
 
     monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 4)
     monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)
@@ -252,8 +252,8 @@ def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot
 
 
 def test_direct_solve_keeps_the_rhs_gradient(monkeypatch):
-    from phisim import poisson_masked as pm
-    from phisim.linalg import Solve
+    from phisim.solvers import masked as pm
+    from phisim.solvers.linalg import Solve
 
     monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
     monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 SCRIPT = r"""
 import hashlib, torch
-from phisim import fft
+from phisim.spectral import fft
 from phisim.boundary import Boundary
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import FluidState, Obstacle, step
@@ -62,7 +62,8 @@ def test_plume_bit_identical_in_two_fresh_processes(tmp_path):
 
 
 def test_unusable_wisdom_file_falls_back_to_estimate(tmp_path, monkeypatch):
-    from phisim import _fftw_wisdom, fft
+    from phisim.spectral import fft
+    from phisim.spectral import wisdom as _fftw_wisdom
 
     if not fft._HAVE_PYFFTW:
         pytest.skip("pyfftw not installed")
@@ -78,7 +79,7 @@ def test_unusable_wisdom_file_falls_back_to_estimate(tmp_path, monkeypatch):
 
 
 def test_planner_environment_variable(monkeypatch):
-    from phisim import fft
+    from phisim.spectral import fft
 
     monkeypatch.setenv("PHISIM_FFT_PLANNER", "estimate")
     assert fft._settings_from_environment().planner_effort == "FFTW_ESTIMATE"

@@ -8,11 +8,12 @@ import scipy.fft as sfft
 import scipy.linalg
 import torch
 
-from phisim import Grid, NoSlipWall, StaggeredGrid, fft
+from phisim import Grid, NoSlipWall, StaggeredGrid
 from phisim.boundary import Boundary, Dirichlet
-from phisim.differential import laplace
-from phisim.diffusion import diffuse, diffuse_staggered
 from phisim.errors import ParameterError, ShapeError
+from phisim.ops.differential import laplace
+from phisim.solvers.diffusion import diffuse, diffuse_staggered
+from phisim.spectral import fft
 
 F64 = torch.float64
 
@@ -154,7 +155,7 @@ def test_3d_box_against_dense_reference_and_batch_one():
 
 def _count_wall_solves(monkeypatch):
     """Force the wall path at any size; return the list that records its calls."""
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     monkeypatch.setattr(_mac_diffusion, "WALL_SOLVE_MIN_SAMPLES", 0)
     calls = []
@@ -180,7 +181,7 @@ def _count_wall_solves(monkeypatch):
 def test_wall_solve_equals_dense_theta_scheme(res, boundary, method, theta, transposed, monkeypatch):
     # The periodic embedding is exact: it must reproduce the dense θ-scheme on the free faces to round-off,
     # for odd and even n, the smallest n (2: one unknown), 2-D and 3-D, with either layout of the FFT.
-    from phisim import _fft_pocket
+    from phisim.spectral import pocket as _fft_pocket
 
     calls = _count_wall_solves(monkeypatch)
     if transposed:
@@ -203,7 +204,7 @@ def test_wall_solve_agrees_with_the_dst1_solve_at_any_viscosity(dtype, alpha, mo
     # The correction subtracts G/G(0) times face 0 of the periodic answer; m = 1/(1 - cλ) <= 1 and G peaks at
     # its source, so nothing is amplified: float64 agrees with the DST-I route to 1e-13 even at ν dt/dx² = 1e6,
     # float32 to its own round-off.
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     grid = Grid((40, 36), bounds=[(0, 1.0), (0, 0.9)])
     v = _random_velocity(grid, "wall", batch=1)
@@ -224,8 +225,8 @@ def test_wall_solve_agrees_with_the_dst1_solve_at_any_viscosity(dtype, alpha, mo
 @pytest.mark.skipif("pyfftw" not in fft.available_engines(), reason="the fast path runs with the pyfftw engine")
 @pytest.mark.parametrize("rank", [2, 3])
 def test_capacitance_with_the_wall_solve_equals_converged_cg(rank, monkeypatch):
-    from phisim import _mac_diffusion
-    from phisim.linalg import Solve
+    from phisim.solvers import mac_diffusion as _mac_diffusion
+    from phisim.solvers.linalg import Solve
 
     res = (10, 8) if rank == 2 else (6, 5, 7)
     grid = Grid(res, bounds=[(0, 0.1 * n) for n in res])
@@ -250,7 +251,7 @@ def test_wall_solve_is_bit_identical_in_fresh_processes():
     import sys
 
     code = ("import torch, hashlib; from phisim import Grid, StaggeredGrid; "
-            "from phisim.diffusion import diffuse_staggered; g = torch.Generator().manual_seed(3); "
+            "from phisim.solvers.diffusion import diffuse_staggered; g = torch.Generator().manual_seed(3); "
             "grid = Grid((128, 128), bounds=[(0, 1), (0, 1)]); "
             "v = StaggeredGrid(tuple(torch.randn(1, *grid.face_shape(i), generator=g) for i in range(2)), grid, "
             "'wall').with_boundary_faces(); "
@@ -354,8 +355,8 @@ def _body_masks(grid):
                                             (3, "wall"), (3, {"x": "periodic", "y": "free_slip", "z": "open"})])
 @pytest.mark.parametrize("method", ["implicit", "crank_nicolson"])
 def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
-    from phisim import _mac_diffusion
-    from phisim.linalg import Solve
+    from phisim.solvers import mac_diffusion as _mac_diffusion
+    from phisim.solvers.linalg import Solve
 
     res = (10, 8) if rank == 2 else (6, 5, 7)
     grid = Grid(res, bounds=[(0, 0.1 * n) for n in res])
@@ -386,7 +387,7 @@ def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_capacitance_with_the_torch_engine_matches_pyfftw(dtype):
     # the composed, differentiable transforms (the path accelerators take) give the same direct solve
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     grid = Grid((9, 8), bounds=[(0, 0.9), (0, 0.8)])
     v = _random_velocity(grid, "wall", batch=2)
@@ -405,7 +406,7 @@ def test_capacitance_with_the_torch_engine_matches_pyfftw(dtype):
 
 
 def test_capacitance_declines_what_it_cannot_do():
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     grid = Grid((8, 6), bounds=[(0, 1), (0, 0.75)])
     v = _random_velocity(grid, "wall", batch=2)
@@ -435,7 +436,7 @@ def test_capacitance_declines_what_it_cannot_do():
 
 
 def test_capacitance_is_built_once_cg_has_cost_about_as_much(monkeypatch):
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     monkeypatch.setattr(_mac_diffusion, "CAPACITANCE_FACES_PER_REQUEST", 4)
     grid = Grid((12, 10), bounds=[(0, 1.2), (0, 1)])
@@ -455,7 +456,7 @@ def test_capacitance_is_built_once_cg_has_cost_about_as_much(monkeypatch):
 
 
 def test_gradcheck_capacitance_path():
-    from phisim import _mac_diffusion
+    from phisim.solvers import mac_diffusion as _mac_diffusion
 
     grid = Grid((5, 4), bounds=[(0, 1), (0, 0.8)])
     b = Boundary.create({"x": "wall", "y": "open"}, 2)

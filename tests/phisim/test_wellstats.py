@@ -12,7 +12,7 @@ import torch
 from phisim import Grid
 from phisim.errors import FileFormatError, ParameterError, ShapeError
 from phisim.io import SimulationWriter, read_simulation
-from phisim.wellstats import compute_statistics, format_statistics, write_statistics
+from phisim.io.stats import compute_statistics, format_statistics, write_statistics
 
 yaml = pytest.importorskip("yaml")
 

@@ -1,0 +1,115 @@
+"""Small HDF5/JSON helpers shared by :mod:`phisim.io` and :mod:`phisim.io.traininglog`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import stat
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from phisim.errors import FileFormatError, ParameterError
+
+PathLike = str | os.PathLike
+
+
+def json_default(obj):
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu().tolist()
+    if isinstance(obj, torch.dtype):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def to_json(obj, what: str) -> str:
+    try:
+        return json.dumps(obj, default=json_default, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(
+            f"{what} must be JSON-serialisable (numbers, strings, lists, dicts, numpy/torch arrays, "
+            f"dataclasses): {exc}"
+        ) from exc
+
+
+def check_output_path(path: PathLike, *, append: bool = False) -> Path:
+    """Check that an HDF5 output file can be written, before any work starts; create its folder.
+
+    Args:
+        path: The file to create (``append=False``: an existing file is replaced) or to append to.
+        append: Whether an existing file will be opened for appending (it must then be HDF5).
+
+    Returns:
+        The path.
+
+    Raises:
+        FileFormatError: If the path is a folder or a special file, the folder cannot be created or
+            written, or (``append``) an existing file is not HDF5.
+    """
+    p = Path(path)
+    if p.exists() and not p.is_file():
+        kind = "a directory" if p.is_dir() else "not a regular file"
+        raise FileFormatError(f"output {p} is {kind}; give a file name such as {p / 'out.h5'}")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FileFormatError(f"cannot create the folder of the output {p}: {exc.strerror or exc}") from exc
+    if not os.access(p.parent, os.W_OK | os.X_OK):
+        raise FileFormatError(f"cannot write the output {p}: its folder {p.parent} is not writable")
+    if p.exists():
+        if not os.access(p, os.W_OK):
+            raise FileFormatError(f"cannot write the output {p}: the file is read-only")
+        if append and p.stat().st_size > 0 and not h5py.is_hdf5(p) and not _journal_exists(p):
+            raise FileFormatError(
+                f"output {p} exists and is not an HDF5 file; choose another file name or remove it"
+            )
+    return p
+
+
+def _journal_exists(p: Path) -> bool:
+    from phisim.io.journal import journal_path
+
+    return journal_path(p).exists()
+
+
+def open_for_read(path: PathLike) -> h5py.File:
+    """Open an HDF5 file read-only with errors that say what is wrong (missing, folder, pipe, truncated...)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileFormatError(f"{p} does not exist")
+    if p.is_dir():
+        raise FileFormatError(f"{p} is a directory, not an HDF5 file")
+    if not stat.S_ISREG(p.stat().st_mode):
+        raise FileFormatError(f"{p} is not a regular file (a pipe, socket or device); HDF5 needs a seekable file")
+    try:
+        return h5py.File(p, "r")
+    except OSError as exc:
+        msg = str(exc)
+        size = p.stat().st_size
+        if "truncated file" in msg:
+            raise FileFormatError(
+                f"{p} ({size} bytes) is truncated (shorter than its HDF5 header says): it was cut short by a crash, "
+                "a full disk or an incomplete copy. If it has a '.journal' sidecar, phisim.io.recover_file "
+                "rebuilds it"
+            ) from exc
+        if "unable to lock file" in msg.lower():
+            raise FileFormatError(
+                f"{p} is open for writing in another process (HDF5 file lock): wait for the writer to close "
+                "it, or set HDF5_USE_FILE_LOCKING=FALSE to read the frames flushed so far"
+            ) from exc
+        raise FileFormatError(
+            f"{p} ({size} bytes) is not a readable HDF5 file (corrupt, truncated or another format): {exc}"
+        ) from exc

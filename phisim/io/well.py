@@ -1,0 +1,136 @@
+"""Translation between phisim boundaries and The Well's ``boundary_conditions`` (used by :mod:`phisim.io`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from phisim.boundary import (
+    Boundary,
+    BoundaryCondition,
+    Dirichlet,
+    FreeSlipWall,
+    Inflow,
+    Neumann,
+    NoSlipWall,
+    Open,
+    Periodic,
+)
+from phisim.errors import FileFormatError, ParameterError
+from phisim.grid import Grid
+
+# ---- boundary <-> Well bc_type ------------------------------------------------------------------------
+
+
+def well_bc_type(condition: BoundaryCondition) -> str:
+    """The Well's ``bc_type`` of one phisim boundary condition.
+
+    Args:
+        condition: A phisim condition on one side of one axis.
+
+    Returns:
+        ``'PERIODIC'`` for :class:`Periodic`, ``'OPEN'`` for :class:`Open`, and ``'WALL'`` for
+        :class:`NoSlipWall`, :class:`FreeSlipWall`, :class:`Dirichlet` and :class:`Neumann` (a closed side
+        with a prescribed value or flux).
+
+    Raises:
+        ParameterError: For a condition type this module does not know.
+    """
+    if isinstance(condition, Periodic):
+        return "PERIODIC"
+    if isinstance(condition, (Open, Inflow)):
+        return "OPEN"
+    if isinstance(condition, (NoSlipWall, FreeSlipWall, Dirichlet, Neumann)):
+        return "WALL"
+    raise ParameterError(f"no Well boundary type is known for condition {condition!r}")
+
+
+def _conditionto_json(c: BoundaryCondition) -> dict:
+    if isinstance(c, Inflow):  # a function itself is not stored: its name is, and the side reads back as open
+        if c.varying:
+            return {"type": "inflow", "function": getattr(c.velocity, "__qualname__", repr(c.velocity))}
+        return {"type": "inflow", "velocity": _valueto_json(c.velocity)}
+    if isinstance(c, Periodic):
+        return {"type": "periodic"}
+    if isinstance(c, Open):
+        return {"type": "open"}
+    if isinstance(c, FreeSlipWall):
+        return {"type": "free_slip"}
+    if isinstance(c, NoSlipWall):
+        v = None if c.velocity is None else [float(x) for x in c.velocity]
+        return {"type": "no_slip", "velocity": v}
+    if isinstance(c, Dirichlet):
+        return {"type": "dirichlet", "value": _valueto_json(c.value)}
+    if isinstance(c, Neumann):
+        return {"type": "neumann", "flux": _valueto_json(c.flux)}
+    raise ParameterError(f"cannot store boundary condition {c!r}")
+
+
+def _valueto_json(v):
+    if isinstance(v, torch.Tensor):
+        return {"tensor": v.detach().cpu().tolist()}
+    if isinstance(v, np.ndarray):
+        return {"tensor": v.tolist()}
+    if isinstance(v, (tuple, list)):
+        return [float(x) for x in v]
+    return float(v)
+
+
+def _value_from_json(v):
+    if isinstance(v, dict):
+        return torch.tensor(v["tensor"])
+    if isinstance(v, list):
+        return tuple(float(x) for x in v)
+    return float(v)
+
+
+def _condition_from_json(d: dict) -> BoundaryCondition:
+    kind = d.get("type")
+    if kind == "periodic":
+        return Periodic()
+    if kind == "open":
+        return Open()
+    if kind == "inflow":
+        return Inflow(_value_from_json(d["velocity"])) if "velocity" in d else Open()
+    if kind == "free_slip":
+        return FreeSlipWall()
+    if kind == "no_slip":
+        v = d.get("velocity")
+        return NoSlipWall(None if v is None else tuple(float(x) for x in v))
+    if kind == "dirichlet":
+        return Dirichlet(_value_from_json(d["value"]))
+    if kind == "neumann":
+        return Neumann(_value_from_json(d["flux"]))
+    raise FileFormatError(f"unknown boundary condition {d!r} in /extras/boundary")
+
+
+_FROM_WELL = {"PERIODIC": Periodic, "WALL": NoSlipWall, "OPEN": Open}
+
+
+def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:
+    from phisim.io.simulation import _attr_str, _attr_str_list, _need, _need_attr
+
+    sides: list[list[BoundaryCondition]] = [[Open(), Open()] for _ in range(grid.rank)]
+    bcs = f.get("boundary_conditions")
+    if not isinstance(bcs, h5py.Group):
+        raise FileFormatError(f"{p}: missing group /boundary_conditions")
+    for key in bcs:
+        grp = bcs[key]
+        bc_type = _attr_str(_need_attr(grp, "bc_type", p)).upper()
+        if bc_type not in _FROM_WELL:
+            raise FileFormatError(f"{p}: {grp.name} has unknown bc_type {bc_type!r} (PERIODIC, WALL, OPEN)")
+        assoc = _attr_str_list(_need_attr(grp, "associated_dims", p))
+        mask = np.asarray(_need(grp, "mask", p, h5py.Dataset)[()], dtype=bool)
+        if len(assoc) != 1 or assoc[0] not in spatial or mask.ndim != 1:
+            continue  # boundaries not aligned with one axis do not map onto a phisim Boundary
+        a = spatial.index(assoc[0])
+        for side, idx in ((0, 0), (1, -1)):
+            if mask.size and mask[idx]:
+                sides[a][side] = _FROM_WELL[bc_type]()
+    try:
+        return Boundary(tuple((lo, hi) for lo, hi in sides))
+    except Exception as exc:  # inconsistent periodic sides
+        raise FileFormatError(f"{p}: inconsistent boundary_conditions: {exc}") from exc

@@ -1,0 +1,602 @@
+"""Viscous diffusion of MAC (staggered) velocities: explicit, backward Euler, Crank-Nicolson, exact.
+
+Internal module behind :func:`phisim.solvers.diffusion.diffuse_staggered`. Component ``i`` of a MAC velocity is
+sampled on the faces normal to axis ``i`` (``n_i + 1`` samples, both boundary faces included) and is
+cell-centred along the other axes. Its (2d+1)-point Laplacian with the velocity boundary's ghost rules
+(:func:`phisim.boundary.pad_staggered_component`) separates into one 1-D operator per axis, each
+diagonalised by a real-to-real transform or an FFT:
+
+=========================  ===========================  ==================  ====================================
+axis / sides               unknowns                     transform (fwd/inv) eigenvalue times dx² (k = 0..)
+=========================  ===========================  ==================  ====================================
+periodic (any axis)        ``n`` (face n = face 0)      rFFT / irFFT        ``-4 sin²(π k / n)``
+own axis, wall / wall      faces ``1..n-1``             DST-I / DST-I       ``-4 sin²(π (k+1) / 2n)``
+own axis, open / open      faces ``0..n``               DCT-I / DCT-I       ``-4 sin²(π k / 2n)``
+own axis, wall / open      faces ``1..n``               DST-III / DST-II    ``-4 sin²(π (2k+1) / 4n)``
+own axis, open / wall      faces ``0..n-1``             DCT-III / DCT-II    ``-4 sin²(π (2k+1) / 4n)``
+other axis                 cells (face boundary)        as :mod:`phisim.solvers.poisson` (DST-II, DCT-II, type 4)
+=========================  ===========================  ==================  ====================================
+
+("wall" stands for any odd ghost rule of the normal velocity: no-slip, free-slip, Dirichlet; "open" for an
+even one: open, Neumann). Samples fixed by the boundary are not unknowns; non-zero boundary values (a
+moving lid, an inflow profile, a flux) enter as a constant source ``b``: ``L u = L₀ u + b``. So a
+backward-Euler or Crank-Nicolson step in a box is one forward transform, a division and one inverse
+transform per component, exact to round-off. With walls on both sides of a component's own axis that axis
+needs a DST-I, computed from a real FFT of twice its length; on grids of about 90² and more the solve instead
+treats it as periodic over faces ``0..n-1`` (an FFT of length n) and restores the zero on face 0 with one
+Green's-function correction per transverse mode (:func:`phisim.spectral.fft.wall_solve`, exact, 20-30 % faster).
+
+Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. When
+the same faces and ``θ ν dt`` come back (fixed-step runs) the θ-scheme is solved directly with a capacitance
+matrix on the body surface (:class:`_CapacitanceSolve`: two box solves and a small LU solve per call);
+otherwise by :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG
+operator is made symmetric by halving the rows of free boundary faces on open sides (the vertex-centred
+Neumann stencil is symmetric in that weighted inner product).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from functools import lru_cache
+
+import torch
+
+from phisim.boundary import pad_staggered_component, set_boundary_faces
+from phisim.checks import check_dt, check_nonnegative
+from phisim.errors import ParameterError, ShapeError
+from phisim.solvers.poisson import _TRANSFORM, _axis_eigs
+from phisim.spectral import fft as _fft
+from phisim.spectral.pocket import wall_transposes
+
+STAGGERED_METHODS = ("implicit", "crank_nicolson", "spectral", "explicit")
+
+_OWN_AXIS = {  # (lower odd?, upper odd?) -> (forward kind, inverse kind, first unknown, unknowns - n)
+    (True, True): ("dst1", "dst1", 1, -1),
+    (False, False): ("dct1", "dct1", 0, 1),
+    (True, False): ("dst3", "dst2", 1, 0),
+    (False, True): ("dct3", "dct2", 0, 0),
+}
+
+
+#: Fewest samples (batch included) of a component for which a box solve with walls on both sides of its own
+#: axis runs as a periodic FFT plus a one-face correction instead of a DST-I (:meth:`_Component.solve_box`):
+#: below about 90² the extra calls cost more than the shorter transform saves (64², float32: 40 vs 36 µs per
+#: component; 96²: 61 vs 61; 128²: 86 vs 92; 256²: 0.27 vs 0.33 ms; development CPU, 1 thread).
+WALL_SOLVE_MIN_SAMPLES = 8192
+
+
+class _Component:
+    """Geometry of one MAC component: unknown slice along its own axis, transforms, eigenvalues, weights."""
+
+    def __init__(self, grid, boundary, i: int):
+        self.i = i
+        self.rank = grid.rank
+        self.dx = grid.dx
+        self.boundary = boundary
+        n = grid.resolution[i]
+        self.n = n
+        self.face_shape = grid.face_shape(i)
+        kinds = []  # per axis: ('periodic',) or (forward, inverse)
+        eigs = []
+        scale = 1.0
+        for a in range(grid.rank):
+            lo, hi = boundary.sides[a]
+            if boundary.is_periodic(a):
+                kinds.append(None)
+                m = grid.resolution[a]
+                k = torch.arange(m, dtype=torch.float64)
+                eigs.append(-4 * torch.sin(math.pi * k / m) ** 2 / self.dx[a] ** 2)
+                continue
+            if a == i:
+                odd = (lo.rule("normal", i)[0] == "odd", hi.rule("normal", i)[0] == "odd")
+                fwd, inv, first, extra = _OWN_AXIS[odd]
+                self.first, self.count = first, n + extra
+                k = torch.arange(self.count, dtype=torch.float64)
+                if fwd == "dst1":
+                    lam = -4 * torch.sin(math.pi * (k + 1) / (2 * n)) ** 2
+                elif fwd == "dct1":
+                    lam = -4 * torch.sin(math.pi * k / (2 * n)) ** 2
+                else:
+                    lam = -4 * torch.sin(math.pi * (2 * k + 1) / (4 * n)) ** 2
+                eigs.append(lam / self.dx[a] ** 2)
+                kinds.append((fwd, inv))
+                scale /= 2 * n
+                self.odd = odd
+                continue
+            pair = tuple("dirichlet" if c.rule("tangential", i)[0] == "odd" else "neumann" for c in (lo, hi))
+            kinds.append(_TRANSFORM[pair])
+            eigs.append(_axis_eigs(grid.resolution[a], pair, self.dx[a], False))
+            scale /= 2 * grid.resolution[a]
+        if boundary.is_periodic(i):
+            self.first, self.count, self.odd = 0, n, None
+        self.kinds = kinds
+        self.scale = scale
+        self.eigs = eigs  # per axis, float64, times 1/dx²
+        self.periodic = [a for a in range(grid.rank) if kinds[a] is None]
+        # walls on both sides of the own axis: the box solve may run as periodic + one-face correction
+        self.walls = not self.periodic and kinds[i] == ("dst1", "dst1")
+        self.r2r = [a for a in range(grid.rank) if kinds[a] is not None]
+        self.fwd_kinds = tuple(kinds[a][0] for a in self.r2r)
+        self.inv_kinds = tuple(kinds[a][1] for a in self.r2r)
+        self.r2r_axes = tuple(1 + a for a in self.r2r)
+        # eigenvalue sum in the spectral layout (last periodic axis halved for the rfft)
+        total = torch.zeros((), dtype=torch.float64)
+        for a, lam in enumerate(eigs):
+            if self.periodic and a == self.periodic[-1]:
+                lam = lam[: lam.numel() // 2 + 1]
+            shape = [1] * grid.rank
+            shape[a] = -1
+            total = total + lam.reshape(shape)
+        self.lam = total
+        self._mults: dict = {}  # (method, theta * alpha, dtype, device) -> prescaled multiplier (shared by copies)
+        # the source of non-zero boundary values is needed only when a rule carries a value
+        self.has_values = any(
+            not _is_zero_rule(c.rule("normal" if a == i else "tangential", i))
+            for a in range(grid.rank) for c in boundary.sides[a] if not boundary.is_periodic(a)
+        )
+        # row weights that make the operator symmetric: 1/2 on free boundary faces of open sides
+        self.weight = None
+        if self.odd is not None and not all(self.odd):
+            w = torch.ones(self.count, dtype=torch.float64)
+            if not self.odd[0]:
+                w[0] = 0.5
+            if not self.odd[1]:
+                w[-1] = 0.5
+            shape = [1] * (grid.rank + 1)
+            shape[1 + i] = -1
+            self.weight = w.reshape(shape)
+
+    # -- unknowns <-> full component --------------------------------------------------------------------
+
+    def restrict(self, u: torch.Tensor) -> torch.Tensor:
+        """The unknown samples of a full component ``(B, *face_shape)``."""
+        return u.narrow(1 + self.i, self.first, self.count)
+
+    def embed(self, x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """Full component from unknowns: boundary faces from the boundary, face n = face 0 if periodic."""
+        dim = 1 + self.i
+        if self.odd is None:
+            return torch.cat([x, x.narrow(dim, 0, 1)], dim=dim)
+        parts = []
+        if self.first:
+            parts.append(torch.zeros_like(like.narrow(dim, 0, 1)))
+        parts.append(x)
+        if self.first + self.count < self.n + 1:
+            parts.append(torch.zeros_like(like.narrow(dim, 0, 1)))
+        full = torch.cat(parts, dim=dim) if len(parts) > 1 else x
+        return set_boundary_faces(full, self.i, self.boundary)
+
+    def solve_box(self, rhs: torch.Tensor, mult: torch.Tensor, like: torch.Tensor, engine,
+                  op: tuple[str, float] | None = None) -> torch.Tensor | None:
+        """``embed(apply(rhs, mult, prescaled=True), like)`` written in place into one new full component.
+
+        The fast path of the exact box solve: no autograd, no periodic axis, zero boundary values on the
+        faces outside the unknowns (walls); the transforms run on the interior view of the output. With
+        ``op = ('implicit', c)`` (``mult`` is ``1 / (1 - c λ)``) or ``('crank_nicolson', α)`` and walls on both
+        sides of the own axis, that axis is solved by a periodic FFT and a one-face correction instead of a
+        DST-I (:func:`phisim.spectral.fft.wall_solve`; same answer to round-off, 20-30 % less time). Returns None where
+        the fast path does not apply (the caller composes :meth:`apply` and :meth:`embed`).
+        """
+        if (self.periodic or not self.r2r or self.has_values or rhs.requires_grad or like.requires_grad
+                or mult.requires_grad):
+            return None
+        full = torch.empty(like.shape, dtype=rhs.dtype, device=rhs.device)
+        dim = 1 + self.i
+        if (op is not None and op[0] in ("implicit", "crank_nicolson") and self.walls
+                and like.numel() >= WALL_SOLVE_MIN_SAMPLES):
+            shape = list(like.shape)
+            shape[dim] -= 1
+            last = wall_transposes(shape, dim, rhs.element_size())
+            wm, green = self.wall_operator(op[0], op[1], rhs.dtype, rhs.device, last)
+            other = [a for a in self.r2r if a != self.i]
+            if _fft.wall_solve(rhs, full, dim, tuple(self.kinds[a][0] for a in other),
+                               tuple(self.kinds[a][1] for a in other), tuple(1 + a for a in other), wm, green,
+                               subtract=op[0] == "crank_nicolson", engine=engine) is not None:
+                return full
+        if _fft.r2r_multiply(rhs, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine,
+                             out=full.narrow(dim, self.first, self.count)) is None:
+            return None
+        if self.first:
+            full.narrow(dim, 0, 1).zero_()
+        if self.first + self.count < self.n + 1:
+            full.narrow(dim, self.n, 1).zero_()
+        return full
+
+    def wall_operator(self, method: str, coef: float, dtype, device, last: bool = False
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(mult, green)`` of :func:`phisim.spectral.fft.wall_solve` for ``'implicit'`` ``(I - coef L)⁻¹`` or
+        ``'crank_nicolson'`` with ``α = coef`` (``2 (I - α/2 L)⁻¹``, the caller subtracts the input); cached.
+
+        The own axis is periodic over the faces ``0..n-1``: eigenvalues ``-4 sin²(π k / n) / dx²`` on the half
+        spectrum. ``green`` is the periodic Green's function of face 0 per transverse mode, divided by its
+        value on face 0 (``n`` samples along the own axis), computed in float64. ``last``: the own axis moved
+        last (the layout of a transposed solve).
+        """
+        key = ("wall", method, float(coef), dtype, str(device), last)
+        cached = self._mults.get(key)
+        if cached is not None:
+            return cached
+        i, n = self.i, self.n
+        c, factor = (float(coef), 1.0) if method == "implicit" else (0.5 * float(coef), 2.0)
+        shape = [1] * self.rank
+        shape[i] = -1
+        k = torch.arange(n // 2 + 1, dtype=torch.float64)
+        lam = (-4 * torch.sin(math.pi * k / n) ** 2 / self.dx[i] ** 2).reshape(shape)
+        for a in range(self.rank):
+            if a != i:
+                shape = [1] * self.rank
+                shape[a] = -1
+                lam = lam + self.eigs[a].reshape(shape)
+        m = 1.0 / (1.0 - c * lam)
+        g = torch.fft.irfft(m, n=n, dim=i)
+        green = (g / g.narrow(i, 0, 1))[None]
+        # the transverse transforms' normalisation (self.scale without the DST-I's 1/2n) and the FFT's 1/n
+        mult = (m * (factor * self.scale * 2))[None]
+        if last:
+            green, mult = green.movedim(1 + i, -1), mult.movedim(1 + i, -1)
+        green = green.to(dtype=dtype, device=device).contiguous()
+        mult = mult.to(dtype=dtype, device=device).contiguous()
+        if len(self._mults) > 8:
+            self._mults.clear()
+        self._mults[key] = (mult, green)
+        return mult, green
+
+    def laplace(self, u: torch.Tensor) -> torch.Tensor:
+        """The full stencil ``L u`` on the full component (ghosts and boundary values from the rules)."""
+        p = pad_staggered_component(u, self.i, self.boundary, self.dx, 1)
+        out = 0
+        for a in range(self.rank):
+            dim = 1 + a
+            m = p.shape[dim] - 2
+            d2 = p.narrow(dim, 2, m) - 2 * p.narrow(dim, 1, m) + p.narrow(dim, 0, m)
+            for b in range(self.rank):
+                if b != a:
+                    d2 = d2.narrow(1 + b, 1, d2.shape[1 + b] - 2)
+            out = out + d2 / self.dx[a] ** 2
+        return out
+
+    def source(self, like: torch.Tensor) -> torch.Tensor | None:
+        """``b`` on the unknowns: the stencil of the boundary values alone."""
+        if not self.has_values:
+            return None
+        z = self.embed(torch.zeros_like(self.restrict(like)), like)
+        return self.restrict(self.laplace(z))
+
+    # -- spectral application ------------------------------------------------------------------------------
+
+    def inverse_multiplier(self, coef, dtype, device) -> torch.Tensor:
+        """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
+        if isinstance(coef, torch.Tensor):
+            return (self.scale / (1.0 - coef * self.lam.to(device))).to(dtype)
+        key = ("implicit", float(coef), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            m = (self.scale / (1.0 - float(coef) * self.lam)).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
+    def step_multiplier(self, method: str, alpha: float, dtype, device) -> torch.Tensor:
+        """A whole box step as one normalised multiplier (cached): ``'crank_nicolson'``
+        ``(1 + αλ/2) / (1 - αλ/2)`` or ``'spectral'`` ``e^{αλ}`` (zero boundary values)."""
+        key = (method, float(alpha), dtype, str(device))
+        m = self._mults.get(key)
+        if m is None:
+            a = float(alpha)
+            m = torch.exp(a * self.lam) if method == "spectral" else (1 + 0.5 * a * self.lam) / (1 - 0.5 * a * self.lam)
+            m = (self.scale * m).to(dtype=dtype, device=device)
+            if len(self._mults) > 8:
+                self._mults.clear()
+            self._mults[key] = m
+        return m
+
+    def apply(self, x: torch.Tensor, mult: torch.Tensor, engine, prescaled: bool = False) -> torch.Tensor:
+        """``T⁻¹ (mult · T x)`` on unknowns ``(B, *unknown_shape)``; ``mult`` in spectral layout (float64, or
+        already normalised and in ``x``'s dtype when ``prescaled``)."""
+        if prescaled and self.r2r and not self.periodic:
+            y = _fft.r2r_multiply(x, self.fwd_kinds, self.inv_kinds, self.r2r_axes, mult, engine=engine)
+            if y is not None:  # no autograd, pyfftw engine: transform, multiply, transform back in one pass
+                return y
+        y = x
+        if self.r2r:
+            y = _fft.r2rn(y, tuple(self.kinds[a][0] for a in self.r2r), tuple(1 + a for a in self.r2r),
+                          engine=engine)
+        m = mult if prescaled else (mult * self.scale).to(x.dtype)
+        if self.periodic:
+            axes = tuple(1 + a for a in self.periodic)
+            Y = _fft.rfftn(y, axes, engine=engine)
+            y = _fft.irfftn(Y * m, tuple(x.shape[d] for d in axes), axes, engine=engine)
+        else:
+            y = y * m
+        if self.r2r:
+            y = _fft.r2rn(y, tuple(self.kinds[a][1] for a in self.r2r), tuple(1 + a for a in self.r2r),
+                          engine=engine)
+        return y
+
+
+def _is_zero_rule(rule) -> bool:
+    return len(rule) < 2 or (isinstance(rule[1], (int, float)) and rule[1] == 0)
+
+
+@lru_cache(maxsize=64)
+def _cached_component(grid, boundary, i: int) -> _Component:
+    return _Component(grid, boundary, i)
+
+
+def _component(grid, boundary, i: int) -> _Component:
+    """The (cached) geometry of component ``i``, bound to this very ``boundary`` object.
+
+    Boundaries that compare equal may still hold different evaluated inflow profiles (not part of their
+    equality), so the cached geometry is copied and given the caller's boundary for the value terms.
+    """
+    try:
+        comp = copy.copy(_cached_component(grid, boundary, i))
+    except TypeError:  # boundaries holding unhashable values (tensors in lists)
+        return _Component(grid, boundary, i)
+    comp.boundary = boundary
+    return comp
+
+
+def _fixed_masks(fixed, velocity):
+    if fixed is None:
+        return None
+    if not isinstance(fixed, (tuple, list)) or len(fixed) != velocity.rank:
+        raise ShapeError(f"fixed must hold one face mask per component ({velocity.rank}), got {type(fixed).__name__}")
+    out = []
+    for i, m in enumerate(fixed):
+        if m is None:
+            out.append(None)
+            continue
+        m = torch.as_tensor(m, device=velocity.device)
+        shape = velocity.grid.face_shape(i)
+        if m.ndim == len(shape):
+            m = m[None]
+        if tuple(m.shape[1:]) != shape or m.shape[0] not in (1, velocity.batch_size):
+            raise ShapeError(f"fixed[{i}] must have shape (1 or B, *{shape}), got {tuple(m.shape)}")
+        m = m if m.dtype == torch.bool else m != 0
+        out.append(m if bool(m.any()) else None)
+    return out
+
+
+def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixed=None, solve=None,
+                      engine: str | None = None):
+    """See :func:`phisim.solvers.diffusion.diffuse_staggered` (the public entry point)."""
+    from phisim.field import StaggeredGrid
+    from phisim.solvers.linalg import Solve, cg
+
+    if not isinstance(velocity, StaggeredGrid):
+        raise ParameterError(f"diffuse_staggered expects a StaggeredGrid, got {type(velocity).__name__}")
+    if method not in STAGGERED_METHODS:
+        raise ParameterError(f"method must be one of {STAGGERED_METHODS}, got {method!r}")
+    dt = check_dt(dt)
+    nu = check_nonnegative(viscosity, "viscosity")
+    masks = _fixed_masks(fixed, velocity)
+    if masks is not None and method == "spectral" and any(m is not None for m in masks):
+        raise ParameterError(
+            "method='spectral' is exact only in a box; with fixed faces (bodies) use 'implicit' or 'crank_nicolson'"
+        )
+    if not isinstance(dt, torch.Tensor) and not isinstance(nu, torch.Tensor) and (float(dt) == 0 or float(nu) == 0):
+        return velocity
+    alpha = dt * nu
+    grid, boundary = velocity.grid, velocity.boundary
+    if method == "explicit":
+        number = float(alpha) * sum(2.0 / d**2 for d in grid.dx)
+        if number > 1.0:
+            raise ParameterError(
+                f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt "
+                "or use method='implicit' / 'crank_nicolson' / 'spectral'"
+            )
+    theta = 0.5 if method == "crank_nicolson" else 1.0
+    out = []
+    for i, u in enumerate(velocity.values):
+        comp = _component(grid, boundary, i)
+        mask = None if masks is None else masks[i]
+        if method == "explicit":
+            new = u + alpha * comp.laplace(u)
+            if mask is not None:
+                new = torch.where(mask, u, new)
+            out.append(new)
+            continue
+        lam = comp.lam.to(u.device)
+        x = comp.restrict(u)
+        b = comp.source(u)
+        if mask is None and b is None and method != "implicit" and not isinstance(alpha, torch.Tensor):
+            # Crank-Nicolson and the exact step in a box: one multiplier, one transform pair, no stencil
+            full = comp.solve_box(x, comp.step_multiplier(method, alpha, u.dtype, u.device), u, engine,
+                                  op=(method, alpha))
+            if full is not None:
+                out.append(full)
+                continue
+        if method == "spectral":
+            y = comp.apply(x, torch.exp(alpha * lam), engine)
+            if b is not None:
+                y = y + comp.apply(b, alpha * _phi1(alpha * lam), engine)
+            out.append(comp.embed(y, u))
+            continue
+        rhs = x
+        if theta < 1:
+            rhs = rhs + ((1 - theta) * alpha) * comp.restrict(comp.laplace(u))
+            if b is not None:
+                rhs = rhs + (theta * alpha) * b
+        elif b is not None:
+            rhs = rhs + alpha * b
+        inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
+        if mask is None:
+            op = None if isinstance(alpha, torch.Tensor) else ("implicit", theta * alpha)
+            full = comp.solve_box(rhs, inverse, u, engine, op=op)
+            out.append(full if full is not None else comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
+            continue
+        # bodies: a direct capacitance solve once the same body and ν dt come back (fixed steps), else CG
+        cap = _capacitance(comp, mask, theta * alpha, u.device, engine)
+        if cap is not None:
+            out.append(cap.solve(comp, rhs, x, inverse, u, engine))
+            continue
+        # CG on the free faces, the exact box solve as preconditioner
+        p = 1 - comp.restrict(mask).to(u.dtype)
+        w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
+        a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
+        v_fixed = (1 - p) * x
+
+        def lap0(y, u=u, comp=comp, b=b):  # the stencil with zero boundary values, on unknowns
+            full = comp.restrict(comp.laplace(comp.embed(y, u)))
+            return full if b is None else full - b
+
+        def weighted(y, w=w):
+            return y if w is None else y * w
+
+        def operator(y, a, p=p, lap0=lap0, weighted=weighted):
+            return p * weighted(y - a * lap0(p * y)) + (1 - p) * y
+
+        def precond(r, p=p, comp=comp, inverse=inverse, w=w):
+            z = p * r if w is None else p * r / w
+            # no gradient through a preconditioner (it changes the iterations, not the answer)
+            return p * comp.apply(z, inverse.detach().to(r.dtype), engine, prescaled=True) + (1 - p) * r
+
+        rhs_cg = p * weighted(rhs + a_t * lap0(v_fixed))
+        if solve is None:
+            solve = Solve(rtol=1e-10 if u.dtype == torch.float64 else 1e-6)
+        y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t,))
+        out.append(comp.embed(y + v_fixed, u))
+    result = velocity.with_values(tuple(out))
+    # the solves embed their unknowns with the boundary faces already set (embed / solve_box)
+    return result.with_boundary_faces() if method == "explicit" else result
+
+
+def _phi1(z: torch.Tensor) -> torch.Tensor:
+    small = z.abs() < 1e-8
+    safe = torch.where(small, torch.ones_like(z), z)
+    return torch.where(small, 1.0 + z / 2, torch.expm1(safe) / safe)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# fixed faces by the capacitance matrix
+
+#: Most surface faces per component for which a dense capacitance matrix is built.
+CAPACITANCE_MAX_FACES = 4096
+_CAP_CACHE: dict = {}  # (geometry, θ ν dt, device) -> [[mask, requests, solve], ...]
+_CAP_CACHE_SIZE = 16  # bodies (masks) held in all
+#: Requests of one (body, θ ν dt) answered by CG before the capacitance matrix is built: ``imex2`` solves twice
+#: per step with the same ν dt/2, so a time step that changes every step (CFL control) never builds one.
+CAPACITANCE_BUILD_AFTER = 2
+#: Surface faces per CG request before the build: the matrix is built once the CG calls have cost about as
+#: many box solves as the build (|S|), see :func:`_capacitance`.
+CAPACITANCE_FACES_PER_REQUEST = 32
+
+
+class _CapacitanceSolve:
+    """Exact solve of ``(I - a L₀) u = f`` on the free faces with ``u`` prescribed on the fixed faces.
+
+    Let ``A = I - a L₀`` be the box operator on the unknowns (inverted exactly by the transforms) and ``S`` the
+    fixed faces with a free stencil neighbour (the body surface). The free-face equations see no other fixed
+    face, so the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources ``σ`` on ``S`` chosen so that ``u_S = g_S``:
+    ``C σ = g_S - (A⁻¹ f)_S`` with the capacitance matrix ``C = (A⁻¹)_{SS}`` (|S| x |S|, dense, LU-factored
+    once in float64). Per call: two box solves and one small triangular solve, no iterations; the other fixed
+    faces (inside the body) are overwritten by their prescribed values. Buzbee, Dorr, George & Golub (1971),
+    "The direct solution of the discrete Poisson equation on irregular regions", SIAM J. Numer. Anal. 8(4).
+    """
+
+    def __init__(self, comp, surface: torch.Tensor, fixed: torch.Tensor, coef: float, device, engine):
+        self.surface = surface  # flat indices into the unknowns
+        self.op = ("implicit", coef)  # the box operator, for the fast box solves
+        self.fixed = fixed  # (1, *unknown_shape) bool
+        shape = tuple(fixed.shape[1:])
+        n_all = math.prod(shape)
+        k = surface.numel()
+        # the same faces as flat indices into the full component, and the fixed faces there
+        full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
+        comp.restrict(full).copy_(fixed)
+        self.fixed_full = full
+        index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
+        self.surface_full = comp.restrict(index[None]).reshape(-1)[surface]
+        mult = comp.inverse_multiplier(coef, torch.float64, device)
+        cap = torch.empty(k, k, dtype=torch.float64, device=device)
+        chunk = max(1, (1 << 22) // n_all)  # unit sources per batched box solve (<= 32 MB)
+        for start in range(0, k, chunk):
+            idx = surface[start : start + chunk]
+            e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
+            e[torch.arange(idx.numel(), device=device), idx] = 1.0
+            z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
+            cap[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, surface]
+        self.lu, self.pivots = torch.linalg.lu_factor(cap)
+
+    def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(resid.dtype)
+
+    def solve(self, comp, rhs, x, inverse, like, engine) -> torch.Tensor:
+        """The full component: free faces solved, fixed faces ``x``, boundary faces from the boundary."""
+        full = comp.solve_box(rhs, inverse, like, engine, op=self.op) if self.surface.numel() else None
+        if full is not None:  # no autograd, walls: both box solves written into new full components
+            b = full.shape[0]
+            resid = like.reshape(b, -1)[:, self.surface_full] - full.view(b, -1)[:, self.surface_full]
+            src = full.new_zeros((b, math.prod(self.fixed.shape[1:])))
+            src.index_copy_(1, self.surface, self._sigma(resid))
+            src = src.view(b, *self.fixed.shape[1:])
+            corr = comp.solve_box(src, inverse, like, engine, op=self.op)
+            if corr is None:
+                comp.restrict(full).add_(comp.apply(src, inverse, engine, prescaled=True))
+            else:
+                full.add_(corr)  # the boundary faces are zero in both
+            return torch.where(self.fixed_full, like, full)
+        z = comp.apply(rhs, inverse, engine, prescaled=True)
+        if self.surface.numel():
+            flat = z.flatten(1)
+            resid = x.flatten(1)[:, self.surface] - flat[:, self.surface]
+            src = torch.zeros_like(flat).index_copy(1, self.surface, self._sigma(resid)).reshape(z.shape)
+            z = z + comp.apply(src, inverse, engine, prescaled=True)
+        return comp.embed(torch.where(self.fixed, x, z), like)
+
+
+def _surface(comp, fixed: torch.Tensor) -> torch.Tensor:
+    """Flat indices of the fixed unknowns with a free neighbour in the stencil (``fixed``: ``(*unknowns)``)."""
+    free = ~fixed
+    near = torch.zeros_like(fixed)
+    for a in range(fixed.ndim):
+        n = fixed.shape[a]
+        if a in comp.periodic:
+            near |= torch.roll(free, 1, a) | torch.roll(free, -1, a)
+        elif n > 1:
+            near.narrow(a, 0, n - 1).logical_or_(free.narrow(a, 1, n - 1))
+            near.narrow(a, 1, n - 1).logical_or_(free.narrow(a, 0, n - 1))
+    return (fixed & near).flatten().nonzero().squeeze(1)
+
+
+def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _CapacitanceSolve | None:
+    """The cached capacitance solve for this component, body and ``coef = θ ν dt``, or None (use CG).
+
+    None for a tensor ``coef`` (its gradient needs the CG path), per-sample masks, more than
+    :data:`CAPACITANCE_MAX_FACES` surface faces, and until the same (body, coef) has been requested more than
+    ``max(CAPACITANCE_BUILD_AFTER, |S| / CAPACITANCE_FACES_PER_REQUEST)`` times. The matrix costs |S| box solves;
+    one PCG solve costs about 30-70 (2-D, 48²-256², per component), so building once the CG calls have spent
+    about as much as the build bounds the total at about twice the better choice in hindsight, and the matrix
+    pays off when the same body and time step keep coming back (fixed-step runs).
+    """
+    if isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
+        return None
+    key = (comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first, comp.count, comp.odd,
+           float(coef), str(device))
+    entries = _CAP_CACHE.setdefault(key, [])  # [mask, requests, solve, surface], compared by content
+    for entry in entries:
+        if torch.equal(entry[0], mask):
+            break
+    else:
+        if sum(len(e) for e in _CAP_CACHE.values()) >= _CAP_CACHE_SIZE:
+            _CAP_CACHE.clear()
+            entries = _CAP_CACHE.setdefault(key, [])
+        entry = [mask.detach().clone(), 0, None, None]
+        entries.append(entry)
+    entry[1] += 1
+    if entry[2] is not None or entry[1] <= CAPACITANCE_BUILD_AFTER:
+        return entry[2] or None
+    fixed = comp.restrict(mask).detach()
+    if entry[3] is None:
+        entry[3] = _surface(comp, fixed[0])
+    surface = entry[3]
+    if surface.numel() > CAPACITANCE_MAX_FACES:
+        entry[2] = False  # never: use CG
+        return None
+    if entry[1] <= surface.numel() // CAPACITANCE_FACES_PER_REQUEST:
+        return None
+    entry[2] = _CapacitanceSolve(comp, surface, fixed, float(coef), device, engine)
+    return entry[2]

@@ -1,0 +1,571 @@
+"""Pictures of fields, vector fields, learning curves and animations (matplotlib, Agg canvas).
+
+The library never touches pyplot's global state and never calls ``plt.show``: figures are created as
+``matplotlib.figure.Figure`` objects with an Agg canvas, so the functions work on headless machines and in
+tests. Pass an existing ``Axes`` (from pyplot or elsewhere) to draw into your own figure.
+
+Orientation: phisim arrays are indexed ``values[..., i, j]`` at ``(x_i, y_j)``; images are drawn transposed
+with ``origin='lower'`` and the grid's physical extent, so ``x`` runs to the right and ``y`` upwards.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import torch
+from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_rgb
+from matplotlib.figure import Figure
+
+from phisim.errors import ParameterError, ShapeError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.grid import Grid
+
+__all__ = [
+    "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
+    "ffmpeg_available", "draw_mask", "plot_training_curves",
+]
+
+PathLike = str | os.PathLike
+
+
+def new_figure(figsize: tuple[float, float] = (5.0, 4.0), dpi: int = 100) -> tuple[Figure, Axes]:
+    """A new figure with one axes on an Agg canvas (independent of pyplot).
+
+    Args:
+        figsize: Width and height in inches.
+        dpi: Dots per inch.
+
+    Returns:
+        ``(figure, axes)``.
+    """
+    fig = Figure(figsize=figsize, dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig, fig.add_subplot(1, 1, 1)
+
+
+def _axes(ax: Axes | None) -> Axes:
+    if ax is None:
+        return new_figure()[1]
+    if not isinstance(ax, Axes):
+        raise ParameterError(f"ax must be a matplotlib Axes or None, got {type(ax).__name__}")
+    return ax
+
+
+def _np(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu()
+        if x.is_complex():
+            raise ShapeError("cannot plot complex values; plot .real, .imag or .abs()")
+        return x.numpy()
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "fiub":
+        raise ShapeError(f"cannot plot an array of dtype {arr.dtype}")
+    return arr
+
+
+def _scalar_2d(field, batch: int, component: int | None, grid: Grid | None) -> tuple[np.ndarray, Grid]:
+    """A ``(nx, ny)`` (or 1-D / 3-D) numpy array of one sample, and its grid."""
+    if isinstance(field, StaggeredGrid):
+        field = field.at_centers()
+    if isinstance(field, CenteredGrid):
+        grid = field.grid
+        if not 0 <= batch < field.batch_size:
+            raise ParameterError(f"batch index {batch} out of range for batch size {field.batch_size}")
+        v = _np(field.values[batch])
+        if field.is_vector:
+            if component is None:
+                v = np.sqrt((v.astype(np.float64) ** 2).sum(axis=0))
+            elif not 0 <= component < v.shape[0]:
+                raise ParameterError(f"component {component} out of range for {v.shape[0]} channels")
+            else:
+                v = v[component]
+        elif component is not None:
+            raise ParameterError("component= applies to vector fields only")
+        return v, grid
+    v = _np(field)
+    if v.ndim not in (1, 2, 3):
+        raise ShapeError(
+            f"plot_field takes a field or a 1-D/2-D/3-D array of one sample, got shape {v.shape}; "
+            "index the batch (values[0]) or pass a CenteredGrid"
+        )
+    if grid is None:
+        grid = Grid(v.shape)
+    elif tuple(v.shape) != grid.resolution:
+        raise ShapeError(f"array of shape {v.shape} does not fit {grid}")
+    return v, grid
+
+
+def _extent(grid: Grid) -> tuple[float, float, float, float]:
+    (x0, x1), (y0, y1) = grid.bounds[0], grid.bounds[1]
+    return (x0, x1, y0, y1)
+
+
+def _finite_check(v: np.ndarray, what: str) -> None:
+    if v.size and not np.isfinite(v).any():
+        raise ParameterError(f"{what}: every value is NaN or Inf; nothing to plot")
+
+
+def _mask_2d(mask, grid: Grid, batch: int = 0, slice_index: int | None = None) -> np.ndarray:
+    """A ``(nx, ny)`` boolean picture of a solid mask (one sample; the middle ``z`` slice in 3-D)."""
+    m = _np(mask)
+    if m.ndim == grid.rank + 1:
+        m = m[min(batch, m.shape[0] - 1)]
+    if tuple(m.shape) != grid.resolution:
+        raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
+    if grid.rank == 3:
+        m = m[:, :, grid.resolution[2] // 2 if slice_index is None else slice_index]
+    return m.astype(bool)
+
+
+def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55") -> None:
+    """Draw solid cells (``True`` in a 2-D boolean ``(nx, ny)`` mask) as opaque grey over an image.
+
+    Args:
+        ax: The axes holding the image.
+        mask: Boolean ``(nx, ny)`` array, ``True`` where the cell is solid.
+        grid: The 2-D grid of the picture (for the extent).
+        color: Matplotlib colour of the solid cells.
+
+    Raises:
+        ShapeError: For a mask that does not fit the grid.
+    """
+    m = _np(mask).astype(bool)
+    if m.shape != tuple(grid.resolution[:2]):
+        raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
+    rgba = np.zeros((*m.T.shape, 4))
+    rgba[..., :3] = to_rgb(color)
+    rgba[..., 3] = m.T.astype(float)
+    ax.imshow(rgba, origin="lower", extent=_extent(Grid(grid.resolution[:2], bounds=grid.bounds[:2])),
+              interpolation="nearest", aspect="equal")
+
+
+def plot_field(
+    field,
+    ax: Axes | None = None,
+    *,
+    title: str | None = None,
+    batch: int = 0,
+    component: int | None = None,
+    grid: Grid | None = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    colorbar: bool = True,
+    slice_index: int | None = None,
+    mask=None,
+) -> Axes:
+    """Draw a scalar field: an image for 2-D, a line for 1-D, the middle ``z`` slice for 3-D.
+
+    Args:
+        field: A :class:`CenteredGrid` (scalar, or vector shown as its magnitude or one ``component``), a
+            :class:`StaggeredGrid` (averaged to the centres), or one sample as an array of shape
+            ``resolution`` (with ``grid`` for physical bounds; default ``dx = 1``).
+        ax: Axes to draw into; a new figure is made when ``None``.
+        title: Axes title.
+        batch: Which sample of a batched field.
+        component: For vector fields, the component to show (default: the magnitude).
+        grid: The grid of a raw array.
+        cmap: Colormap name.
+        vmin: Lower colour limit (default: data minimum).
+        vmax: Upper colour limit.
+        colorbar: Add a colour bar.
+        slice_index: For 3-D fields, the ``z`` index of the slice (default the middle).
+        mask: Solid cells (e.g. an obstacle) drawn in grey over the image: a boolean array of the field's
+            resolution (or ``(1 or B, *res)``, sample ``batch`` is used); 2-D and 3-D fields only.
+
+    Returns:
+        The axes. For 2-D fields ``ax.images[-1]`` is the ``AxesImage``; its data are ``values.T``
+        (origin lower), so ``x`` runs left to right and ``y`` bottom to top.
+
+    Raises:
+        ShapeError: For arrays that are not one sample of a 1-D/2-D/3-D field or do not fit ``grid``.
+        ParameterError: For bad indices or all-NaN data.
+    """
+    v, g = _scalar_2d(field, batch, component, grid)
+    _finite_check(v, "plot_field")
+    ax = _axes(ax)
+    if g.rank == 1:
+        ax.plot(_np(g.center_coords(0, torch.float64)), v)
+        ax.set_xlabel("x")
+        ax.set_xlim(*g.bounds[0])
+        if vmin is not None or vmax is not None:
+            ax.set_ylim(vmin, vmax)
+    else:
+        if g.rank == 3:
+            k = g.resolution[2] // 2 if slice_index is None else slice_index
+            if not 0 <= k < g.resolution[2]:
+                raise ParameterError(f"slice_index {k} out of range for {g.resolution[2]} z cells")
+            v = v[:, :, k]
+        im = ax.imshow(v.T, origin="lower", extent=_extent(g), cmap=cmap, vmin=vmin, vmax=vmax,
+                       interpolation="nearest", aspect="equal")
+        if mask is not None:
+            draw_mask(ax, _mask_2d(mask, g, batch, slice_index), g)
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+        if colorbar:
+            ax.figure.colorbar(im, ax=ax)
+    if mask is not None and g.rank == 1:
+        raise ParameterError("plot_field draws masks on 2-D and 3-D fields only")
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def plot_vector_field(
+    field,
+    ax: Axes | None = None,
+    *,
+    title: str | None = None,
+    batch: int = 0,
+    mode: str = "quiver",
+    background: str | None = "magnitude",
+    stride: int | None = None,
+    grid: Grid | None = None,
+    cmap: str = "viridis",
+    color: str = "white",
+) -> Axes:
+    """Draw a 2-D vector field as arrows (``quiver``) or streamlines over an optional magnitude image.
+
+    Args:
+        field: A vector :class:`CenteredGrid` (``(B, 2, nx, ny)``), a :class:`StaggeredGrid` (averaged to
+            the centres), or one sample as an array ``(2, nx, ny)`` (with ``grid``).
+        ax: Axes to draw into; a new figure is made when ``None``.
+        title: Axes title.
+        batch: Which sample.
+        mode: ``'quiver'`` or ``'streamlines'``.
+        background: ``'magnitude'`` to draw the speed as an image below, or ``None``.
+        stride: Draw every ``stride``-th arrow per axis (default: about 24 arrows per axis).
+        grid: The grid of a raw array.
+        cmap: Colormap of the background.
+        color: Colour of arrows / streamlines.
+
+    Returns:
+        The axes.
+
+    Raises:
+        ShapeError: For fields that are not 2-D vector fields.
+        ParameterError: For an unknown ``mode``/``background`` or a bad ``stride``.
+    """
+    if mode not in ("quiver", "streamlines"):
+        raise ParameterError(f"mode must be 'quiver' or 'streamlines', got {mode!r}")
+    if background not in ("magnitude", None):
+        raise ParameterError(f"background must be 'magnitude' or None, got {background!r}")
+    if isinstance(field, StaggeredGrid):
+        field = field.at_centers()
+    if isinstance(field, CenteredGrid):
+        if not field.is_vector or field.values.shape[1] != 2 or field.grid.rank != 2:
+            raise ShapeError(f"plot_vector_field needs a 2-D vector field with 2 components, got {field}")
+        if not 0 <= batch < field.batch_size:
+            raise ParameterError(f"batch index {batch} out of range for batch size {field.batch_size}")
+        g, v = field.grid, _np(field.values[batch])
+    else:
+        v = _np(field)
+        if v.ndim != 3 or v.shape[0] != 2:
+            raise ShapeError(f"plot_vector_field takes one sample of shape (2, nx, ny), got {v.shape}")
+        g = Grid(v.shape[1:]) if grid is None else grid
+        if tuple(v.shape[1:]) != g.resolution:
+            raise ShapeError(f"array of shape {v.shape} does not fit {g}")
+    _finite_check(v, "plot_vector_field")
+    ax = _axes(ax)
+    if background == "magnitude":
+        speed = np.sqrt((v.astype(np.float64) ** 2).sum(axis=0))
+        im = ax.imshow(speed.T, origin="lower", extent=_extent(g), cmap=cmap, interpolation="nearest")
+        ax.figure.colorbar(im, ax=ax, label="|v|")
+    x = _np(g.center_coords(0, torch.float64))
+    y = _np(g.center_coords(1, torch.float64))
+    if mode == "quiver":
+        if stride is None:
+            stride = max(1, max(g.resolution) // 24)
+        if not isinstance(stride, (int, np.integer)) or stride < 1:
+            raise ParameterError(f"stride must be a positive int, got {stride!r}")
+        X, Y = np.meshgrid(x[::stride], y[::stride], indexing="ij")
+        ax.quiver(X.T, Y.T, v[0, ::stride, ::stride].T, v[1, ::stride, ::stride].T, color=color,
+                  angles="xy")
+    else:
+        ax.streamplot(x, y, v[0].T, v[1].T, color=color, density=1.0)
+    ax.set_xlim(*g.bounds[0])
+    ax.set_ylim(*g.bounds[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def plot_curves(
+    curves: Mapping[str, tuple],
+    ax: Axes | None = None,
+    *,
+    logy: bool = True,
+    title: str | None = None,
+    xlabel: str = "iteration",
+    ylabel: str = "loss",
+) -> Axes:
+    """Draw learning curves, one line per method.
+
+    Args:
+        curves: Name -> ``(iterations, values)``, two 1-D sequences of equal length. NaN entries (records
+            where a curve was not logged) are skipped.
+        ax: Axes to draw into; a new figure is made when ``None``.
+        logy: Logarithmic y axis (non-positive values are left out of a log plot).
+        title: Axes title.
+        xlabel: x-axis label.
+        ylabel: y-axis label.
+
+    Returns:
+        The axes, with a legend.
+
+    Raises:
+        ParameterError: For an empty mapping or entries that are not ``(iterations, values)`` pairs.
+        ShapeError: For lengths that differ or arrays that are not 1-D.
+    """
+    if not isinstance(curves, Mapping) or not curves:
+        raise ParameterError("curves must be a non-empty mapping name -> (iterations, values)")
+    prepared = []
+    for name, pair in curves.items():
+        if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+            raise ParameterError(f"curve {name!r} must be an (iterations, values) pair")
+        it, val = (_np(p).astype(np.float64) for p in pair)
+        if it.ndim != 1 or val.ndim != 1 or len(it) != len(val):
+            raise ShapeError(
+                f"curve {name!r}: iterations {it.shape} and values {val.shape} must be 1-D, same length"
+            )
+        keep = np.isfinite(val) & np.isfinite(it)
+        if logy:
+            keep &= val > 0
+        prepared.append((str(name), it[keep], val[keep]))
+    ax = _axes(ax)
+    for name, it, val in prepared:
+        ax.plot(it, val, label=name)
+    if logy:
+        ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate([val for _, _, val in prepared]))
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def _readable_log_ticks(ax: Axes, values: np.ndarray) -> None:
+    """Label a log y axis at 1-2-5 per decade (every integer multiple for data within one decade, only
+    powers of ten beyond three decades), as plain numbers, so a curve spanning less than a decade still
+    gets several labelled ticks."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    v = values[np.isfinite(values) & (values > 0)]
+    if v.size == 0:
+        return
+    decades = float(np.log10(v.max() / v.min()))
+    subs = tuple(range(1, 10)) if decades < 1 else (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=subs))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def plot_training_curves(
+    runs: Mapping[str, Mapping[str, np.ndarray]],
+    metric_name: str = "metric",
+    ax: Axes | None = None,
+    *,
+    curve: str = "metric",
+    title: str | None = None,
+    logy: bool = True,
+) -> Axes:
+    """Learning curves of several runs: the training-batch curve (thin, faded) and the held-out curve
+    (``eval_<curve>``, solid with markers) of each method in one colour.
+
+    Args:
+        runs: Method -> curves as written by :func:`inverse.train.train` (``iteration``, ``metric``,
+            ``eval_metric``, ...).
+        metric_name: The y-axis label (what the curve measures, with units).
+        ax: Axes to draw into; a new figure is made when ``None``.
+        curve: ``'metric'`` or ``'loss'``.
+        title: Axes title.
+        logy: Logarithmic y axis with readable tick labels.
+
+    Returns:
+        The axes, with a legend naming "train batch" and "held-out" for each method.
+
+    Raises:
+        ParameterError: For an empty mapping or runs without ``iteration`` and ``curve``.
+    """
+    if not isinstance(runs, Mapping) or not runs:
+        raise ParameterError("runs must be a non-empty mapping method -> curves")
+    ax = _axes(ax)
+    everything = []
+    for k, (name, c) in enumerate(runs.items()):
+        if "iteration" not in c or curve not in c:
+            raise ParameterError(f"run {name!r} has no 'iteration' and {curve!r} curves")
+        color = f"C{k % 10}"
+        it = _np(c["iteration"]).astype(np.float64)
+        train = _np(c[curve]).astype(np.float64)
+        keep = np.isfinite(train) & ((train > 0) if logy else True)
+        ax.plot(it[keep], train[keep], color=color, alpha=0.35, lw=1.0, label=f"{name} (train batch)")
+        everything.append(train[keep])
+        if f"eval_{curve}" in c:
+            held = _np(c[f"eval_{curve}"]).astype(np.float64)
+            keep = np.isfinite(held) & ((held > 0) if logy else True)
+            ax.plot(it[keep], held[keep], color=color, lw=1.8, marker="o", ms=3, label=f"{name} (held-out)")
+            everything.append(held[keep])
+    if logy:
+        ax.set_yscale("log")
+        _readable_log_ticks(ax, np.concatenate(everything) if everything else np.zeros(0))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel(metric_name)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    if title is not None:
+        ax.set_title(title)
+    return ax
+
+
+def save_figure(fig: Figure, path: PathLike, *, dpi: int | None = None) -> Path:
+    """Save a figure (format from the suffix: png, pdf, svg, ...), creating parent folders.
+
+    Args:
+        fig: The figure (e.g. ``ax.figure``).
+        path: Output file.
+        dpi: Resolution for raster formats (default: the figure's).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ParameterError: If ``fig`` is not a figure or the suffix is not a format matplotlib writes.
+    """
+    if not isinstance(fig, Figure):
+        raise ParameterError(
+            f"save_figure needs a matplotlib Figure, got {type(fig).__name__} (use ax.figure)"
+        )
+    p = Path(path)
+    fmt = p.suffix.lstrip(".").lower()
+    supported = fig.canvas.get_supported_filetypes() if fig.canvas is not None else {}
+    if fmt not in supported:
+        raise ParameterError(f"cannot save {p}: unknown image format {fmt!r}; use one of {sorted(supported)}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=dpi or fig.dpi, bbox_inches="tight")
+    return p
+
+
+def _frames_to_arrays(frames, grid: Grid | None, component: int | None) -> tuple[list[np.ndarray], Grid]:
+    if isinstance(frames, (torch.Tensor, np.ndarray)):
+        frames = list(frames)  # leading axis = time
+    if not isinstance(frames, Sequence) or len(frames) == 0:
+        raise ParameterError("frames must be a non-empty sequence of fields or arrays (or a (T, ...) array)")
+    arrays, g0 = [], None
+    for k, fr in enumerate(frames):
+        v, g = _scalar_2d(fr, 0, component, grid)
+        if g.rank != 2:
+            raise ShapeError(f"animate draws 2-D fields; frame {k} is {g.rank}-D")
+        if g0 is None:
+            g0 = g
+        elif g.resolution != g0.resolution:
+            raise ShapeError(f"frame {k} has resolution {g.resolution}, frame 0 {g0.resolution}")
+        arrays.append(v)
+    return arrays, g0
+
+
+def animate(
+    frames,
+    path: PathLike,
+    fps: int = 10,
+    *,
+    grid: Grid | None = None,
+    title: str | None = None,
+    component: int | None = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    dpi: int = 80,
+    times: Sequence[float] | None = None,
+    mask=None,
+) -> Path:
+    """Write an animation of 2-D scalar frames as GIF (Pillow) or MP4 (ffmpeg).
+
+    Args:
+        frames: A sequence of fields (the first sample of each is shown; vector fields as magnitude or
+            ``component``) or of ``(nx, ny)`` arrays, or one ``(T, nx, ny)`` array.
+        path: Output file ending in ``.gif`` or ``.mp4``.
+        fps: Frames per second.
+        grid: Grid of raw arrays (for the axis extent).
+        title: Title; ``{t}`` in it is replaced by the frame index and ``{time}`` by the frame's time
+            (a number, so ``{time:.2f}`` works). With ``times`` and no ``{time}`` in the title (or no
+            title), the time is appended as ``t = ...``.
+        component: Component of vector frames to show.
+        cmap: Colormap name.
+        vmin: Lower colour limit (default: minimum over all frames, so colours are comparable).
+        vmax: Upper colour limit (default: maximum over all frames).
+        dpi: Resolution.
+        times: The simulated time of each frame (shown in the title of every frame).
+        mask: Solid cells drawn in grey on every frame (see :func:`plot_field`).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ParameterError: For an unknown suffix, ``fps < 1``, no frames, or MP4 without ffmpeg installed.
+        ShapeError: For frames that are not 2-D or differ in resolution.
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ParameterError(f"animate writes .gif or .mp4 files, got {p.name!r}")
+    if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
+        raise ParameterError(f"fps must be a positive int, got {fps!r}")
+    if suffix == ".mp4" and not ffmpeg_available():
+        raise ParameterError("writing MP4 needs ffmpeg on the PATH (matplotlib's animation.ffmpeg_path); "
+                             "install ffmpeg or write a .gif")
+    arrays, g = _frames_to_arrays(frames, grid, component)
+    if times is not None:
+        times = [float(t) for t in times]
+        if len(times) != len(arrays):
+            raise ShapeError(f"times has {len(times)} entries for {len(arrays)} frames")
+        if title is None or "{time" not in title:
+            title = (title + ", " if title else "") + "t = {time:.3g}"
+    solid = None if mask is None else _mask_2d(mask, g)
+    finite = [a[np.isfinite(a)] for a in arrays]
+    lo = vmin if vmin is not None else min((float(a.min()) for a in finite if a.size), default=0.0)
+    hi = vmax if vmax is not None else max((float(a.max()) for a in finite if a.size), default=1.0)
+    fig, ax = new_figure((5.0, 4.0), dpi)
+    im = ax.imshow(arrays[0].T, origin="lower", extent=_extent(g), cmap=cmap, vmin=lo, vmax=hi,
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax)
+    if solid is not None:
+        draw_mask(ax, solid, g)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+
+    def label(k: int) -> str:
+        return title.format(t=k, time=times[k] if times is not None else float(k)) if title else ""
+
+    text = ax.set_title(label(0))
+
+    def update(k):
+        im.set_data(arrays[k].T)
+        if title:
+            text.set_text(label(k))
+        return (im, text)
+
+    anim = FuncAnimation(fig, update, frames=len(arrays), blit=False)
+    writer = PillowWriter(fps=int(fps)) if suffix == ".gif" else FFMpegWriter(fps=int(fps))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(str(p), writer=writer, dpi=dpi)
+    return p
+
+
+def ffmpeg_available() -> bool:
+    """Whether matplotlib can find an ffmpeg executable (needed for MP4)."""
+    exe = matplotlib.rcParams.get("animation.ffmpeg_path", "ffmpeg")
+    return shutil.which(exe) is not None or Path(exe).is_file()
