@@ -18,7 +18,12 @@ The group's attributes ``loss_name`` and ``metric_name`` say what the curves mea
 (sum over cells of |x−x*|)").
 Checkpoints (model, optimizer, iteration) are written atomically every ``checkpoint_every`` iterations;
 a killed run loses at most that interval and ``resume=True`` continues it, truncating the log to the
-checkpoint.
+checkpoint. A file that already holds a run of the method is never written over silently: without
+``resume=True`` or ``overwrite=True`` the run is refused before any work. The log records the planned
+number of iterations and, at the end, a completion mark, so an interrupted run reads back as incomplete.
+
+SIGINT and SIGTERM stop a run promptly (:func:`phisim.io.interrupts.interruptible`): the interrupt is raised
+between file writes, the log is closed cleanly and no half-written checkpoint or model file remains.
 """
 
 from __future__ import annotations
@@ -40,7 +45,9 @@ from phisim.checks import check_device
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
 from phisim.io import TrainingLog, recover_file
 from phisim.io.h5util import check_output_path
+from phisim.io.interrupts import interruptible, uninterrupted
 from phisim.io.journal import write_failure
+from phisim.io.traininglog import training_run
 
 from .distributed import convert_sync_batchnorm, init_from_env, launched_by_torchrun, rank_device
 from .hig import HIG, GaussNewton
@@ -48,7 +55,8 @@ from .local_solvers import LocalSolver, SolverOperator
 from .physgrad import physical_update
 from .problems import Batch, Method, Problem, get_problem
 
-__all__ = ["TrainResult", "train", "evaluate", "batch_generator", "make_optimizer"]
+__all__ = ["TrainResult", "train", "evaluate", "batch_generator", "make_optimizer", "checkpoint_path",
+           "check_no_overwrite"]
 
 
 @dataclass
@@ -230,6 +238,49 @@ def _save_checkpoint(path: Path, state: dict) -> None:
     except (OSError, RuntimeError) as exc:  # full disk, vanished folder: no temp file, old checkpoint kept
         tmp.unlink(missing_ok=True)
         raise write_failure(path, exc, "write the checkpoint") from exc
+    except BaseException:  # an interrupt: no temp file left behind, the old checkpoint kept
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def checkpoint_path(out: str | os.PathLike, method: str) -> Path:
+    """The checkpoint file of ``method`` next to the log ``out``: ``<out>.<method>.ckpt``."""
+    out = Path(out)
+    return out.with_name(f"{out.name}.{method}.ckpt")
+
+
+def check_no_overwrite(out: str | os.PathLike, method: str, *, resume: bool = False, overwrite: bool = False) -> None:
+    """Refuse (before any work) a run that would write over results of ``method`` already in ``out``.
+
+    Args:
+        out: The log file.
+        method: The method's name.
+        resume: The run continues from its checkpoint: allowed when the checkpoint exists.
+        overwrite: The run replaces the earlier one: always allowed.
+
+    Raises:
+        ParameterError: Both ``resume`` and ``overwrite``.
+        FileFormatError: ``out`` holds records of ``method`` and neither flag allows writing over them, or
+            ``resume`` has no checkpoint to continue from.
+    """
+    if resume and overwrite:
+        raise ParameterError("resume and overwrite exclude each other: continue the run or replace it")
+    if overwrite:
+        return
+    run = training_run(out, method)
+    if run is None:
+        return
+    if not resume:
+        raise FileFormatError(
+            f"{out} already holds a run of {method!r} ({run.status}); pass resume=True (--resume) to continue it "
+            "from its checkpoint or overwrite=True (--overwrite) to replace it, or write to another file"
+        )
+    ckpt = checkpoint_path(out, method)
+    if not ckpt.exists():
+        raise FileFormatError(
+            f"{out} holds a run of {method!r} ({run.status}) but no checkpoint {ckpt.name} to resume it from "
+            "(it ran without checkpoint_every); pass overwrite=True (--overwrite) to start it afresh"
+        )
 
 
 def _run_identity(problem: Problem, batch_size: int) -> dict:
@@ -264,7 +315,7 @@ def _identity_diff(saved: dict, now: dict, problem: Problem) -> dict:
 
 def _truncate_log(h5path: Path, method: str, n: int) -> None:
     recover_file(h5path)  # a log killed mid-write: rebuild the file from its journal first
-    with h5py.File(h5path, "a") as f:
+    with uninterrupted(), h5py.File(h5path, "a") as f:  # every curve cut to the same length
         grp = f.get(f"training/{method}")
         if grp is None:
             return
@@ -286,12 +337,21 @@ def _write_model(out_path: Path, net: nn.Module, problem: Problem, method: Metho
 
     if input_shape is None:  # nothing trained in this session (a resumed, finished run): draw one sample
         input_shape = tuple(problem.sample(1, batch_generator(seed, 0), device=device).inputs.shape[1:])
-    path = save_model(model_path(out_path, method.name), net, problem, method=method.name, seed=seed,
-                      iterations=iterations, input_shape=input_shape)
-    with h5py.File(out_path, "a") as f:
-        grp = f.require_group(f"training/{method.name}")
-        grp.attrs["model_file"] = path.name
+    with uninterrupted():  # the model file and the log's pointer to it, both or neither
+        path = save_model(model_path(out_path, method.name), net, problem, method=method.name, seed=seed,
+                          iterations=iterations, input_shape=input_shape)
+        with h5py.File(out_path, "a") as f:
+            grp = f.require_group(f"training/{method.name}")
+            grp.attrs["model_file"] = path.name
     return path
+
+
+def _remove_results(out_path: Path, method: str) -> None:
+    """Delete the checkpoint and model file of an earlier run that ``overwrite=True`` replaces."""
+    from .models import model_path
+
+    checkpoint_path(out_path, method).unlink(missing_ok=True)
+    model_path(out_path, method).unlink(missing_ok=True)
 
 
 def train(
@@ -310,6 +370,7 @@ def train(
     distributed: bool | None = None,
     eval_every: int | None = None,
     tensorboard: str | os.PathLike | None = None,
+    overwrite: bool = False,
 ) -> TrainResult:
     """Train the problem's network with one method.
 
@@ -325,7 +386,8 @@ def train(
             end of the run the trained network is written to ``<out>.<method>.model.pt``
             (:func:`inverse.models.load_model` rebuilds it; the log's attribute ``model_file`` names it).
         checkpoint_every: Iterations between checkpoints (0: none).
-        resume: Continue from the checkpoint next to ``out`` when there is one.
+        resume: Continue from the checkpoint next to ``out`` when there is one. A log of the method that
+            already holds records needs its checkpoint (otherwise the run is refused).
         progress: Show a tqdm progress bar.
         callback: Called as ``callback(iteration, record)`` after every iteration.
         distributed: Data-parallel training over the processes of a ``torch.distributed`` group: every
@@ -341,15 +403,27 @@ def train(
             The final model is always evaluated.
         tensorboard: Folder for TensorBoard event files (``<folder>/<method>``); skipped with a warning when
             the ``tensorboard`` package is not installed.
+        overwrite: Replace a run of the method that ``out`` already holds (its curves, checkpoint and model
+            file). Without it (or ``resume``) such a run is refused before any work.
 
     Returns:
         The :class:`TrainResult`.
 
     Raises:
-        ParameterError: Bad iteration counts, unknown method, ``resume`` without ``out``.
-        FileFormatError: A checkpoint that cannot be read or belongs to another run.
+        ParameterError: Bad iteration counts, unknown method, ``resume`` without ``out``, both ``resume`` and
+            ``overwrite``.
+        FileFormatError: ``out`` already holds a run of the method (without ``resume``/``overwrite``), a
+            checkpoint that cannot be read or belongs to another run.
         NonFiniteError: The objective diverged.
+        KeyboardInterrupt: SIGINT, or SIGTERM (:class:`phisim.io.interrupts.Interrupted`): the run stopped,
+            the log was closed and marked incomplete; ``resume=True`` continues from the last checkpoint.
     """
+    with interruptible():  # SIGTERM stops the run as Ctrl-C does: files are closed cleanly on the way out
+        return _train(**locals())
+
+
+def _train(problem, method, *, iterations, batch_size, seed, device, out, checkpoint_every, resume, progress,
+           callback, distributed, eval_every, tensorboard, overwrite) -> TrainResult:
     if isinstance(problem, str):
         problem = get_problem(problem)
     if isinstance(method, str):
@@ -371,6 +445,9 @@ def train(
     device = check_device(device)
     if out is not None:
         check_output_path(out, append=True)  # before any work: a bad --out fails now, not after training
+        check_no_overwrite(out, method.name, resume=resume, overwrite=overwrite)
+    elif overwrite and resume:
+        raise ParameterError("resume and overwrite exclude each other: continue the run or replace it")
 
     import torch.distributed as dist
 
@@ -382,6 +459,8 @@ def train(
                                  "(call dist.init_process_group) or a start by torchrun")
         device = rank_device(device)
     rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
+    if distributed and out is not None:
+        dist.barrier()  # every process has read the log (check_no_overwrite) before process 0 writes it
     if distributed and method.kind == "hig":
         raise ParameterError("HIG builds the Jacobian of the whole batch; run it in a single process")
     if world > batch_size:
@@ -398,7 +477,8 @@ def train(
     weight = world * (1.0 / batch_size if problem.reduction == "mean" else 1.0)
     start = 0
     out_path = Path(out) if out is not None else None
-    ckpt_path = out_path.with_name(f"{out_path.name}.{method.name}.ckpt") if out_path is not None else None
+    ckpt_path = checkpoint_path(out_path, method.name) if out_path is not None else None
+    resumed = False
     if resume and ckpt_path is not None and ckpt_path.exists():
         try:
             state = torch.load(ckpt_path, map_location=device, weights_only=False)
@@ -420,16 +500,18 @@ def train(
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         start = int(state["iteration"])
+        resumed = True
         if rank == 0:
             _truncate_log(out_path, method.name, start)
-    elif out_path is not None and out_path.exists() and rank == 0:
-        _truncate_log(out_path, method.name, 0)  # a fresh run replaces an old curve of the same method
+    elif overwrite and out_path is not None and rank == 0:
+        _remove_results(out_path, method.name)  # the curves themselves are replaced by the log below
 
     if distributed:
         dist.barrier()  # process 0 may have truncated the log
     log = None
     if out_path is not None and rank == 0:
-        log = TrainingLog(out_path, method.name, attrs={
+        log = TrainingLog(out_path, method.name, planned_iterations=iterations, overwrite=overwrite and not resumed,
+                          resume=resumed, attrs={
             "problem": problem.name, "kind": method.kind, "optimizer": method.optimizer, "lr": method.lr,
             "eta": method.eta, "batch_size": batch_size, "seed": seed,
             "local_solver": type(method.local_solver).__name__ if method.local_solver is not None else "analytic",
@@ -493,6 +575,8 @@ def train(
                                              "optimizer": opt.state_dict(), "problem": problem.name,
                                              "method": method.name, "seed": seed,
                                              "settings": _run_identity(problem, batch_size)})
+        if log is not None:
+            log.finish()  # the completion mark: a run stopped before this reads back as incomplete
     finally:
         if bar is not None:
             bar.close()

@@ -1,4 +1,5 @@
-"""Small HDF5/JSON helpers shared by :mod:`phisim.io` and :mod:`phisim.io.traininglog`."""
+"""Small HDF5/JSON helpers shared by the modules of :mod:`phisim.io`: JSON encoding, output-path checks,
+typed opening for reading, and reading string attributes and required objects with errors that name the file."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import dataclasses
 import json
 import os
 import stat
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -13,11 +15,13 @@ import numpy as np
 import torch
 
 from phisim.errors import FileFormatError, ParameterError
+from phisim.io.journal import journal_path
 
 PathLike = str | os.PathLike
 
 
 def json_default(obj):
+    """``json.dumps`` fallback for paths, numpy/torch values, dtypes, dataclasses and sets."""
     if isinstance(obj, Path):
         return str(obj)
     if isinstance(obj, np.generic):
@@ -36,6 +40,7 @@ def json_default(obj):
 
 
 def to_json(obj, what: str) -> str:
+    """``obj`` as sorted JSON; ParameterError naming ``what`` if it cannot be encoded."""
     try:
         return json.dumps(obj, default=json_default, sort_keys=True)
     except (TypeError, ValueError) as exc:
@@ -72,17 +77,11 @@ def check_output_path(path: PathLike, *, append: bool = False) -> Path:
     if p.exists():
         if not os.access(p, os.W_OK):
             raise FileFormatError(f"cannot write the output {p}: the file is read-only")
-        if append and p.stat().st_size > 0 and not h5py.is_hdf5(p) and not _journal_exists(p):
+        if append and p.stat().st_size > 0 and not h5py.is_hdf5(p) and not journal_path(p).exists():
             raise FileFormatError(
                 f"output {p} exists and is not an HDF5 file; choose another file name or remove it"
             )
     return p
-
-
-def _journal_exists(p: Path) -> bool:
-    from phisim.io.journal import journal_path
-
-    return journal_path(p).exists()
 
 
 def open_for_read(path: PathLike) -> h5py.File:
@@ -113,3 +112,49 @@ def open_for_read(path: PathLike) -> h5py.File:
         raise FileFormatError(
             f"{p} ({size} bytes) is not a readable HDF5 file (corrupt, truncated or another format): {exc}"
         ) from exc
+
+
+# ---- attributes and required objects ------------------------------------------------------------------
+
+
+def str_array(names: Sequence[str]) -> np.ndarray:
+    """A numpy array of variable-length UTF-8 strings (also for an empty list), for HDF5 attributes."""
+    return np.array([str(n) for n in names], dtype=h5py.string_dtype())
+
+
+def attr_str(value) -> str:
+    """An HDF5 string attribute (``bytes``, ``str`` or a 0-d array) as ``str``."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        return attr_str(value.item())
+    return str(value)
+
+
+def attr_str_list(value) -> list[str]:
+    """An HDF5 attribute holding one string or an array of strings as a list of ``str``."""
+    if isinstance(value, (str, bytes)):
+        return [attr_str(value)]
+    return [attr_str(v) for v in np.atleast_1d(np.asarray(value, dtype=object))]
+
+
+def need(group, key: str, path: Path, kind=None):
+    """``group[key]``, required: FileFormatError naming the file if it is missing, unreadable or not a ``kind``."""
+    try:
+        obj = group[key]
+    except (KeyError, OSError, RuntimeError, ValueError) as exc:
+        where = f"{group.name.rstrip('/')}/{key}"
+        raise FileFormatError(
+            f"{path}: missing or unreadable {where} ({exc}); "
+            "not a Well/phisim simulation file, or a damaged one"
+        ) from exc
+    if kind is not None and not isinstance(obj, kind):
+        raise FileFormatError(f"{path}: {obj.name} should be a {kind.__name__}")
+    return obj
+
+
+def need_attr(obj, key: str, path: Path):
+    """The attribute ``key`` of ``obj``, required by The Well's layout (FileFormatError naming the file)."""
+    if key not in obj.attrs:
+        raise FileFormatError(f"{path}: {obj.name} lacks the attribute {key!r} required by The Well's layout")
+    return obj.attrs[key]

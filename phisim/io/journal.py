@@ -15,7 +15,11 @@ still being written), and the readers then take the content from the journal.
 Record layout (little endian): ``b"PHJ1"``, a type byte, 3 zero bytes, the payload length (uint64),
 the CRC-32 of the payload (uint32), the payload. Types: ``S`` simulation header (JSON), ``F`` frame
 (uint32 JSON length, JSON head, raw array bytes), ``L`` training-log snapshot of one method (JSON),
-``R`` training record (JSON), ``C`` constant fields (as a frame).
+``R`` training record (JSON), ``A`` training-log attributes updated after its snapshot (JSON: the run's
+completion mark), ``C`` constant fields (as a frame).
+
+This is the lowest module of :mod:`phisim.io` (it imports no other one): :func:`load_journal` is what the
+readers of both file kinds call first.
 """
 
 from __future__ import annotations
@@ -23,13 +27,14 @@ from __future__ import annotations
 import json
 import os
 import struct
+import warnings
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from phisim.errors import FileFormatError, PhisimError
+from phisim.errors import FileFormatError, IncompleteFileWarning, PhisimError
 
 MAGIC = b"PHJ1"
 _HEAD = struct.Struct("<4sB3xQI")
@@ -231,6 +236,10 @@ def _apply(out: JournalContent, kind: bytes, payload: memoryview) -> None:
         rec = json.loads(bytes(payload))
         out.training[rec["method"]] = {"attrs": rec.get("attrs", {}), "iteration": list(rec["iteration"]),
                                        "curves": {k: list(v) for k, v in rec["curves"].items()}}
+    elif kind == b"A":
+        rec = json.loads(bytes(payload))
+        log = out.training.setdefault(rec["method"], {"attrs": {}, "iteration": [], "curves": {}})
+        log["attrs"].update(rec["attrs"])
     elif kind == b"R":
         rec = json.loads(bytes(payload))
         log = out.training.setdefault(rec["method"], {"attrs": {}, "iteration": [], "curves": {}})
@@ -243,3 +252,26 @@ def _apply(out: JournalContent, kind: bytes, payload: memoryview) -> None:
         log["iteration"].append(int(rec["iteration"]))
     else:
         raise ValueError(f"unknown record type {kind!r}")
+
+
+def load_journal(p: Path) -> JournalContent | None:
+    """The journal next to ``p`` decoded, with an :class:`~phisim.errors.IncompleteFileWarning`, or None when
+    there is none (the file was closed cleanly).
+
+    Raises:
+        FileFormatError: If the journal is unreadable.
+    """
+    jp = journal_path(p)
+    if not jp.exists():
+        return None
+    content = read_journal(jp)
+    torn = f"; a torn tail of {content.torn_bytes} bytes (an unfinished record) was skipped" \
+        if content.torn_bytes else ""
+    warnings.warn(
+        f"{p} was not closed cleanly (the writer was killed, ran out of disk, or is still running): reading its "
+        f"{len(content.frames)} complete frame(s) and {len(content.training)} training log(s) from the journal "
+        f"{jp.name}{torn}. phisim.io.recover_file rebuilds a clean file.",
+        IncompleteFileWarning,
+        stacklevel=3,
+    )
+    return content

@@ -1,4 +1,9 @@
-"""Translation between phisim boundaries and The Well's ``boundary_conditions`` (used by :mod:`phisim.io`)."""
+"""Translation between phisim boundaries and The Well's ``boundary_conditions`` (used by :mod:`phisim.io`).
+
+:func:`well_bc_type` gives the Well type of a condition; :func:`condition_to_json` / :func:`condition_from_json`
+store the exact conditions in ``/extras`` (and the journal header); :func:`boundary_from_well` rebuilds a
+boundary from the Well groups of a foreign file.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +26,9 @@ from phisim.boundary import (
 )
 from phisim.errors import FileFormatError, ParameterError
 from phisim.grid import Grid
+from phisim.io.h5util import attr_str, attr_str_list, need, need_attr
+
+__all__ = ["well_bc_type", "condition_to_json", "condition_from_json", "boundary_from_well"]
 
 # ---- boundary <-> Well bc_type ------------------------------------------------------------------------
 
@@ -48,11 +56,16 @@ def well_bc_type(condition: BoundaryCondition) -> str:
     raise ParameterError(f"no Well boundary type is known for condition {condition!r}")
 
 
-def _conditionto_json(c: BoundaryCondition) -> dict:
+def condition_to_json(c: BoundaryCondition) -> dict:
+    """A JSON-serialisable description of one condition (read back by :func:`condition_from_json`).
+
+    Raises:
+        ParameterError: For a condition type that cannot be stored.
+    """
     if isinstance(c, Inflow):  # a function itself is not stored: its name is, and the side reads back as open
         if c.varying:
             return {"type": "inflow", "function": getattr(c.velocity, "__qualname__", repr(c.velocity))}
-        return {"type": "inflow", "velocity": _valueto_json(c.velocity)}
+        return {"type": "inflow", "velocity": _value_to_json(c.velocity)}
     if isinstance(c, Periodic):
         return {"type": "periodic"}
     if isinstance(c, Open):
@@ -63,13 +76,13 @@ def _conditionto_json(c: BoundaryCondition) -> dict:
         v = None if c.velocity is None else [float(x) for x in c.velocity]
         return {"type": "no_slip", "velocity": v}
     if isinstance(c, Dirichlet):
-        return {"type": "dirichlet", "value": _valueto_json(c.value)}
+        return {"type": "dirichlet", "value": _value_to_json(c.value)}
     if isinstance(c, Neumann):
-        return {"type": "neumann", "flux": _valueto_json(c.flux)}
+        return {"type": "neumann", "flux": _value_to_json(c.flux)}
     raise ParameterError(f"cannot store boundary condition {c!r}")
 
 
-def _valueto_json(v):
+def _value_to_json(v):
     if isinstance(v, torch.Tensor):
         return {"tensor": v.detach().cpu().tolist()}
     if isinstance(v, np.ndarray):
@@ -87,7 +100,13 @@ def _value_from_json(v):
     return float(v)
 
 
-def _condition_from_json(d: dict) -> BoundaryCondition:
+def condition_from_json(d: dict) -> BoundaryCondition:
+    """The condition described by ``d`` (see :func:`condition_to_json`); an inflow given by a function reads
+    back as :class:`Open`.
+
+    Raises:
+        FileFormatError: For an unknown description.
+    """
     kind = d.get("type")
     if kind == "periodic":
         return Periodic()
@@ -110,20 +129,24 @@ def _condition_from_json(d: dict) -> BoundaryCondition:
 _FROM_WELL = {"PERIODIC": Periodic, "WALL": NoSlipWall, "OPEN": Open}
 
 
-def _boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:
-    from phisim.io.simulation import _attr_str, _attr_str_list, _need, _need_attr
+def boundary_from_well(f: h5py.File, grid: Grid, spatial: list[str], p: Path) -> Boundary:
+    """The boundary of a foreign Well file from its ``/boundary_conditions`` groups (PERIODIC -> Periodic,
+    WALL -> NoSlipWall, OPEN -> Open; sides without a group are open).
 
+    Raises:
+        FileFormatError: Missing or malformed groups, or inconsistent periodic sides.
+    """
     sides: list[list[BoundaryCondition]] = [[Open(), Open()] for _ in range(grid.rank)]
     bcs = f.get("boundary_conditions")
     if not isinstance(bcs, h5py.Group):
         raise FileFormatError(f"{p}: missing group /boundary_conditions")
     for key in bcs:
         grp = bcs[key]
-        bc_type = _attr_str(_need_attr(grp, "bc_type", p)).upper()
+        bc_type = attr_str(need_attr(grp, "bc_type", p)).upper()
         if bc_type not in _FROM_WELL:
             raise FileFormatError(f"{p}: {grp.name} has unknown bc_type {bc_type!r} (PERIODIC, WALL, OPEN)")
-        assoc = _attr_str_list(_need_attr(grp, "associated_dims", p))
-        mask = np.asarray(_need(grp, "mask", p, h5py.Dataset)[()], dtype=bool)
+        assoc = attr_str_list(need_attr(grp, "associated_dims", p))
+        mask = np.asarray(need(grp, "mask", p, h5py.Dataset)[()], dtype=bool)
         if len(assoc) != 1 or assoc[0] not in spatial or mask.ndim != 1:
             continue  # boundaries not aligned with one axis do not map onto a phisim Boundary
         a = spatial.index(assoc[0])

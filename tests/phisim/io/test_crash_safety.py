@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import random
 import shutil
-import sys
 import warnings
 from pathlib import Path
 
@@ -16,9 +15,7 @@ import torch
 from phisim.errors import FileFormatError, IncompleteFileWarning, PhisimError
 from phisim.io import SimulationWriter, TrainingLog, read_simulation, read_training, recover_file
 from phisim.io import journal as _journal
-
-sys.path.insert(0, str(Path(__file__).parent))
-from crash_harness import GRID, check_file, frame_values, kill_once  # noqa: E402
+from tests.phisim.crash_harness import GRID, check_file, frame_values, kill_once
 
 pytestmark = pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
 
@@ -142,7 +139,7 @@ def test_training_log_resume_after_kill_rebuilds_file(tmp_path):
     with pytest.warns(IncompleteFileWarning):
         logs = read_training(path)
     assert logs["sgd"]["loss"].tolist() == [1.0, 2.0, 3.0] and len(logs["adam"]["iteration"]) >= records
-    with TrainingLog(path, "adam") as log:  # reopening first rebuilds the file from the journal
+    with TrainingLog(path, "adam", resume=True) as log:  # reopening first rebuilds the file from the journal
         n = log.n_records
         log.append(n, loss=float(n), metric=-0.5 * n)
     logs = read_training(path)

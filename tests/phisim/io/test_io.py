@@ -20,7 +20,7 @@ from phisim import Boundary, CenteredGrid, Dirichlet, Grid, NoSlipWall, Open, Pe
 from phisim.errors import FileFormatError, IncompleteFileWarning, ParameterError, PhisimError, ShapeError
 from phisim.io import SimulationWriter, TrainingLog, read_simulation, read_training, well_bc_type
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def _grid2():
@@ -335,8 +335,8 @@ def test_training_log(tmp_path):
         for it in range(3):
             log.append(it, loss=1.0 / (it + 1), metric=torch.tensor(2.0 * it))
         log.append(3, loss=0.1)
-    # the file is complete after each record: reopen and continue
-    with TrainingLog(path, "adam") as log:
+    # the file is complete after each record: reopen and continue (resume=True: an explicit request)
+    with TrainingLog(path, "adam", resume=True) as log:
         assert log.n_records == 4
         log.append(4, loss=0.05, val=7.0)
     with TrainingLog(path, "hig") as log:
