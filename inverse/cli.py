@@ -49,7 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--device", default="cpu")
         sp.add_argument("--out", type=Path, default=None, help="HDF5 file for the curves")
         sp.add_argument("--checkpoint-every", type=int, default=0)
-        sp.add_argument("--resume", action="store_true")
+        sp.add_argument("--resume", action="store_true",
+                        help="continue the method's run in --out from its checkpoint")
+        sp.add_argument("--overwrite", action="store_true",
+                        help="replace a run of the method that --out already holds (refused otherwise)")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
         sp.add_argument("--eval-every", type=int, default=None,
                         help="iterations between held-out evaluations (default: about 20 per run; 0: at the end only)")
@@ -77,15 +80,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def describe_file(path: Path) -> str:
-    """A short text summary of an HDF5 file: root attributes, datasets with shapes, training curves.
+    """A short text summary of an HDF5 file: root attributes, datasets with shapes, training curves, and the
+    state of every training run (complete, or incomplete with how far it got).
 
     Raises:
         FileFormatError: If the file cannot be read as HDF5.
     """
+    import warnings
+
     import h5py
     import numpy as np
 
+    from phisim.io import read_training
     from phisim.io.h5util import open_for_read
+    from phisim.io.journal import journal_path
 
     f = open_for_read(path)  # typed errors for missing files, folders, pipes, truncated or locked files
     lines = [f"{path}"]
@@ -102,6 +110,18 @@ def describe_file(path: Path) -> str:
                 lines.append(f"  /{name} {obj.shape} {obj.dtype}{extra}")
 
         f.visititems(visit)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            runs = read_training(path, warn=False)  # from the journal when the writer did not close cleanly
+    except PhisimError as exc:
+        runs = {}
+        lines.append(f"  training logs unreadable: {exc}")
+    if journal_path(path).exists():
+        lines.append(f"  NOT CLOSED CLEANLY: {journal_path(path).name} holds the latest records "
+                     "(phisim.io.recover_file rebuilds the file)")
+    for method, curves in runs.items():
+        lines.append(f"  run {method}: {curves.status}")
     return "\n".join(lines)
 
 
@@ -127,7 +147,8 @@ def _train(args, problem, method):
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard)
+              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard,
+              overwrite=args.overwrite)
     if args.csv is not None and args.out is not None and is_main_process():
         from .export import export_csv
 
@@ -225,6 +246,10 @@ def _dispatch(args) -> int:
         problem = _problem(args)
         for m in [args.method] if args.command == "train" else args.methods:
             problem.method(m)  # every method known before the first one trains
+            if args.out is not None:  # and none would write over an earlier run (--resume / --overwrite)
+                from .train import check_no_overwrite
+
+                check_no_overwrite(args.out, problem.method(m).name, resume=args.resume, overwrite=args.overwrite)
         if args.command == "train":
             _train(args, problem, args.method)
             return 0
