@@ -28,7 +28,9 @@ Behaviour in brief:
   (``Solve.widen_tolerance``) such a solve succeeds: the float64 iterate meets the tolerance, the
   tolerance is widened by the measured rounding floor ``||A (fl32(x) - x)||``, and the widened
   threshold (which the returned solution's true residual provably meets) is what
-  :attr:`SolveInfo.tolerance` reports, next to :attr:`SolveInfo.precision_floor`. With
+  :attr:`SolveInfo.tolerance` reports, next to :attr:`SolveInfo.precision_floor`; the sample's status is
+  then ``precision_floor``, not ``converged``, and :attr:`SolveInfo.achieved_rtol` gives the relative
+  residual it has (:attr:`SolveInfo.met_requested` False). With
   ``widen_tolerance=False`` it is a ``precision_floor`` failure that suggests float64 input. So float32
   fields with default settings get a solution without any change by the user, the best one float32
   can hold. ``refine=True`` with float64 input
@@ -122,7 +124,8 @@ class Solve:
             over (no vector of that dtype may meet it), accept the rounded solution against the
             tolerance widened by the rounding floor ``||A (fl(x) - x)||`` and report the widened
             threshold in :attr:`SolveInfo.tolerance` (and the floor in
-            :attr:`SolveInfo.precision_floor`). Default ``True``; ``False`` raises a
+            :attr:`SolveInfo.precision_floor`, the status ``'precision_floor'``, the relative residual met in
+            :attr:`SolveInfo.achieved_rtol`). Default ``True``; ``False`` raises a
             ``precision_floor`` :class:`~phisim.errors.SolveError` instead.
         stagnation_window: A sample whose smallest recurrence residual has not decreased by at
             least 1 % within this many iterations is stopped as stagnated (an incompatible
@@ -186,22 +189,39 @@ class Solve:
 class SolveInfo:
     """Outcome of a :func:`cg` solve; all per-sample tensors have shape ``(B,)`` on the solve's device.
 
+    Two questions have two answers: was the solution *accepted* (``converged``: no :class:`SolveError` was raised
+    for it), and did it meet *what was asked* (``met_requested``, ``status == 'converged'``). They differ only for
+    float32/float16/bfloat16 output of a refined solve whose requested tolerance lies below what that dtype can
+    hold (``Solve.widen_tolerance``): such a sample is accepted against a widened threshold, and its status is
+    ``'precision_floor'``, its ``achieved_rtol`` the relative residual it actually has.
+
     Attributes:
         iterations: CG iterations per sample (int64), all refinement rounds and restarts included.
         residual: True residual norm ``||rhs_b - A x_b||`` of the returned solution (float64 when
             the operator accepts float64 input, else the working dtype).
-        converged: Whether ``residual <= max(rtol * ||rhs_b||, atol)`` (bool).
-        rtol: Relative tolerance used.
-        atol: Absolute tolerance used.
-        tolerance: The per-sample absolute threshold ``max(rtol * ||rhs_b||, atol)``, plus
-            ``precision_floor`` where the tolerance was widened (see ``Solve.widen_tolerance``).
-        status: Per-sample outcome names: ``converged``, ``max_iter``, ``stagnated``,
-            ``precision_floor``, ``breakdown`` or ``non_finite``.
+        converged: Whether the sample was accepted: ``residual <= tolerance`` (bool). ``tolerance`` is the
+            requested threshold, widened by ``precision_floor`` where ``Solve.widen_tolerance`` applied.
+        rtol: Relative tolerance requested (``Solve.rtol``).
+        atol: Absolute tolerance requested (``Solve.atol``).
+        tolerance: The per-sample absolute threshold the sample was accepted against:
+            ``requested_tolerance``, plus ``precision_floor`` where the tolerance was widened.
+        status: Per-sample outcome names: ``converged`` (the requested tolerance was met), ``precision_floor``
+            (stopped at the working precision's floor above the requested tolerance: accepted at a widened
+            tolerance when ``converged`` is True, a failure otherwise), ``max_iter``, ``stagnated``,
+            ``breakdown`` or ``non_finite``.
         refined: Whether mixed-precision iterative refinement was used.
         refinements: Number of refinement rounds (0 without refinement).
         precision_floor: Per sample, the residual added by rounding the float64-refined solution
             to the output dtype, ``||A (fl(x) - x)||``, where it widened the tolerance (0 elsewhere);
             ``None`` when no tolerance was widened.
+        requested_tolerance: Per sample, the threshold asked for, ``max(rtol * ||rhs_b||, atol)`` (float64).
+        rhs_norm: Per sample, ``||rhs_b||`` (float64; of the projected right-hand side when a projector is given).
+        achieved_rtol: Per sample, the relative residual actually met, ``residual / ||rhs_b||`` (float64; 0 for a
+            zero right-hand side solved exactly, ``inf`` for a zero right-hand side with a nonzero residual).
+        met_requested: Per sample, whether ``residual <= requested_tolerance`` (bool).
+
+    The last four are filled by :func:`cg`; they default to None for reports built elsewhere, and
+    :attr:`all_met_requested` then falls back on ``status``.
     """
 
     iterations: Tensor
@@ -214,18 +234,31 @@ class SolveInfo:
     refined: bool = False
     refinements: int = 0
     precision_floor: Tensor | None = None
+    requested_tolerance: Tensor | None = None
+    rhs_norm: Tensor | None = None
+    achieved_rtol: Tensor | None = None
+    met_requested: Tensor | None = None
 
     @property
     def all_converged(self) -> bool:
-        """True when every sample converged."""
+        """True when every sample was accepted (see ``converged``; :attr:`all_met_requested` is stricter)."""
         return bool(self.converged.all())
+
+    @property
+    def all_met_requested(self) -> bool:
+        """True when every sample met the requested tolerance (no widening at the precision floor)."""
+        if self.met_requested is not None:
+            return bool(self.met_requested.all())
+        return bool(self.status) and all(s == "converged" for s in self.status)
 
     def __repr__(self) -> str:
         its = self.iterations.tolist()
         res = [f"{v:.3g}" for v in self.residual.double().tolist()]
         n_ok = int(self.converged.sum())
+        achieved = ("" if self.achieved_rtol is None else
+                    f", achieved_rtol=[{', '.join(f'{v:.3g}' for v in self.achieved_rtol.double().tolist())}]")
         return (f"SolveInfo(converged={n_ok}/{len(its)}, iterations={its}, residual=[{', '.join(res)}], "
-                f"rtol={self.rtol:g}, atol={self.atol:g}, status={list(self.status)}, "
+                f"rtol={self.rtol:g}, atol={self.atol:g}{achieved}, status={list(self.status)}, "
                 f"refined={self.refined}, refinements={self.refinements})")
 
 
@@ -494,6 +527,7 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
         else:
             res = _norm(b - _apply(s.op, x, params)).double()
     floor = None
+    requested = tol
     if refine and op64 and dtype in _LOW_PRECISION and solve.widen_tolerance:
         # The float64 iterate met the tolerance but its rounding to the output dtype may not: no
         # vector of that dtype need meet it. Widen by the rounding floor ||A (fl(x) - x)||; then
@@ -507,13 +541,20 @@ def _solve(s: _Setup, b: Tensor, x0: Tensor | None) -> tuple[Tensor, SolveInfo]:
             floor = torch.where(rounded, _norm(Ad), torch.zeros_like(tol))
             tol = tol + floor
     converged = res <= tol
-    # A sample whose iteration ended converged but whose returned solution misses the tolerance
-    # (rounding to the output dtype) sits on the representation floor.
-    status = torch.where(converged, _CONVERGED,
-                         torch.where(status == _CONVERGED, _FLOOR, status))
+    met = res <= requested
+    # Status names what was met: the requested tolerance ('converged'), or only a threshold widened by the
+    # precision floor (accepted) or nothing (an iteration that ended converged but whose returned solution
+    # misses the tolerance after rounding to the output dtype): both 'precision_floor'.
+    status = torch.where(met, _CONVERGED,
+                         torch.where(converged | (status == _CONVERGED), _FLOOR, status))
+    bn = _norm(b).double()
+    res64 = res.double()
+    achieved = torch.where(bn > 0, res64 / torch.where(bn > 0, bn, 1.0),
+                           torch.where(res64 > 0, math.inf, 0.0))
     info = SolveInfo(iterations=iters, residual=res, converged=converged, rtol=solve.rtol, atol=solve.atol,
                      tolerance=tol, status=tuple(_STATUS_NAMES[int(c)] for c in status.tolist()),
-                     refined=bool(refine), refinements=rounds, precision_floor=floor)
+                     refined=bool(refine), refinements=rounds, precision_floor=floor,
+                     requested_tolerance=requested, rhs_norm=bn, achieved_rtol=achieved, met_requested=met)
     if solve.raise_on_failure and not bool(converged.all()):
         _raise(info, dtype, refine)
     return x, info

@@ -16,9 +16,10 @@ Engines:
 * ``'torch'``: ``torch.fft``; DCT/DST are computed from one real FFT of a permuted sequence
   (Makhoul 1980, "A fast cosine transform in one and multiple dimensions", IEEE TASSP 28(1)),
   so they run on CUDA and are differentiated by torch's autograd.
-* ``'pyfftw'``: FFTW plans made by pyfftw, cached per (transform, shape, dtype, axes, threads,
-  planner effort); the real-to-real kinds are FFTW's own, except where scipy's pocketfft measured faster
-  (float32, and float64 type-1 kinds: one-axis transforms, no plans; see ``phisim.spectral.pocket``). Results are
+* ``'pyfftw'``: FFTW plans made by pyfftw, cached per (transform, shape, dtype, axes, threads, planner effort)
+  in bounded LRU caches (``FFTSettings.plan_cache_size``, default 32 plans per cache); the real-to-real kinds
+  run on scipy's pocketfft (:mod:`phisim.spectral.pocket`) with the default planner, and where pocketfft
+  measured faster with a measured planner. Results are
   differentiable through ``torch.autograd.Function`` wrappers whose backward applies the adjoint transform:
   ``DCT-II^T = DCT-III·diag(2,1,…,1)``, ``DCT-III^T = diag(1/2,1,…,1)·DCT-II``,
   ``DST-II^T = DST-III·diag(1,…,1,2)``, ``DST-III^T = diag(1,…,1,1/2)·DST-II``; the adjoint of
@@ -28,17 +29,18 @@ Engines:
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
 
-Planner effort and reproducibility: plans are measured (``FFTW_MEASURE``, the fastest plans), and the
-measured choice is shared by every process on the machine through a wisdom file (see
-:mod:`phisim.spectral.wisdom`): the first process that needs a transform times the candidates once and saves
-its wisdom, every later or concurrent process rebuilds exactly that plan. So same seed and settings give
-bit-identical results in two fresh processes, which a per-process measurement does not (a 64x96 plume
-differed from frame 3-5 on, 7e-7 growing to 1e-4). Costs (``benchmarks/bench_reliability.py``, in
-``docs/BENCHMARKS.md``): one measurement per transform size per machine (10 ms to a few s), a locked file
-read per new plan afterwards. ``FFTW_ESTIMATE`` (``set_fft_settings(planner_effort='FFTW_ESTIMATE')`` or
-``PHISIM_FFT_PLANNER=estimate``) needs no file and is deterministic too, but chooses slow real-to-real
-algorithms (2x to 14x slower for the Poisson solves' DCT/DST). ``PHISIM_FFTW_WISDOM=off`` measures in
-every process: no file, at the price of cross-process reproducibility.
+Planner effort and reproducibility: the default ``FFTSettings.planner_effort='FFTW_ESTIMATE'`` is
+bit-reproducible: the same seed and settings give the same bits in fresh processes, with any number of
+worker processes, on a machine without FFTW wisdom and under heavy load. DCT/DST run on pocketfft (no plans);
+real FFTs on FFTW plans chosen by FFTW's cost model, each built from an empty wisdom table (wisdom in memory
+would change an estimated plan) on 64-byte aligned buffers (alignment changes FFTW's SIMD codelets), so the
+plan depends only on the transform, the thread count and the CPU's SIMD instructions; nothing is timed and no
+wisdom file is read or written. Cost against measured plans (``benchmarks/bench_spectral.py --deterministic``,
+``docs/BENCHMARKS.md`` "Deterministic plans"): a few per cent to 1.5x on single transforms, none where
+pocketfft ran already. ``planner_effort='FFTW_MEASURE'`` (or ``PHISIM_FFT_PLANNER=measure``) is the opt-in
+for measured plans, shared per machine through a wisdom file (:mod:`phisim.spectral.wisdom`); they are
+**not bit-reproducible** across machines or between a machine without wisdom and one with it. The torch
+engine (``torch.fft``, pocketfft on the CPU) needs no plans either.
 
 Modules: this one holds the settings, the argument checks and the public transforms; the engines live in
 :mod:`phisim.spectral.torch_r2r` (Makhoul transforms, shared tensor helpers), :mod:`phisim.spectral.fftw` (plans and
@@ -51,12 +53,9 @@ threads were not faster than one for 64²…128³ transforms (0.32 ms vs 0.32 ms
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import warnings
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
 
 import torch
 
@@ -75,6 +74,13 @@ from phisim.spectral import torch_r2r as _fft_torch
 from phisim.spectral.pocket import pocket_multiply as _pocket_multiply
 from phisim.spectral.pocket import use_pocket as _use_pocket
 from phisim.spectral.pocket import wall_solve as _pocket_wall_solve
+from phisim.spectral.settings import (
+    ENGINES,
+    FFTSettings,
+    fft_settings,
+    get_fft_settings,
+    set_fft_settings,
+)
 from phisim.spectral.torch_r2r import axis_vector, edge_weight
 
 __all__ = [
@@ -99,96 +105,8 @@ __all__ = [
 
 #: Real-to-real kinds accepted by :func:`r2rn` (unnormalised, scipy/FFTW definitions).
 R2R_KINDS = ("dct2", "dct3", "dst2", "dst3", "dct4", "dst4", "dct1", "dst1")
-_ENGINES = ("auto", "torch", "pyfftw")
-_EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
-
-
-@dataclass(frozen=True)
-class FFTSettings:
-    """Which FFT engine to use and how to plan it.
-
-    Attributes:
-        engine: ``'auto'`` (torch on accelerators, pyfftw on the CPU when installed), ``'torch'``
-            or ``'pyfftw'`` (CPU tensors only).
-        threads: FFTW threads per plan (pyfftw engine). Default 1: two threads measured no faster
-            on the 2-core development machine.
-        planner_effort: FFTW planner flag. ``'FFTW_ESTIMATE'`` (default) plans instantly from a fixed
-            cost model, so every process computes bit-identical results. ``'FFTW_MEASURE'`` (opt-in,
-            also via the environment variable ``PHISIM_FFT_PLANNER``) times candidate algorithms once
-            per plan (10–500 ms, cached) and may run faster, but the chosen plan, and so the round-off,
-            can differ between processes.
-    """
-
-    engine: str = "auto"
-    threads: int = 1
-    planner_effort: str = "FFTW_MEASURE"
-
-    def __post_init__(self) -> None:
-        if self.engine not in _ENGINES:
-            raise ParameterError(f"FFT engine must be one of {_ENGINES}, got {self.engine!r}")
-        if not isinstance(self.threads, int) or self.threads < 1:
-            raise ParameterError(f"threads must be a positive int, got {self.threads!r}")
-        if self.planner_effort not in _EFFORTS:
-            raise ParameterError(f"planner_effort must be one of {_EFFORTS}, got {self.planner_effort!r}")
-
-
-def _settings_from_environment() -> FFTSettings:
-    effort = os.environ.get("PHISIM_FFT_PLANNER", "").strip().upper()
-    if not effort:
-        return FFTSettings()
-    if not effort.startswith("FFTW_"):
-        effort = "FFTW_" + effort
-    if effort not in _EFFORTS:
-        warnings.warn(f"PHISIM_FFT_PLANNER={os.environ['PHISIM_FFT_PLANNER']!r} is not one of {_EFFORTS}; "
-                      "using FFTW_MEASURE", stacklevel=2)
-        return FFTSettings()
-    return FFTSettings(planner_effort=effort)
-
-
-_SETTINGS = _settings_from_environment()
+_ENGINES = ENGINES
 _WARNED_NO_PYFFTW = False
-
-
-def get_fft_settings() -> FFTSettings:
-    """Return the process-wide default :class:`FFTSettings`."""
-    return _SETTINGS
-
-
-def set_fft_settings(settings: FFTSettings | None = None, **changes) -> FFTSettings:
-    """Replace the process-wide default FFT settings.
-
-    Args:
-        settings: A complete settings object, or None to modify the current one.
-        **changes: Fields of :class:`FFTSettings` to change (``engine``, ``threads``, ``planner_effort``).
-
-    Returns:
-        The previous settings (pass them back to restore).
-
-    Raises:
-        ParameterError: For an unknown engine, thread count or planner flag.
-    """
-    global _SETTINGS
-    previous = _SETTINGS
-    base = settings if settings is not None else _SETTINGS
-    _SETTINGS = replace(base, **changes) if changes else base
-    return previous
-
-
-@contextlib.contextmanager
-def fft_settings(**changes) -> Iterator[FFTSettings]:
-    """Context manager that changes the default FFT settings temporarily.
-
-    Args:
-        **changes: Fields of :class:`FFTSettings` to change inside the block.
-
-    Yields:
-        The settings in effect inside the block.
-    """
-    previous = set_fft_settings(**changes)
-    try:
-        yield _SETTINGS
-    finally:
-        set_fft_settings(previous)
 
 
 def available_engines() -> tuple[str, ...]:
@@ -210,7 +128,7 @@ def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
         ParameterError: For an unknown engine, or ``'pyfftw'`` with a tensor not on the CPU.
     """
     global _WARNED_NO_PYFFTW
-    engine = _SETTINGS.engine if engine is None else engine
+    engine = get_fft_settings().engine if engine is None else engine
     if engine not in _ENGINES:
         raise ParameterError(f"FFT engine must be one of {_ENGINES}, got {engine!r}")
     if engine == "torch":
@@ -243,6 +161,14 @@ def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
 
 # ----------------------------------------------------------------------------------------------
 # argument handling
+
+
+def _threads() -> int:
+    return get_fft_settings().threads
+
+
+def _effort() -> str:
+    return get_fft_settings().planner_effort
 
 
 def _norm_axes(x: torch.Tensor, axes: Sequence[int] | int | None) -> tuple[int, ...]:
@@ -311,13 +237,14 @@ def r2r_multiply(x: torch.Tensor, kinds: Sequence[str], inverse: Sequence[str], 
     axes = _norm_axes(x, axes)
     kinds, inverse = tuple(kinds), tuple(inverse)
     m = mult.detach().numpy()
-    if _use_pocket(x.dtype, kinds + inverse, tuple(x.shape[a] for a in axes)):
+    cfg = get_fft_settings()
+    if _use_pocket(x.dtype, kinds + inverse, tuple(x.shape[a] for a in axes), cfg.planner_effort):
         y = _pocket_multiply(x.detach().numpy(), kinds, inverse, axes, m,
                              None if pre is None else pre.detach().numpy(),
-                             None if out is None else out.detach().numpy(), _SETTINGS.threads)
+                             None if out is None else out.detach().numpy(), cfg.threads)
         return out if out is not None else torch.from_numpy(y)
-    plan = _fftw.multiplier_plan(tuple(x.shape), _fftw.np_dtype(x.dtype), axes, _SETTINGS.threads,
-                                 _SETTINGS.planner_effort, kinds, inverse)
+    plan = _fftw.multiplier_plan(tuple(x.shape), _fftw.np_dtype(x.dtype), axes, cfg.threads,
+                                 cfg.planner_effort, kinds, inverse)
     y = torch.from_numpy(plan(_fftw.as_numpy(x), m, None if pre is None else _fftw.as_numpy(pre)))
     return y if out is None else out.copy_(y)
 
@@ -345,7 +272,7 @@ def wall_solve(x: torch.Tensor, out: torch.Tensor, axis: int, kinds: Sequence[st
         raise ShapeError(f"wall_solve: out must be a CPU tensor of shape {tuple(want)} and dtype {x.dtype}, "
                          f"got {tuple(out.shape)} {out.dtype} on {out.device}")
     _pocket_wall_solve(x.detach().numpy(), out.detach().numpy(), axis, tuple(kinds), tuple(inverse), tuple(axes),
-                       mult.detach().numpy(), green.detach().numpy(), _SETTINGS.threads, subtract)
+                       mult.detach().numpy(), green.detach().numpy(), get_fft_settings().threads, subtract)
     return out
 
 
@@ -382,8 +309,8 @@ def fourier_multiply(
     if mult.is_complex():
         raise ParameterError("fourier_multiply needs a real multiplier")
     if resolve_engine(x, engine) == "pyfftw":
-        return _fftw.PyfftwFourierMultiply.apply(x, mult.detach().to(torch.float64), axes, _SETTINGS.threads,
-                                                  _SETTINGS.planner_effort)
+        return _fftw.PyfftwFourierMultiply.apply(x, mult.detach().to(torch.float64), axes, _threads(),
+                                                  _effort())
     s = tuple(x.shape[a] for a in axes)
     return torch.fft.irfftn(torch.fft.rfftn(x, dim=axes) * mult.to(x.dtype), s=s, dim=axes)
 
@@ -449,7 +376,7 @@ def r2rn(
     if not axes:
         return x
     if resolve_engine(x, engine) == "pyfftw":
-        return _fftw.PyfftwR2R.apply(x, kinds, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
+        return _fftw.PyfftwR2R.apply(x, kinds, axes, _threads(), _effort())
     return _fft_torch.r2rn(x, kinds, axes)
 
 
@@ -475,7 +402,7 @@ def rfftn(
     if not axes:
         raise ShapeError("rfftn needs at least one axis")
     if resolve_engine(x, engine) == "pyfftw":
-        return _fftw.PyfftwRfftn.apply(x, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
+        return _fftw.PyfftwRfftn.apply(x, axes, _threads(), _effort())
     return torch.fft.rfftn(x, dim=axes)
 
 
@@ -512,7 +439,7 @@ def irfftn(
             f"irfftn: input shape {tuple(X.shape)} does not match output sizes {s} on axes {axes}"
         )
     if resolve_engine(X, engine) == "pyfftw":
-        return _fftw.PyfftwIrfftn.apply(X, s, axes, _SETTINGS.threads, _SETTINGS.planner_effort)
+        return _fftw.PyfftwIrfftn.apply(X, s, axes, _threads(), _effort())
     return torch.fft.irfftn(X, s=s, dim=axes)
 
 

@@ -1,10 +1,14 @@
 """The pyfftw FFT engine: cached FFTW plans, and autograd wrappers whose backward applies the adjoint.
 
-Plans are cached per (transform, shape, dtype, axes, kinds, threads, planner effort) and made through
-:mod:`phisim.spectral.wisdom` (measured once per machine, then rebuilt from the shared wisdom file, so every
-process computes the same round-off). Real-to-real kinds run as pocketfft one-axis passes where those measured
-faster (:mod:`phisim.spectral.pocket`). :mod:`phisim.spectral.fft` validates the arguments and picks the engine; this module
-trusts them. CPU tensors only; the adjoints are listed in :mod:`phisim.spectral.fft`'s docstring.
+Plans are cached per (transform, shape, dtype, axes, kinds, threads, planner effort) in two bounded LRU caches
+(:data:`PLANS` for single transforms, :data:`MULTIPLIER_PLANS` for fused pairs), each holding at most
+:attr:`~phisim.spectral.settings.FFTSettings.plan_cache_size` plans (default 32). Plans are made through
+:mod:`phisim.spectral.wisdom` on buffers aligned to :data:`ALIGNMENT` bytes whatever the CPU: with the default
+``FFTW_ESTIMATE`` from an empty wisdom table (bit-reproducible), with a measured effort through the shared
+wisdom file (opt-in, not reproducible across machines). Real-to-real kinds run as pocketfft one-axis passes
+where :func:`phisim.spectral.pocket.use_pocket` says so (always with ``FFTW_ESTIMATE``).
+:mod:`phisim.spectral.fft` validates the arguments and picks the engine; this module trusts them.
+CPU tensors only; the adjoints are listed in :mod:`phisim.spectral.fft`'s docstring.
 """
 
 from __future__ import annotations
@@ -15,7 +19,9 @@ import threading
 import numpy as np
 import torch
 
+from phisim.spectral import settings as _settings
 from phisim.spectral import wisdom as _fftw_wisdom
+from phisim.spectral.cache import LRUCache
 from phisim.spectral.pocket import pocket_r2rn, use_pocket
 from phisim.spectral.torch_r2r import axis_vector, edge_weight
 
@@ -37,6 +43,17 @@ FFTW_KIND = {
 }
 
 
+#: Byte alignment of every plan buffer. FFTW's choice of SIMD codelets depends on the buffers' alignment (a
+#: float32 real FFT planned on 4- or 8-byte aligned buffers gave other bits than on 16-byte aligned ones), so
+#: the plans get their own buffers with one fixed alignment, the largest any SIMD extension asks for (AVX-512),
+#: instead of pyfftw's per-CPU default; inputs of any alignment are copied in.
+ALIGNMENT = 64
+
+
+def _empty(shape, dtype) -> np.ndarray:
+    return _pyfftw.empty_aligned(shape, dtype=dtype, n=ALIGNMENT)
+
+
 class _Plan:
     """An FFTW plan with its own aligned buffers and a lock (plans are not re-entrant)."""
 
@@ -54,8 +71,8 @@ class _Plan:
             return self.output_array.copy()
 
 
-_PLANS: dict[tuple, _Plan] = {}
-_PLAN_LOCK = threading.Lock()
+#: The cached single-transform plans (least recently used evicted beyond ``plan_cache_size``).
+PLANS: LRUCache[_Plan] = LRUCache(_settings.PLAN_CACHE_SIZE)
 
 
 def get_plan(op: str, shape: tuple[int, ...], dtype: np.dtype, axes: tuple[int, ...], threads: int, effort: str,
@@ -63,41 +80,36 @@ def get_plan(op: str, shape: tuple[int, ...], dtype: np.dtype, axes: tuple[int, 
     """The cached plan of one transform (``op`` ``'r2r'``, ``'rfft'`` or ``'irfft'``; for ``'irfft'``, ``shape``
     is the complex input's and ``out_n`` the real output sizes along ``axes``)."""
     key = (op, shape, np.dtype(dtype).str, axes, kinds, out_n, threads, effort)
-    plan = _PLANS.get(key)
-    if plan is not None:
-        return plan
-    with _PLAN_LOCK:
-        plan = _PLANS.get(key)
-        if plan is not None:
-            return plan
-        real = np.dtype(dtype)
-        cplx = np.result_type(real, np.complex64)
-        if op == "r2r":
-            a = _pyfftw.empty_aligned(shape, dtype=real)
-            b = _pyfftw.empty_aligned(shape, dtype=real)
-            direction = [FFTW_KIND[k] for k in kinds]
-        elif op == "rfft":
-            a = _pyfftw.empty_aligned(shape, dtype=real)
-            oshape = list(shape)
-            oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
-            b = _pyfftw.empty_aligned(tuple(oshape), dtype=cplx)
-            direction = "FFTW_FORWARD"
-        elif op == "irfft":
-            # shape is the complex input shape; out_n the real output sizes along axes
-            oshape = list(shape)
-            for ax, n in zip(axes, out_n):
-                oshape[ax] = n
-            a = _pyfftw.empty_aligned(shape, dtype=np.result_type(real, np.complex64))
-            b = _pyfftw.empty_aligned(tuple(oshape), dtype=real)
-            direction = "FFTW_BACKWARD"
-        else:  # pragma: no cover - internal
-            raise AssertionError(op)
-        fftw = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
-            a, b, axes=axes, direction=direction, flags=(e, "FFTW_DESTROY_INPUT"), threads=threads),
-            effort)
-        plan = _Plan(fftw, a, b)
-        _PLANS[key] = plan
-        return plan
+    return PLANS.get(key, lambda: _make_plan(op, shape, dtype, axes, threads, effort, kinds, out_n),
+                     _settings.get_fft_settings().plan_cache_size)
+
+
+def _make_plan(op, shape, dtype, axes, threads, effort, kinds, out_n) -> _Plan:
+    real = np.dtype(dtype)
+    cplx = np.result_type(real, np.complex64)
+    if op == "r2r":
+        a = _empty(shape, real)
+        b = _empty(shape, real)
+        direction = [FFTW_KIND[k] for k in kinds]
+    elif op == "rfft":
+        a = _empty(shape, real)
+        oshape = list(shape)
+        oshape[axes[-1]] = shape[axes[-1]] // 2 + 1
+        b = _empty(tuple(oshape), cplx)
+        direction = "FFTW_FORWARD"
+    elif op == "irfft":
+        # shape is the complex input shape; out_n the real output sizes along axes
+        oshape = list(shape)
+        for ax, n in zip(axes, out_n):
+            oshape[ax] = n
+        a = _empty(shape, cplx)
+        b = _empty(tuple(oshape), real)
+        direction = "FFTW_BACKWARD"
+    else:  # pragma: no cover - internal
+        raise AssertionError(op)
+    fftw = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
+        a, b, axes=axes, direction=direction, flags=(e, "FFTW_DESTROY_INPUT"), threads=threads), effort)
+    return _Plan(fftw, a, b)
 
 
 def as_numpy(x: torch.Tensor) -> np.ndarray:
@@ -120,7 +132,7 @@ class PyfftwR2R(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, kinds, axes, threads, effort):
         ctx.kinds, ctx.axes, ctx.threads, ctx.effort = kinds, axes, threads, effort
-        if use_pocket(x.dtype, kinds, tuple(x.shape[a] for a in axes)):  # one-axis pocketfft transforms
+        if use_pocket(x.dtype, kinds, tuple(x.shape[a] for a in axes), effort):  # one-axis pocketfft transforms
             return torch.from_numpy(pocket_r2rn(x.detach().numpy(), kinds, axes, threads))
         plan = get_plan("r2r", tuple(x.shape), np_dtype(x.dtype), axes, threads, effort, kinds)
         return torch.from_numpy(plan(as_numpy(x)))
@@ -198,15 +210,15 @@ class _MultiplierPlan:
 
     def __init__(self, shape, dtype, axes, threads, effort, kinds=(), inverse=()):
         real = np.dtype(dtype)
-        self.inp = _pyfftw.empty_aligned(shape, dtype=real)
-        self.out = _pyfftw.empty_aligned(shape, dtype=real)
+        self.inp = _empty(shape, real)
+        self.out = _empty(shape, real)
         if kinds:
-            self.spec = _pyfftw.empty_aligned(shape, dtype=real)
+            self.spec = _empty(shape, real)
             fwd_dir, inv_dir = [FFTW_KIND[k] for k in kinds], [FFTW_KIND[k] for k in inverse]
         else:
             hshape = list(shape)
             hshape[axes[-1]] = shape[axes[-1]] // 2 + 1
-            self.spec = _pyfftw.empty_aligned(tuple(hshape), dtype=np.result_type(real, np.complex64))
+            self.spec = _empty(tuple(hshape), np.result_type(real, np.complex64))
             fwd_dir, inv_dir = "FFTW_FORWARD", "FFTW_BACKWARD"
         self.fwd = _fftw_wisdom.plan(_pyfftw, lambda e: _pyfftw.FFTW(
             self.inp, self.spec, axes=axes, direction=fwd_dir, flags=(e, "FFTW_DESTROY_INPUT"),
@@ -231,17 +243,19 @@ class _MultiplierPlan:
 def multiplier_plan(shape, dtype, axes, threads: int, effort: str, kinds=(), inverse=()) -> _MultiplierPlan:
     """The cached :class:`_MultiplierPlan` of these arguments."""
     key = (tuple(shape), np.dtype(dtype).str, tuple(axes), tuple(kinds), tuple(inverse), threads, effort)
-    plan = _MULT_PLANS.get(key)
-    if plan is None:
-        with _PLAN_LOCK:
-            plan = _MULT_PLANS.get(key)
-            if plan is None:
-                plan = _MULT_PLANS[key] = _MultiplierPlan(tuple(shape), dtype, tuple(axes), threads, effort,
-                                                          tuple(kinds), tuple(inverse))
-    return plan
+    return MULTIPLIER_PLANS.get(key, lambda: _MultiplierPlan(tuple(shape), dtype, tuple(axes), threads, effort,
+                                                            tuple(kinds), tuple(inverse)),
+                                _settings.get_fft_settings().plan_cache_size)
 
 
-_MULT_PLANS: dict[tuple, _MultiplierPlan] = {}
+#: The cached fused plans of :func:`multiplier_plan` (least recently used evicted beyond ``plan_cache_size``).
+MULTIPLIER_PLANS: LRUCache[_MultiplierPlan] = LRUCache(_settings.PLAN_CACHE_SIZE)
+
+
+def clear_plans() -> None:
+    """Drop every cached FFTW plan (both caches)."""
+    PLANS.clear()
+    MULTIPLIER_PLANS.clear()
 
 
 class PyfftwFourierMultiply(torch.autograd.Function):

@@ -4,8 +4,9 @@ FFTW computes its REDFT/RODFT kinds with scalar pre- and post-processing around 
 C++ library behind ``scipy.fft``) computes them from a real FFT vectorised across lines. On the development
 CPU (1 thread) pocketfft measured faster for every float32 size of interest and for the float64 type-1 kinds;
 :func:`use_pocket` encodes that choice. Pocketfft needs no plans, so its results are the same in every
-process. Called through ``scipy.fft._pocketfft.pypocketfft`` with an output buffer (in place, no per-call
-argument handling); without that module :mod:`phisim.spectral.fft` keeps FFTW's transforms.
+process, which is why the default ``FFTW_ESTIMATE`` settings run every real-to-real kind here. Called through
+``scipy.fft._pocketfft.pypocketfft`` with an output buffer (in place, no per-call argument handling);
+without that module :mod:`phisim.spectral.fft` keeps FFTW's transforms.
 """
 
 from __future__ import annotations
@@ -15,22 +16,23 @@ import math
 import numpy as np
 import torch
 
+from phisim.spectral import settings as _settings
+
 try:  # the C++ transforms behind scipy.fft
     from scipy.fft._pocketfft import pypocketfft as _pocket
 except ImportError:  # pragma: no cover - depends on the scipy version
     _pocket = None
 
-#: Planes of at least this many bytes take a type-1 strided axis in a transposed copy (see
-#: :func:`_multiply_transposed`).
-TRANSPOSE_BYTES = 384 * 1024
-#: Arrays of at least this many bytes take the periodic FFT of :func:`wall_solve` along a strided axis in a
-#: transposed copy.
-WALL_TRANSPOSE_BYTES = 384 * 1024
+def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...], lengths: tuple[int, ...] | None = None,
+               effort: str = "FFTW_ESTIMATE") -> bool:
+    """Whether these real-to-real kinds run on pocketfft rather than FFTW.
 
+    With ``effort`` ``'FFTW_ESTIMATE'`` (the default settings): always, when pocketfft is there. pocketfft needs
+    no plans (bit-reproducible) and beats FFTW's estimated real-to-real plans everywhere measured (float64
+    DCT-II 512²: 2.3 vs 3.9 ms, DST-II 64³: 2.4 vs 4.1 ms; ``docs/BENCHMARKS.md``, "Deterministic plans").
 
-def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...], lengths: tuple[int, ...] | None = None) -> bool:
-    """Whether pocketfft beats FFTW for these real-to-real kinds and transform lengths (measured on the
-    development CPU, 1 thread; transform, multiply and transform back).
+    With a measured effort (opt-in), where pocketfft beats FFTW's measured plans (development CPU, 1 thread;
+    transform, multiply and transform back):
 
     float32: always (2-D DCT-II 256²: 0.12 vs 0.28 ms, 128²: 0.03 vs 0.05 ms; 64³: 1.0 vs 1.1 ms). float64: with a
     type-1 kind, which FFTW computes slowly (DST-I x DST-II 255x256: 0.74 vs 0.82 ms, 127x128: 0.14 vs 0.17 ms), and
@@ -41,7 +43,7 @@ def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...], lengths: tuple[int, .
     """
     if _pocket is None or not kinds:
         return False
-    if dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds:
+    if effort == "FFTW_ESTIMATE" or dtype == torch.float32 or "dst1" in kinds or "dct1" in kinds:
         return True
     return lengths is not None and any(n & (n - 1) for n in lengths)
 
@@ -76,7 +78,7 @@ def pocket_multiply(a: np.ndarray, kinds, inverse, axes, mult: np.ndarray, pre: 
         src = np.multiply(a, pre, out=out)
     nd = out.ndim
     if (len(axes) == 2 and axes == (nd - 2, nd - 1) and kinds[0] in ("dct1", "dst1")
-            and out.shape[-1] * out.shape[-2] * out.itemsize >= TRANSPOSE_BYTES):
+            and out.shape[-1] * out.shape[-2] * out.itemsize >= _settings.get_fft_settings().transpose_bytes):
         return _multiply_transposed(src, out, kinds, inverse, mult, threads)
     for kind, ax in zip(reversed(kinds), reversed(axes)):  # the innermost axis first
         _r2r(out, kind, ax, threads, src)
@@ -89,8 +91,9 @@ def pocket_multiply(a: np.ndarray, kinds, inverse, axes, mult: np.ndarray, pre: 
 
 def _multiply_transposed(src: np.ndarray, out: np.ndarray, kinds, inverse, mult: np.ndarray,
                          threads: int) -> np.ndarray:
-    """The 2-D case of :func:`pocket_multiply` on large planes: the outer axis is transformed in a transposed
-    copy, so every transform runs along contiguous lines.
+    """The 2-D case of :func:`pocket_multiply` on large planes (at least
+    :attr:`~phisim.spectral.settings.FFTSettings.transpose_bytes`, 384 KiB): the outer axis is transformed in a
+    transposed copy, so every transform runs along contiguous lines.
 
     Along a strided axis pocketfft gathers a few columns at a time; for the type-1 kinds (computed from a real
     FFT of twice the length) on a plane that outgrows the cache this costs up to twice a contiguous transform
@@ -119,8 +122,10 @@ def wall_transposes(shape, axis: int, itemsize: int) -> bool:
     Measured on the development CPU (1 thread): only float64 gains, and only along the outermost axis after
     the batch axis of a large array (255x256: 0.64 -> 0.51 ms per component; 48³: 1.48 -> 1.12 ms). float32
     loses everywhere (64³: 1.70 -> 2.04 ms), and so does the middle axis of a 64³ float64 array (2.3 -> 3.0 ms).
+    The size threshold is :attr:`~phisim.spectral.settings.FFTSettings.wall_transpose_bytes` (384 KiB).
     """
-    return itemsize == 8 and axis == 1 < len(shape) - 1 and math.prod(shape) * itemsize >= WALL_TRANSPOSE_BYTES
+    return (itemsize == 8 and axis == 1 < len(shape) - 1
+            and math.prod(shape) * itemsize >= _settings.get_fft_settings().wall_transpose_bytes)
 
 
 def wall_solve(src: np.ndarray, out: np.ndarray, axis: int, kinds, inverse, axes, mult: np.ndarray,

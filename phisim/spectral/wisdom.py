@@ -1,21 +1,26 @@
-"""A per-machine FFTW wisdom file that makes measured plans, and so results, identical in every process.
+"""FFTW wisdom: isolated estimated plans (the default) and a per-machine wisdom file for measured ones (opt-in).
 
-``FFTW_MEASURE`` picks among candidate algorithms by timing them, so two processes planning the same
-transform can pick different algorithms whose round-off differs: a simulation then diverges between two
-runs with the same seed (a 64x96 plume differed from frame 3-5 on, 7e-7 growing to 1e-4).
-``FFTW_ESTIMATE`` is deterministic but chooses poorly for real-to-real transforms (the Poisson solves ran
-2x to 14x slower, see ``docs/BENCHMARKS.md``).
+**Estimated plans (default, bit-reproducible).** ``FFTW_ESTIMATE`` chooses a plan from a fixed cost model, so
+it depends only on the transform (sizes, strides, kinds), the buffers' alignment, the thread count and the
+SIMD instructions of the CPU, with one exception: FFTW also uses any wisdom in the process's memory made with
+at least the requested rigor, so an estimated plan made after a measured one (or after a library imported
+wisdom) can differ from the same plan in a fresh process (seen: a 512² REDFT10 and a 256² float32 real FFT
+changed their last bits). :func:`plan` therefore builds every estimated plan from an *empty* wisdom table
+(the wisdom present is exported, forgotten, and imported back afterwards), and the estimated plan leaves no
+wisdom behind. Estimated plans read and write no file.
 
-The fix keeps measured plans and makes their choice a property of the machine, not of the process: every
-plan is made under an exclusive lock on a wisdom file, after importing the wisdom already in it; a
-transform planned before (by any process) is rebuilt from that wisdom without timing anything, and a new
-one is measured once and its wisdom saved for every later process. Sequential and concurrent processes
-(e.g. ``torchrun`` ranks) therefore execute the same plans and compute bit-identical results.
+**Measured plans (opt-in).** ``FFTW_MEASURE`` picks among candidate algorithms by timing them, so two processes
+planning the same transform can pick different algorithms whose round-off differs (a 64x96 plume differed
+from frame 3-5 on, 7e-7 growing to 1e-4). To narrow that, every measured plan is made under an exclusive
+lock on a wisdom file, after importing the wisdom already in it: a transform planned before (by any process)
+is rebuilt from that wisdom without timing anything, and a new one is measured once and its wisdom saved.
+That makes processes *on one warm machine* agree, but not a machine without wisdom (or another machine, or a
+loaded one measuring afresh) with a warm one: measured plans are not bit-reproducible across machines.
 
-The file: ``$PHISIM_FFTW_WISDOM`` if set (``off`` disables it), else
-``~/.cache/phisim/fftw-wisdom-<machine>.bin``, keyed by CPU model, FFTW and pyfftw versions (wisdom is not
-portable between machines). If the file cannot be used, plans fall back to ``FFTW_ESTIMATE`` with a
-one-time warning, so results stay reproducible.
+The file: ``$PHISIM_FFTW_WISDOM`` if set (``off`` disables it: measured plans are then made per process),
+else ``~/.cache/phisim/fftw-wisdom-<machine>.bin`` (``$XDG_CACHE_HOME`` respected), keyed by CPU model, FFTW
+and pyfftw versions (wisdom is not portable between machines). If the file cannot be used, measured plans
+fall back to isolated estimated ones with a one-time warning.
 """
 
 from __future__ import annotations
@@ -31,8 +36,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 _MAGIC = b"PHFW1"
-_LOCK = threading.Lock()
-_STATE: dict = {"path": None, "resolved": False, "saved": None, "warned": False}
+_LOCK = threading.RLock()
+_STATE: dict = {"path": None, "resolved": False, "saved": None, "warned": False, "empty": None}
 
 
 def _machine_key(pyfftw) -> str:
@@ -96,18 +101,34 @@ def _file_lock(path: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def plan(pyfftw, build: Callable[[str], object], effort: str):
-    """Build an FFTW plan with ``build(effort)``, sharing measured wisdom with every process on this machine.
+def _estimate(pyfftw, build: Callable[[str], object]):
+    """``build('FFTW_ESTIMATE')`` from an empty wisdom table; the wisdom held before is restored, none is added."""
+    with _LOCK:
+        held = tuple(pyfftw.export_wisdom())
+        pyfftw.forget_wisdom()
+        try:
+            return build("FFTW_ESTIMATE")
+        finally:
+            pyfftw.forget_wisdom()
+            if _STATE["empty"] is None:  # what export_wisdom gives for an empty table
+                _STATE["empty"] = tuple(pyfftw.export_wisdom())
+            if held != _STATE["empty"]:
+                pyfftw.import_wisdom(held)
 
-    ``FFTW_ESTIMATE`` plans are built directly (deterministic already). Other efforts go through the
-    wisdom file; when it is disabled they are built as asked (fast, not reproducible across processes),
-    when it is unusable they fall back to ``FFTW_ESTIMATE``.
+
+def plan(pyfftw, build: Callable[[str], object], effort: str):
+    """Build an FFTW plan with ``build(effort)``.
+
+    ``FFTW_ESTIMATE`` plans are built from an empty wisdom table (bit-reproducible, see the module notes). Other
+    efforts go through the wisdom file; when it is disabled they are built as asked (not reproducible across
+    processes), when it is unusable they fall back to isolated ``FFTW_ESTIMATE`` plans.
     """
     if effort == "FFTW_ESTIMATE":
-        return build(effort)
+        return _estimate(pyfftw, build)
     path = wisdom_path(pyfftw)
     if path is None:
-        return build(effort)
+        with _LOCK:
+            return build(effort)
     with _LOCK:
         try:
             with _file_lock(path):
@@ -129,14 +150,14 @@ def plan(pyfftw, build: Callable[[str], object], effort: str):
                 _STATE["saved"] = wisdom
                 return fftw
         except (OSError, ImportError) as exc:
-            pyfftw.forget_wisdom()  # no measured wisdom may leak into the estimated plans from here on
-            if not _STATE["warned"]:
-                _STATE["warned"] = True
-                warnings.warn(
-                    f"phisim cannot use the FFTW wisdom file {path} ({exc}); planning with FFTW_ESTIMATE so that "
-                    "results stay identical across processes (slower for some transforms). Set "
-                    "PHISIM_FFTW_WISDOM to a writable file for measured plans.",
-                    RuntimeWarning,
-                    stacklevel=4,
-                )
-            return build("FFTW_ESTIMATE")
+            failure = exc
+    if not _STATE["warned"]:
+        _STATE["warned"] = True
+        warnings.warn(
+            f"phisim cannot use the FFTW wisdom file {path} ({failure}); planning with FFTW_ESTIMATE so that "
+            "results stay identical across processes (slower for some transforms). Set "
+            "PHISIM_FFTW_WISDOM to a writable file for measured plans.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+    return _estimate(pyfftw, build)

@@ -7,15 +7,8 @@ import torch
 
 from phisim.errors import ParameterError, ShapeError
 from phisim.spectral import fft
-from phisim.spectral import pocket as _fft_pocket
 
 ENGINES = fft.available_engines()
-
-
-@pytest.fixture(autouse=True)
-def _fast_planning():
-    with fft.fft_settings(planner_effort="FFTW_ESTIMATE"):
-        yield
 
 
 @pytest.mark.parametrize("engine", ENGINES)
@@ -199,11 +192,11 @@ def _scipy_r2r(x: np.ndarray, kind: str, axis: int) -> np.ndarray:
 @pytest.mark.parametrize("kinds,inverse", [(("dst1", "dst2"), ("dst1", "dst3")), (("dct1", "dct3"), ("dct1", "dct2")),
                                            (("dst3", "dct4"), ("dst2", "dst4")), (("dct2", "dst1"), ("dct3", "dst1"))])
 @pytest.mark.parametrize("transposed", [False, True])
-def test_r2r_multiply_one_axis_transforms_match_scipy(dtype, kinds, inverse, transposed, monkeypatch):
+def test_r2r_multiply_one_axis_transforms_match_scipy(dtype, kinds, inverse, transposed):
     # every kind, in place into a strided view (the interior of a larger array), and the transposed layout
     # that large planes take (forced here by a zero size threshold)
     if transposed:
-        monkeypatch.setattr(_fft_pocket, "TRANSPOSE_BYTES", 0)
+        fft.set_fft_settings(transpose_bytes=0)  # restored by the conftest's _default_fft_settings fixture
     gen = torch.Generator().manual_seed(7)
     x = torch.randn(2, 9, 7, dtype=torch.float64, generator=gen).to(dtype)
     mult = torch.rand(9, 7, dtype=torch.float64, generator=gen).to(dtype)
@@ -241,3 +234,64 @@ def test_r2r_multiply_is_reproducible_in_a_fresh_process():
     outs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
             for _ in range(2)]
     assert outs[0] == outs[1] and outs[0].strip()
+
+
+# ----------------------------------------------------------------------------------------------
+# settings and bounded plan caches
+
+
+def test_settings_defaults_and_validation():
+    s = fft.FFTSettings()
+    assert s.planner_effort == "FFTW_ESTIMATE" and s.deterministic and s.plan_cache_size == 32
+    assert s.transpose_bytes == s.wall_transpose_bytes == 384 * 1024
+    for bad in ({"plan_cache_size": 0}, {"plan_cache_size": 2.5}, {"transpose_bytes": -1},
+                {"wall_transpose_bytes": None}, {"threads": True}, {"planner_effort": "FFTW_FAST"}):
+        with pytest.raises(ParameterError):
+            fft.FFTSettings(**bad)
+    with fft.fft_settings(plan_cache_size=3) as inside:
+        assert fft.get_fft_settings() is inside and inside.plan_cache_size == 3
+    assert fft.get_fft_settings().plan_cache_size == 32
+
+
+@pytest.mark.skipif("pyfftw" not in ENGINES, reason="plan caches belong to the pyfftw engine")
+def test_plan_caches_are_bounded_lru():
+    from phisim.spectral import fftw as fft_fftw
+
+    fft_fftw.clear_plans()
+    xs = [torch.randn(2, n, 6, dtype=torch.float64) for n in (3, 4, 5, 6, 7)]
+    with fft.fft_settings(plan_cache_size=3):
+        for x in xs:
+            X = fft.rfftn(x, (1, 2), engine="pyfftw")
+            np.testing.assert_allclose(X.numpy(), np.fft.rfftn(x.numpy(), axes=(1, 2)), atol=1e-12)
+            fft.fourier_multiply(x, torch.ones(x.shape[1], 4, dtype=torch.float64), (1, 2), engine="pyfftw")
+        assert len(fft_fftw.PLANS) == 3 and len(fft_fftw.MULTIPLIER_PLANS) == 3
+        assert [k[1][1] for k in fft_fftw.PLANS.keys()] == [5, 6, 7]  # the least recently used went first
+        fft.rfftn(xs[2], (1, 2), engine="pyfftw")  # a hit moves to the end
+        fft.rfftn(xs[0], (1, 2), engine="pyfftw")  # a miss evicts the oldest (n=6)
+        assert [k[1][1] for k in fft_fftw.PLANS.keys()] == [7, 5, 3]
+    with fft.fft_settings(plan_cache_size=1):  # a smaller bound applies at the next use
+        fft.rfftn(xs[0], (1, 2), engine="pyfftw")
+        assert len(fft_fftw.PLANS) == 1
+    fft_fftw.clear_plans()
+    assert len(fft_fftw.PLANS) == len(fft_fftw.MULTIPLIER_PLANS) == 0
+
+
+def test_lru_cache_calls_the_factory_once_per_miss():
+    from phisim.spectral.cache import LRUCache
+
+    made = []
+    c = LRUCache(2)
+    for k in "abab":
+        c.get(k, lambda k=k: made.append(k) or k.upper())
+    assert made == ["a", "b"] and c.get("c", lambda: "C") == "C" and "a" not in c and c.keys() == ["b", "c"]
+
+
+@pytest.mark.skipif("pyfftw" not in ENGINES, reason="the routing belongs to the pyfftw engine")
+def test_default_planner_routes_real_to_real_kinds_to_pocketfft():
+    from phisim.spectral.pocket import use_pocket
+
+    # deterministic default: every DCT/DST kind on pocketfft (no plans), also float64 powers of two
+    assert use_pocket(torch.float64, ("dct2", "dct2"), (256, 256))
+    # measured plans (opt-in) keep FFTW where it measured faster
+    assert not use_pocket(torch.float64, ("dct2", "dct2"), (256, 256), "FFTW_MEASURE")
+    assert use_pocket(torch.float64, ("dct2",), (96,), "FFTW_MEASURE")
