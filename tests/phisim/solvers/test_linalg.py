@@ -347,6 +347,12 @@ def test_float32_smooth_solution_hits_representation_floor_float64_mixed_precisi
     assert float(floor[0]) > 0 and info.tolerance[0] == pytest.approx(float(tol) + float(floor[0]), rel=1e-6)
     true_res = torch.linalg.vector_norm(b.float().double() - neg_laplace(x32.double()))
     assert float(tol) < float(true_res) <= float(info.tolerance[0])
+    # accepted, but the report says the requested tolerance was not met and what was
+    assert info.status == ("precision_floor",) and not info.all_met_requested and not bool(info.met_requested[0])
+    bn = torch.linalg.vector_norm(b.float().double())
+    assert float(info.achieved_rtol[0]) == pytest.approx(float(true_res / bn), rel=1e-6)
+    assert float(info.achieved_rtol[0]) > 1e-5
+    assert float(info.requested_tolerance[0]) == pytest.approx(float(tol), rel=1e-12)
     x, info = cg(neg_laplace, b, solve=Solve(refine=True), return_info=True)
     assert x.dtype == torch.float64 and info.refined and info.all_converged
     assert rel_residual(neg_laplace, x, b).item() <= 1e-5
