@@ -352,7 +352,7 @@ def test_float32_smooth_solution_hits_representation_floor_float64_mixed_precisi
     bn = torch.linalg.vector_norm(b.float().double())
     assert float(info.achieved_rtol[0]) == pytest.approx(float(true_res / bn), rel=1e-6)
     assert float(info.achieved_rtol[0]) > 1e-5
-    assert float(info.requested_tolerance[0]) == pytest.approx(float(tol), rel=1e-12)
+    assert float(info.requested_tolerance[0]) == pytest.approx(float(tol), rel=1e-6)
     x, info = cg(neg_laplace, b, solve=Solve(refine=True), return_info=True)
     assert x.dtype == torch.float64 and info.refined and info.all_converged
     assert rel_residual(neg_laplace, x, b).item() <= 1e-5
