@@ -210,11 +210,11 @@ class Burgers(ETDRKStepper):
                                                            for a in range(d)]))  # (d, *spec)
         b = self.convection
         if d == 1:
-            dx = self._grad[0]
+            half_dx = (-0.5 * b) * self._grad[0]
 
             def nonlinear(u_hat, g):
                 u = g.to_physical(u_hat)
-                return (-0.5 * b) * dx * g.to_spectral(u * u)
+                return half_dx * g.to_spectral(u * u)
         else:
             grad = self._grad
 
@@ -259,8 +259,8 @@ class KortewegDeVries(ETDRKStepper):
         self.delta = _param(delta, "delta")
         self.viscosity = _param(viscosity, "viscosity", nonnegative=True)
         self.hyperviscosity = _param(hyperviscosity, "hyperviscosity", nonnegative=True)
-        dx = grid.derivative(0, grid.complex_dtype)
         a, de, nu, mu = self.alpha, self.delta, self.viscosity, self.hyperviscosity
+        half_dx = (-0.5 * a) * grid.derivative(0, grid.complex_dtype)
 
         def linear(g):
             k2 = g.wavenumber_squared()
@@ -268,7 +268,7 @@ class KortewegDeVries(ETDRKStepper):
 
         def nonlinear(u_hat, g):
             u = g.to_physical(u_hat)
-            return (-0.5 * a) * dx * g.to_spectral(u * u)
+            return half_dx * g.to_spectral(u * u)
 
         super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias)
 
@@ -309,13 +309,15 @@ class KuramotoSivashinsky(ETDRKStepper):
         d = grid.ndim
         grads = [grid.derivative(a, grid.complex_dtype) for a in range(d)]
         if form == "conservative":
-            dx = grads[0]
+            half_dx = -0.5 * grads[0]
 
             def nonlinear(u_hat, g):
                 u = g.to_physical(u_hat)
-                return -0.5 * dx * g.to_spectral(u * u)
+                return half_dx * g.to_spectral(u * u)
         else:
-            grad = torch.stack(torch.broadcast_tensors(*grads))  # (d, *spec)
+            frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) \
+                and 0 < dealias <= 1 else 2.0 / 3.0
+            grad = torch.stack(torch.broadcast_tensors(*grads)) * grid.dealias_mask(frac)  # (d, *spec), masked
             keep = torch.ones(grid.spectral_shape, dtype=grid.dtype, device=grid.device)
             if remove_mean:
                 keep[(0,) * d] = 0.0
@@ -328,7 +330,7 @@ class KuramotoSivashinsky(ETDRKStepper):
             k2 = g.wavenumber_squared()
             return k2 - k2 * k2
 
-        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias)
+        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias, prefiltered=form == "combustion")
 
 
 class AllenCahn(ETDRKStepper):
@@ -511,6 +513,9 @@ class NavierStokesVorticity(ETDRKStepper):
         inv = torch.where(k2 > 0, 1.0 / k2.clamp_min(1e-300), torch.zeros_like(k2)).to(grid.dtype)
         # spectra of (u, v, w_x, w_y) from w_hat: u = psi_y = dy w / k^2, v = -psi_x = -dx w / k^2
         ops = torch.stack(torch.broadcast_tensors(dy * inv, -dx * inv, dx, dy))  # (4, *spec)
+        frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) and 0 < dealias <= 1 \
+            else 2.0 / 3.0
+        ops_in = ops * grid.dealias_mask(frac)  # the input truncation, folded into the operators
         force_hat = None
         if forcing == "kolmogorov":
             _, y = grid.coordinates(torch.float64)
@@ -522,13 +527,14 @@ class NavierStokesVorticity(ETDRKStepper):
         self._force_hat = force_hat
 
         def nonlinear(w_hat, g):
-            phys = g.to_physical(ops * w_hat)  # (B, 4, *res) since C == 1
+            phys = g.to_physical(ops_in * w_hat)  # (B, 4, *res) since C == 1
             adv = phys[:, 0:1] * phys[:, 2:3] + phys[:, 1:2] * phys[:, 3:4]
             out = -g.to_spectral(adv)
             return out if force_hat is None else out + force_hat
 
         nu, al = self.viscosity, self.drag
-        super().__init__(grid, dt, lambda g: nu * g.laplacian() - al, nonlinear, order=order, dealias=dealias)
+        super().__init__(grid, dt, lambda g: nu * g.laplacian() - al, nonlinear, order=order, dealias=dealias,
+                         prefiltered=True)
 
     def velocity(self, w: torch.Tensor) -> torch.Tensor:
         """The velocity ``(u, v)`` of a vorticity field.

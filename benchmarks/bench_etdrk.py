@@ -1,0 +1,210 @@
+"""ETDRK steppers: phisim.pde against exponax 0.2.0 (JAX, CPU), one thread each, interleaved rounds.
+
+Run (after ``bash benchmarks/setup_jaxpeers.sh``)::
+
+    .venv/bin/python benchmarks/bench_etdrk.py [--rounds 5] [--quick] [--peer-venv benchmarks/.venv-jax]
+
+Both sides solve the same problems with the same ETDRK order (4), resolution, 2/3-rule dealiasing (exponax's
+cut-off, ``|m| <= N/3 - 1``, is passed to phisim), float32 and the same analytic initial state: 1-D conservative
+Kuramoto-Sivashinsky (``L = 100``, ``dt = 0.1``) and 2-D Navier-Stokes in vorticity form (``L = 2 pi``,
+``nu = 1e-3``, ``dt = 1e-3``), batch 1 and 32, one step and a 100-step rollout (final state only). exponax runs in a
+child process (``peer_exponax.py``) with ``XLA_FLAGS='--xla_cpu_multi_thread_eigen=false
+intra_op_parallelism_threads=1'``, jit-compiled and vmapped over the batch, warmed up, timed with
+``block_until_ready``; phisim runs in this process with ``torch.set_num_threads(1)``. Each round times every case
+on both sides in turn; the table reports the median over rounds of each side's median per round, and the ratio
+phisim / exponax (below 1: phisim faster). One-step outputs of both are compared (max difference relative to the
+max of the state). Results go to ``benchmarks/results/etdrk.json`` and the Markdown table to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent))
+
+from peer_exponax import initial_state  # noqa: E402
+
+from phisim.pde import KuramotoSivashinsky, NavierStokesVorticity  # noqa: E402
+
+XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def make_cases(quick: bool) -> list[dict]:
+    """The benchmark matrix.
+
+    Args:
+        quick: Only the smallest sizes (a smoke run).
+
+    Returns:
+        Case dictionaries (see ``peer_exponax.py``).
+    """
+    cases = []
+    sizes_1d = [256, 1024] if quick else [256, 1024, 4096]
+    sizes_2d = [128] if quick else [128, 256, 512]
+    for n in sizes_1d:
+        for batch in (1, 32):
+            for mode in ("step", "rollout"):
+                cases.append(dict(eq="ks1d", n=n, batch=batch, mode=mode, steps=1 if mode == "step" else 100,
+                                  dt=0.1, domain=100.0, order=4, viscosity=0.0))
+    for n in sizes_2d:
+        for batch in (1, 32):
+            for mode in ("step", "rollout"):
+                if mode == "rollout" and batch == 32 and n > 128:
+                    continue  # minutes per round; the single steps show the same per-step ratio
+                cases.append(dict(eq="ns2d", n=n, batch=batch, mode=mode, steps=1 if mode == "step" else 100,
+                                  dt=1e-3, domain=2 * math.pi, order=4, viscosity=1e-3))
+    return cases
+
+
+def reps_for(case: dict) -> int:
+    """Timed repetitions per round, so that one round of one case takes roughly 0.1-1 s."""
+    work = case["n"] ** (1 if case["eq"] == "ks1d" else 2) * case["batch"] * case["steps"]
+    return int(max(3, min(200, 2e6 / max(work, 1))))
+
+
+def build_phisim(case: dict):
+    """The phisim stepper (float32, exponax's dealiasing cut-off) and the function to time."""
+    n = case["n"]
+    fraction = (2.0 / 3.0 * (n // 2) - 1) / (n // 2)
+    if case["eq"] == "ks1d":
+        stepper = KuramotoSivashinsky(ndim=1, domain=case["domain"], resolution=n, dt=case["dt"], order=case["order"],
+                                      dealias=fraction)
+    else:
+        stepper = NavierStokesVorticity(viscosity=case["viscosity"], domain=case["domain"], resolution=n,
+                                        dt=case["dt"], order=case["order"], dealias=fraction)
+    u0 = torch.from_numpy(initial_state(case))
+    if case["mode"] == "step":
+        return (lambda: stepper(u0)), stepper, u0
+    steps = case["steps"]
+    return (lambda: stepper.repeat(u0, steps)), stepper, u0
+
+
+class Peer:
+    """The exponax child process."""
+
+    def __init__(self, python: str):
+        env = dict(os.environ, XLA_FLAGS=XLA_FLAGS, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
+        self.proc = subprocess.Popen([python, str(HERE / "peer_exponax.py")], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, env=env, bufsize=1)
+
+    def ask(self, request: dict) -> dict:
+        """Send one request and read its answer."""
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the exponax peer exited (run benchmarks/setup_jaxpeers.sh first)")
+        return json.loads(line)
+
+    def close(self) -> None:
+        """Stop the child."""
+        try:
+            self.ask({"cmd": "quit"})
+        except (RuntimeError, BrokenPipeError, json.JSONDecodeError):
+            pass
+        self.proc.wait(timeout=30)
+
+
+def time_phisim(fn, reps: int) -> list[float]:
+    """``reps`` timings of ``fn`` in seconds."""
+    out = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def label(case: dict) -> str:
+    """A short name of a case."""
+    size = f"{case['n']}" if case["eq"] == "ks1d" else f"{case['n']}²"
+    what = "1 step" if case["mode"] == "step" else f"{case['steps']} steps"
+    return f"{'KS 1-D' if case['eq'] == 'ks1d' else 'NS 2-D'} | {size} | {case['batch']} | {what}"
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Run the benchmark, print the Markdown table, write ``benchmarks/results/etdrk.json``.
+
+    Args:
+        argv: Command-line arguments (``None``: ``sys.argv``).
+
+    Returns:
+        One row per case.
+    """
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="smallest sizes only")
+    ap.add_argument("--peer-venv", default=str(HERE / ".venv-jax"))
+    ap.add_argument("--out", default=str(HERE / "results" / "etdrk.json"))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    load_before = os.getloadavg()
+    peer = Peer(str(Path(args.peer_venv) / "bin" / "python"))
+    info = peer.ask({"cmd": "info"})
+    cases = make_cases(args.quick)
+    built = {}
+    agreement = {}
+    tmp = tempfile.mkdtemp(prefix="etdrk-bench-")
+    for i, case in enumerate(cases):
+        fn, stepper, u0 = build_phisim(case)
+        for _ in range(2):
+            fn()
+        built[i] = fn
+        if case["mode"] == "step":
+            path = os.path.join(tmp, f"case{i}.npy")
+            peer.ask({"cmd": "result", "case": case, "path": path})
+            theirs = np.load(path)
+            ours = fn().numpy()
+            agreement[i] = float(np.abs(ours - theirs).max() / max(np.abs(theirs).max(), 1e-30))
+        else:
+            peer.ask({"cmd": "time", "case": case, "reps": 1})  # compile + warm-up
+    ours_rounds = {i: [] for i in range(len(cases))}
+    theirs_rounds = {i: [] for i in range(len(cases))}
+    t_start = time.time()
+    for _ in range(args.rounds):
+        for i, case in enumerate(cases):
+            reps = reps_for(case)
+            ours_rounds[i].append(statistics.median(time_phisim(built[i], reps)))
+            theirs_rounds[i].append(statistics.median(peer.ask({"cmd": "time", "case": case, "reps": reps})["times"]))
+    elapsed = time.time() - t_start
+    peer.close()
+    load_after = os.getloadavg()
+    rows = []
+    print("| equation | N | batch | work | phisim ms | exponax ms | ratio | one-step agreement |")
+    print("|---|---|---|---|---|---|---|---|")
+    for i, case in enumerate(cases):
+        ours = statistics.median(ours_rounds[i]) * 1e3
+        theirs = statistics.median(theirs_rounds[i]) * 1e3
+        agree = agreement.get(i)
+        rows.append(dict(case=case, phisim_ms=ours, exponax_ms=theirs, ratio=ours / theirs, agreement=agree,
+                         phisim_rounds_ms=[t * 1e3 for t in ours_rounds[i]],
+                         exponax_rounds_ms=[t * 1e3 for t in theirs_rounds[i]]))
+        print(f"| {label(case)} | {ours:.3f} | {theirs:.3f} | {ours / theirs:.2f} | "
+              f"{'' if agree is None else f'{agree:.1e}'} |")
+    meta = dict(command="python " + " ".join([str(Path(__file__).relative_to(HERE.parent))] + (argv or sys.argv[1:])),
+                rounds=args.rounds, elapsed_s=elapsed, loadavg_before=load_before, loadavg_after=load_after,
+                cpu=platform.processor() or platform.machine(), cores=os.cpu_count(), torch=torch.__version__,
+                peer=info, date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
+    print(f"\nloadavg before {load_before}, after {load_after}; {elapsed:.0f} s of timed rounds")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
