@@ -1,5 +1,9 @@
 """Spectral layer: FFT engines (torch.fft, pyfftw with bounded plan caches, pocketfft), real-to-real transforms
-(DCT/DST), the box eigen-multipliers they apply, and the engine settings.
+(DCT/DST), the box eigen-multipliers they apply, and the engine settings (:mod:`phisim.spectral.settings`).
+
+The default settings are bit-reproducible: the same seed and settings give the same bits in every process,
+whatever the timing (see :mod:`phisim.spectral.fft`, "Planner effort and reproducibility"); measured FFTW plans
+are an opt-in (``FFTSettings(planner_effort='FFTW_MEASURE')``) that is not.
 
 Lower layers only: nothing here imports fields, operators or solvers.
 """

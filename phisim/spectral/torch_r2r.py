@@ -4,6 +4,10 @@ DCT/DST of types 2 and 3 come from one real FFT of a permuted sequence (Makhoul 
 transform in one and multiple dimensions", IEEE TASSP 28(1)); types 1 from an even / odd extension; types 4
 from a dense symmetric matrix (O(N²) per line). Everything runs on any device and is differentiated by torch's
 autograd. :func:`phisim.spectral.fft.r2rn` documents the definitions; it validates the arguments before calling here.
+
+Caches: bounded LRUs of constant tensors per (length, dtype, device): :data:`TWIDDLE_CACHE_SIZE` twiddle vectors
+(``n/2 + 1`` complex entries each) and :data:`TYPE4_CACHE_SIZE` dense type-4 matrices (``n²`` entries each: 2 MiB
+for n = 512 in float64, so this one is kept small).
 """
 
 from __future__ import annotations
@@ -30,8 +34,13 @@ def edge_weight(n: int, kind: str, value: float, dtype, device) -> torch.Tensor:
     return w
 
 
+#: Twiddle vectors kept by :func:`_twiddle` (least recently used evicted first).
+TWIDDLE_CACHE_SIZE = 256
+#: Dense type-4 transform matrices kept by :func:`_type4_matrix` (least recently used evicted first).
+TYPE4_CACHE_SIZE = 16
 
-@lru_cache(maxsize=256)
+
+@lru_cache(maxsize=TWIDDLE_CACHE_SIZE)
 def _twiddle(n: int, sign: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     k = torch.arange(n // 2 + 1, dtype=torch.float64)
     w = torch.polar(torch.ones_like(k), sign * math.pi * k / (2 * n))
@@ -68,7 +77,7 @@ def _alternate(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor
     return a
 
 
-@lru_cache(maxsize=64)
+@lru_cache(maxsize=TYPE4_CACHE_SIZE)
 def _type4_matrix(n: int, kind: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     i = torch.arange(n, dtype=torch.float64) + 0.5
     arg = math.pi * i[:, None] * i[None, :] / n
