@@ -31,7 +31,6 @@ __all__ = [
     "NavierStokesVorticity", "KolmogorovFlow", "DecayingTurbulence", "EQUATIONS", "make_stepper", "random_field",
 ]
 
-Number = float
 
 
 def _param(value, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:

@@ -28,7 +28,7 @@ from .transforms import SpectralGrid
 __all__ = ["ETDRKStepper", "phi_functions", "LinearOperator", "SpectralNonlinear", "PhysicalNonlinear"]
 
 #: ``L``: a tensor broadcastable to ``(C, *grid.spectral_shape)`` or a function ``grid -> tensor``.
-LinearOperator = Union[torch.Tensor, Callable[[SpectralGrid], torch.Tensor]]
+LinearOperator = Union[torch.Tensor, Callable[[SpectralGrid], torch.Tensor]]  # noqa: UP007
 #: ``N`` given on the spectrum: ``(u_hat, grid) -> N_hat`` with ``u_hat`` already dealiased.
 SpectralNonlinear = Callable[[torch.Tensor, SpectralGrid], torch.Tensor]
 #: ``N`` given in physical space: ``u -> N(u)`` (pointwise or any other function of the real field).

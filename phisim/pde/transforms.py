@@ -151,9 +151,9 @@ class SpectralGrid:
         BoundaryError: Unknown axis kind.
     """
 
-    def __init__(self, domain: float | Sequence[float] = 1.0, resolution: int | Sequence[int] = 64, ndim: int | None = None,
-                 boundaries: str | Sequence[str] = "periodic", dtype: torch.dtype = torch.float32,
-                 device: torch.device | str = "cpu"):
+    def __init__(self, domain: float | Sequence[float] = 1.0, resolution: int | Sequence[int] = 64,
+                 ndim: int | None = None, boundaries: str | Sequence[str] = "periodic",
+                 dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"):
         if ndim is None:
             ndim = next((len(v) for v in (domain, resolution, boundaries) if isinstance(v, (list, tuple))), 1)
         if not isinstance(ndim, int) or ndim not in (1, 2, 3):
@@ -283,8 +283,8 @@ class SpectralGrid:
         if not 0 <= axis < self.ndim:
             raise ParameterError(f"axis {axis} out of range for a {self.ndim}-D grid")
         if self.boundaries[axis] != "periodic":
-            raise BoundaryError(f"a first derivative along axis {axis} ({self.boundaries[axis]} walls) is not diagonal in "
-                                "the sine/cosine basis; use periodic boundaries for this term")
+            raise BoundaryError(f"a first derivative along axis {axis} ({self.boundaries[axis]} walls) is not "
+                                "diagonal in the sine/cosine basis; use periodic boundaries for this term")
         k = self.wavenumbers[axis].clone()
         n = self.resolution[axis]
         if n % 2 == 0:

@@ -63,7 +63,8 @@ def test_derivative_only_on_periodic_axes():
 
 
 @pytest.mark.parametrize("kwargs, error", [
-    (dict(domain=-1.0), ParameterError), (dict(domain=0.0), ParameterError), (dict(domain=float("nan")), ParameterError),
+    (dict(domain=-1.0), ParameterError), (dict(domain=0.0), ParameterError),
+    (dict(domain=float("nan")), ParameterError),
     (dict(resolution=1), ParameterError), (dict(resolution=8.0), ParameterError), (dict(ndim=4), ParameterError),
     (dict(boundaries="robin"), BoundaryError), (dict(dtype=torch.float16), ParameterError),
     (dict(domain=(1.0, 2.0), ndim=3), ShapeError),
