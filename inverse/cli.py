@@ -202,16 +202,27 @@ def main(argv: list[str] | None = None) -> int:
 
     User errors (bad arguments, files, devices, any :class:`~phisim.errors.PhisimError`) print one line
     ``phisim: error: ...`` and return 2; an unexpected error prints one line and returns 1 (set
-    ``PHISIM_DEBUG=1`` for its traceback); Ctrl-C returns 130. No traceback is printed otherwise.
+    ``PHISIM_DEBUG=1`` for its traceback); Ctrl-C returns 130 and SIGTERM 143, within a second or two:
+    files are closed cleanly on the way out, and the command itself (``argv`` None) then exits at once,
+    without the interpreter's teardown of torch (a second or more on a busy machine). No traceback is
+    printed otherwise.
     """
     import os
 
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
-    except KeyboardInterrupt:
-        print("phisim: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        import signal
+
+        signum = getattr(exc, "signum", signal.SIGINT)  # phisim.io.interrupts.Interrupted carries SIGTERM
+        name = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
+        print(f"phisim: interrupted{name}", file=sys.stderr)
+        if argv is None:  # the command: every file is closed, nothing is left to tear down
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(128 + signum)
+        return 128 + signum
     except Exception as exc:  # noqa: BLE001 - the command line shows one line, never a traceback
         if os.environ.get("PHISIM_DEBUG"):
             raise

@@ -28,6 +28,7 @@ import numpy as np
 
 from phisim.errors import FileFormatError, ParameterError
 from phisim.io.h5util import PathLike, open_for_read
+from phisim.io.interrupts import uninterrupted
 
 __all__ = ["compute_statistics", "write_statistics", "format_statistics", "STATISTICS_KEYS"]
 
@@ -221,8 +222,9 @@ def write_statistics(
     target = root / filename
     tmp = target.with_name(target.name + ".tmp")
     try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(target)
+        with uninterrupted():  # written and renamed into place whole, or not at all
+            tmp.write_text(text, encoding="utf-8")
+            tmp.replace(target)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise FileFormatError(f"cannot write {target}: {exc}") from exc

@@ -16,6 +16,11 @@ written under a temporary name and renamed when complete; rerunning the same com
 ``torchrun`` (``WORLD_SIZE`` > 1) rank ``r`` simulates the files ``i ≡ r (mod world_size)`` and rank 0
 writes the statistics once all ranks are done (a gloo process group is started for the barrier when none
 exists; ranks on several nodes need ``OUT`` on a file system they share).
+
+Interrupts: SIGINT (Ctrl-C) and SIGTERM stop a run within about a second, workers included (they ignore the
+terminal's SIGINT and are stopped by the main process with SIGTERM, then killed if they do not exit). Every
+file already renamed to its final name is complete; unfinished ``.part`` files are removed, and rerunning the
+same command continues with the missing files, which come out bit for bit as in an uninterrupted run.
 """
 
 from __future__ import annotations
@@ -25,8 +30,14 @@ import inspect
 import json
 import math
 import os
+import pickle
+import queue
 import shutil
-from collections.abc import Mapping
+import signal
+import sys
+import time
+import traceback
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +46,9 @@ import numpy as np
 import torch
 
 from phisim.errors import FileFormatError, ParameterError
+from phisim.io import SimulationWriter, write_statistics
+from phisim.io.interrupts import Interrupted, interruptible, uninterrupted
+from phisim.io.journal import journal_path
 from phisim.simulate.scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
 
 __all__ = ["ChunkPlan", "get_scenario", "resolve_config", "load_config_file", "plan_chunks", "simulate_chunk",
@@ -224,9 +238,19 @@ def _draw_parameters(sc: Scenario, cfg: Mapping[str, Any], g: torch.Generator) -
 
 
 def _writer_supports(name: str) -> bool:
-    from phisim.io.simulation import SimulationWriter
-
     return name in inspect.signature(SimulationWriter.__init__).parameters
+
+
+def _part_path(root: str | os.PathLike, chunk: ChunkPlan) -> Path:
+    final = Path(root) / chunk.path
+    return final.with_name(final.name + ".part")
+
+
+def _remove_part(root: str | os.PathLike, chunk: ChunkPlan) -> None:
+    """Delete the unfinished temporary file of a chunk (and its journal)."""
+    tmp = _part_path(root, chunk)
+    tmp.unlink(missing_ok=True)
+    journal_path(tmp).unlink(missing_ok=True)
 
 
 def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.PathLike) -> Path:
@@ -239,16 +263,17 @@ def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.Path
 
     Returns:
         The path of the written file.
-    """
-    from phisim.io.simulation import SimulationWriter
 
+    An exception (an interrupt included) removes the temporary file: the final name only ever holds a
+    complete file.
+    """
     sc = get_scenario(cfg["scenario"])
     g = _generator(cfg["seed"], chunk.index)
     params = _draw_parameters(sc, cfg, g)
     dtype, device = _DTYPES[cfg["dtype"]], torch.device(cfg["device"])
     sim = sc.build(cfg, params, chunk.trajectories, g, dtype, device)
     final = Path(root) / chunk.path
-    tmp = final.with_name(final.name + ".part")
+    tmp = _part_path(root, chunk)
     fields = dict(sim.fields)
     kwargs = {}
     constants = {k: v.detach().cpu().numpy() for k, v in sim.constant_fields.items()}
@@ -270,24 +295,140 @@ def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.Path
         return out
 
     state = sim.state
-    with SimulationWriter(tmp, sim.grid, sim.boundary, dataset_name=f"phisim_{cfg['scenario']}", fields=fields,
-                          parameters=numeric, batch_size=chunk.trajectories, config=file_cfg,
-                          dtype=dtype, **kwargs) as w:
-        w.append(0.0, **frame(state))
-        with torch.no_grad():
-            for k in range(1, cfg["steps"] + 1):
-                state = sim.step(state)
-                if k % cfg["save_every"] == 0:
-                    w.append((k // cfg["save_every"]) * interval, **frame(state))
-    os.replace(tmp, final)
+    try:
+        with SimulationWriter(tmp, sim.grid, sim.boundary, dataset_name=f"phisim_{cfg['scenario']}", fields=fields,
+                              parameters=numeric, batch_size=chunk.trajectories, config=file_cfg,
+                              dtype=dtype, **kwargs) as w:
+            w.append(0.0, **frame(state))
+            with torch.no_grad():
+                for k in range(1, cfg["steps"] + 1):
+                    state = sim.step(state)
+                    if k % cfg["save_every"] == 0:
+                        w.append((k // cfg["save_every"]) * interval, **frame(state))
+        with uninterrupted():
+            os.replace(tmp, final)
+    except BaseException:
+        _remove_part(root, chunk)
+        raise
     return final
 
 
-def _job(cfg: dict, chunk: ChunkPlan, root: str, threads: int) -> int:
-    """Worker-process entry: simulate one file with ``threads`` torch threads; returns its trajectories."""
+# ---- worker processes ------------------------------------------------------------------------------------
+
+#: Seconds the main process waits for interrupted workers to clean up before it kills them.
+STOP_GRACE = 0.8
+
+
+def _worker(cfg: dict, root: str, threads: int, tasks, results) -> None:
+    """Worker-process entry: simulate the chunks taken from ``tasks`` until ``None``; report to ``results``.
+
+    The terminal's SIGINT is ignored (the main process decides); SIGTERM raises :class:`Interrupted`, which
+    removes the unfinished file and ends the process.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked while the process started
     torch.set_num_threads(max(1, threads))
-    simulate_chunk(cfg, chunk, root)
-    return chunk.trajectories
+    with interruptible():
+        try:
+            _work(cfg, root, tasks, results)
+            results.close()
+            results.join_thread()  # every report is in the pipe
+        except Interrupted:  # stopped by the main process; simulate_chunk removed its unfinished file
+            results.cancel_join_thread()
+    # Every file is closed or removed: end without the interpreter's teardown of torch (a second or more on a
+    # busy machine), so the main process need not wait for it.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+def _work(cfg: dict, root: str, tasks, results) -> None:
+    while True:
+        chunk = tasks.get()
+        if chunk is None:
+            return
+        try:
+            simulate_chunk(cfg, chunk, root)
+        except Interrupted:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - reported to the main process, which raises it
+            try:
+                pickle.dumps(exc)
+            except Exception:  # noqa: BLE001 - an exception that cannot travel: its text does
+                exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+            results.put(("error", chunk.index, exc, traceback.format_exc()))
+            return
+        results.put(("done", chunk.index, chunk.trajectories, None))
+
+
+def _run_workers(cfg: dict, todo: Sequence[ChunkPlan], root: Path, workers: int, bar) -> None:
+    """Simulate ``todo`` in ``workers`` spawned processes; on any exception (an interrupt included) stop them
+    within :data:`STOP_GRACE` seconds (SIGTERM, then SIGKILL) and remove their unfinished files."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    tasks, results = ctx.Queue(), ctx.Queue()
+    for c in todo:
+        tasks.put(c)
+    n = min(workers, len(todo))
+    for _ in range(n):
+        tasks.put(None)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    procs = [ctx.Process(target=_worker, args=(cfg, str(root), threads, tasks, results), daemon=True)
+             for _ in range(n)]
+    blocked = hasattr(signal, "pthread_sigmask")
+    try:
+        if blocked:  # workers start with SIGINT blocked (a Ctrl-C meant for the main process is not theirs)
+            old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            for p in procs:
+                p.start()
+        finally:
+            if blocked:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending SIGINT arrives here
+        remaining = len(todo)
+        while remaining:
+            try:
+                kind, index, value, tb = results.get(timeout=0.5)
+            except queue.Empty:
+                if not any(p.is_alive() for p in procs):
+                    raise RuntimeError("the simulation worker processes ended before their files were written "
+                                       f"(exit codes {[p.exitcode for p in procs]})") from None
+                continue
+            if kind == "error":
+                if isinstance(value, BaseException):
+                    raise value
+                raise RuntimeError(f"file {index}: {value}\n{tb}")
+            remaining -= 1
+            if bar is not None:
+                bar.update(value)
+        deadline = time.monotonic() + 5.0  # all done: the workers take their end marks and exit
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+    finally:
+        _stop(procs)
+        for c in todo:
+            if not (root / c.path).exists():
+                _remove_part(root, c)
+        for q in (tasks, results):
+            q.close()
+            q.cancel_join_thread()
+
+
+def _stop(procs: list) -> None:
+    """Stop worker processes: SIGTERM to the running ones, SIGKILL to those still alive after the grace."""
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + STOP_GRACE
+    for p in procs:
+        if p.pid is not None:
+            p.join(max(0.0, deadline - time.monotonic()))
+    for p in procs:
+        if p.is_alive():
+            p.kill()
+            p.join()
 
 
 def _rank_world() -> tuple[int, int, bool]:
@@ -336,8 +477,6 @@ def _prepare_root(root: Path, cfg: dict, overwrite: bool, rank: int) -> None:
 
 def _write_statistics(root: Path) -> Path:
     """The loader's ``stats.yaml`` over the training split (:func:`phisim.io.stats.write_statistics`)."""
-    from phisim.io.stats import write_statistics
-
     return write_statistics(root)
 
 
@@ -364,9 +503,16 @@ def simulate_dataset(
     Raises:
         ParameterError: Bad ``workers``, or ``out`` holds another dataset.
         FileFormatError: ``out`` is not a folder.
+        KeyboardInterrupt: SIGINT, or SIGTERM (:class:`phisim.io.interrupts.Interrupted`): the run stopped,
+            workers included; finished files are complete, unfinished ones removed. Rerun to continue.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+    with interruptible():  # SIGTERM stops the run as Ctrl-C does
+        return _simulate_dataset(out, cfg, workers, progress, overwrite)
+
+
+def _simulate_dataset(out, cfg, workers: int, progress: bool, overwrite: bool) -> dict:
     cfg = dict(cfg)
     root = Path(out)
     rank, world, own_group = _rank_world()
@@ -390,16 +536,7 @@ def simulate_dataset(
                 if bar is not None:
                     bar.update(c.trajectories)
         else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            threads = max(1, (os.cpu_count() or 1) // workers)
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
-                futures = [ex.submit(_job, cfg, c, str(root), threads) for c in todo]
-                for fut in as_completed(futures):
-                    n = fut.result()
-                    if bar is not None:
-                        bar.update(n)
+            _run_workers(cfg, todo, root, workers, bar)
     finally:
         if bar is not None:
             bar.close()
