@@ -138,3 +138,69 @@ def test_cli_train_and_errors(tmp_path, capsys):
     assert "no method 'nope'" in capsys.readouterr().err
     (tmp_path / "bad.h5").write_text("garbage")
     assert cli_main(["info", str(tmp_path / "bad.h5")]) == 2
+
+
+# ---- no silent loss: a run over an earlier one needs resume or overwrite ---------------------------------
+
+
+def test_a_second_run_of_a_method_is_refused_unless_resume_or_overwrite(tmp_path):
+    p = ToyProblem()
+    out = tmp_path / "o.h5"
+    first = train(p, "adam_pg", iterations=4, seed=1, out=out, checkpoint_every=2)
+    with h5py.File(out, "r") as f:
+        g = f["training/adam_pg"]
+        assert g.attrs["planned_iterations"] == 4 and bool(g.attrs["complete"])
+    with pytest.raises(FileFormatError, match=r"already holds a run of 'adam_pg' \(complete \(4 iterations\)\)"):
+        train(p, "adam_pg", iterations=4, seed=2, out=out)
+    np.testing.assert_array_equal(h5py.File(out, "r")["training/adam_pg/metric"][()], first.curves["metric"])
+    with pytest.raises(ParameterError, match="exclude"):
+        train(p, "adam_pg", iterations=4, out=out, resume=True, overwrite=True)
+    train(p, "sgd_physics", iterations=2, seed=1, out=out)  # another method in the same file is fine
+    again = train(p, "adam_pg", iterations=3, seed=2, out=out, overwrite=True)
+    assert not (tmp_path / "o.h5.adam_pg.ckpt").exists()  # the replaced run's checkpoint is gone
+    with h5py.File(out, "r") as f:
+        np.testing.assert_array_equal(f["training/adam_pg/metric"][()], again.curves["metric"])
+        assert f["training/adam_pg"].attrs["seed"] == 2 and f["training/adam_pg/iteration"].shape == (3,)
+        assert f["training/sgd_physics/iteration"].shape == (2,)
+    with pytest.raises(FileFormatError, match="no checkpoint"):  # nothing to resume from: refused too
+        train(p, "adam_pg", iterations=6, seed=2, out=out, resume=True)
+
+
+def test_resume_continues_an_interrupted_run_and_marks_it_complete(tmp_path):
+    p = ToyProblem()
+    out = tmp_path / "i.h5"
+
+    def stop_at_5(it, record):
+        if it == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(p, "adam_pg", iterations=8, seed=1, out=out, checkpoint_every=4, callback=stop_at_5)
+    from phisim.errors import IncompleteFileWarning
+    from phisim.io import read_training
+
+    with pytest.warns(IncompleteFileWarning, match="stopped after 6 of 8"):
+        run = read_training(out)["adam_pg"]
+    assert run.complete is False and not (tmp_path / "i.h5.adam_pg.model.pt").exists()
+    resumed = train(p, "adam_pg", iterations=8, seed=1, out=out, checkpoint_every=4, resume=True)
+    full = train(p, "adam_pg", iterations=8, seed=1, out=tmp_path / "f.h5")
+    np.testing.assert_array_equal(resumed.curves["metric"], full.curves["metric"])
+    assert read_training(out)["adam_pg"].complete is True
+
+
+def test_cli_overwrite_and_compare_checks_every_method_first(tmp_path, capsys):
+    out = str(tmp_path / "c.h5")
+    args = ["--iterations", "2", "--batch-size", "10", "--out", out, "--quiet"]
+    assert cli_main(["train", "sine", "adam", *args]) == 0
+    capsys.readouterr()
+    assert cli_main(["compare", "sine", "supervised", "adam", *args]) == 2
+    assert "already holds a run of 'adam'" in capsys.readouterr().err
+    with h5py.File(out, "r") as f:
+        assert sorted(f["training"]) == ["adam"]  # refused before the first method trained
+    assert cli_main(["compare", "sine", "supervised", "adam", *args, "--overwrite"]) == 0
+    with h5py.File(out, "r") as f:
+        assert sorted(f["training"]) == ["adam", "supervised"]
+    capsys.readouterr()
+    assert cli_main(["info", out]) == 0
+    text = capsys.readouterr().out
+    assert "run adam: complete (2 iterations)" in text and "run supervised: complete (2 iterations)" in text
