@@ -29,6 +29,7 @@ import difflib
 import inspect
 import json
 import math
+import multiprocessing as mp
 import os
 import pickle
 import queue
@@ -365,8 +366,6 @@ def _work(cfg: dict, root: str, tasks, results) -> None:
 def _run_workers(cfg: dict, todo: Sequence[ChunkPlan], root: Path, workers: int, bar) -> None:
     """Simulate ``todo`` in ``workers`` spawned processes; on any exception (an interrupt included) stop them
     within :data:`STOP_GRACE` seconds (SIGTERM, then SIGKILL) and remove their unfinished files."""
-    import multiprocessing as mp
-
     ctx = mp.get_context("spawn")
     tasks, results = ctx.Queue(), ctx.Queue()
     for c in todo:
