@@ -37,7 +37,7 @@ from phisim.fluid.projection import _operator, _pressure_kinds  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
 from phisim.solvers import masked as pm  # noqa: E402
 from phisim.solvers.linalg import Solve  # noqa: E402
-from phisim.solvers.poisson import _TRANSFORM, _apply_multiplier, _layout, _transform_scale  # noqa: E402
+from phisim.solvers.box import TRANSFORMS, apply_multiplier, transform_layout, transform_scale  # noqa: E402
 from phisim.spectral.fft import r2r_multiply  # noqa: E402
 
 
@@ -77,15 +77,15 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(device=device, dtype=dtype) * op.active.to(dtype)
     x = torch.randn(rhs.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
 
-    r2r, per = _layout(op.kinds)
-    fwd = tuple(_TRANSFORM[op.kinds[a]][0] for a in r2r)
-    inv = tuple(_TRANSFORM[op.kinds[a]][1] for a in r2r)
-    mult = (op._inv * _transform_scale(op.resolution, op.kinds)).to(dtype)
+    r2r, per = transform_layout(op.kinds)
+    fwd = tuple(TRANSFORMS[op.kinds[a]][0] for a in r2r)
+    inv = tuple(TRANSFORMS[op.kinds[a]][1] for a in r2r)
+    mult = (op._inv * transform_scale(op.resolution, op.kinds)).to(dtype)
 
     def floor():  # the fastest transform round trip the library has (one FFTW pass), plus the stencil
         y = None if per else r2r_multiply(x, fwd, inv, tuple(1 + a for a in r2r), mult, engine=op.engine)
         if y is None:
-            _apply_multiplier(x, op.kinds, op._inv, op.engine)
+            apply_multiplier(x, op.kinds, op._inv, op.engine)
         op.apply(x)
 
     tol = Solve(rtol=1e-6 if dtype == torch.float64 else 1e-5, raise_on_failure=False, refine=False)

@@ -178,7 +178,7 @@ def heat_spectral(size: str, dtype: str, repeats: int, device: str) -> dict:
 def _smoke_setup(size: str, dtype: str, device: str, method: str):
     """Inputs and a step function mirroring the PhiFlow side's step (see inputs.SMOKE)."""
     maccormack, semi_lagrangian = _need("advection", "maccormack", "semi_lagrangian")
-    buoyancy, make_incompressible = _need("fluid", "buoyancy", "make_incompressible")
+    buoyancy, Projection = _need("fluid", "buoyancy", "Projection")
     from phisim.solvers.linalg import Solve
 
     res, nb = inputs.parse_size(size)
@@ -192,12 +192,18 @@ def _smoke_setup(size: str, dtype: str, device: str, method: str):
 
     info: dict = {}
 
+    project = None
+
     def step(state):
+        nonlocal project
         marker, vel, p = state
         marker = maccormack(marker, vel, dt) + inflow * dt
         vel = semi_lagrangian(vel, vel, dt)
         vel = buoyancy(vel, marker, dt, strength=s["buoyancy"])
-        vel, p, si = make_incompressible(vel, solve=solve, pressure_guess=p, method=method, return_info=True)
+        if project is None:
+            project = Projection(vel.grid, vel.boundary, solve=solve, method=method, dtype=vel.dtype,
+                                 device=vel.device)
+        vel, p, si = project(vel, pressure_guess=p)
         if si is not None:
             info["iterations"] = int(torch.as_tensor(si.iterations).max())
         return marker, vel, p

@@ -71,7 +71,7 @@ from phisim.fluid import (
     step,
 )
 from phisim.grid import Grid
-from phisim.io.simulation import (
+from phisim.io import (
     SimulationData,
     SimulationWriter,
     TrainingLog,

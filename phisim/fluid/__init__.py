@@ -6,11 +6,13 @@ Modules:
   union, your own function);
 * :mod:`~phisim.fluid.bodies` -- :class:`Obstacle` (resting staircase cells) and :class:`Body` (a geometry
   with a prescribed motion, no-slip or free-slip, rasterised to fractional face weights);
-* :mod:`~phisim.fluid.projection` -- :func:`make_incompressible` with walls, inflows, outflows, periodic
-  sides and bodies;
+* :mod:`~phisim.fluid.projection` -- :class:`Projection` (built once per domain) and :func:`make_incompressible`
+  with walls, inflows, outflows, periodic sides and bodies;
 * :mod:`~phisim.fluid.viscosity` -- :func:`diffuse_velocity`;
 * :mod:`~phisim.fluid.forces` -- drag and lift on bodies, pressure at probe points;
-* :mod:`~phisim.fluid.step` -- :func:`navier_stokes_step`, :func:`step` and :class:`FluidState`;
+* :mod:`~phisim.fluid.step` -- the parts of a split step (buoyancy, energy, CFL) and :class:`FluidState`;
+* :mod:`~phisim.fluid.stepper` -- :class:`FluidStepper` (settings checked and operators built once; the way to
+  step a flow), and the same steps as pure functions, :func:`step` and :func:`navier_stokes_step`;
 * :mod:`~phisim.fluid.integrators` -- second-/third-order time integrators (:func:`navier_stokes_rk_step`:
   ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
 """
@@ -21,20 +23,25 @@ from phisim.fluid.geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union,
 from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
 from phisim.fluid.projection import (
     PRESSURE_SOLVE,
+    Projection,
+    ProjectionResult,
     impose_solids,
     make_incompressible,
     net_boundary_flux,
     relative_divergence,
 )
-from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, navier_stokes_step, normalize_energy, step
+from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, normalize_energy
+from phisim.fluid.stepper import FluidStepper, navier_stokes_step, step
 from phisim.fluid.viscosity import VISCOSITY_SCHEMES, diffuse_velocity
 
 __all__ = [
     "Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction",
     "Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks",
-    "make_incompressible", "relative_divergence", "impose_solids", "net_boundary_flux", "PRESSURE_SOLVE",
+    "Projection", "ProjectionResult", "make_incompressible", "relative_divergence", "impose_solids",
+    "net_boundary_flux", "PRESSURE_SOLVE",
     "diffuse_velocity", "VISCOSITY_SCHEMES",
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
+    "FluidStepper",
 ]

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -202,6 +202,32 @@ class Body:
         self.path, self.rotation = path, rotation
         self.no_slip = bool(no_slip)
         self.name = name
+        self._derived: OrderedDict = OrderedDict()
+
+    def derived(self, key, make: Callable[[], torch.Tensor]) -> torch.Tensor:
+        """A quantity derived from this resting body's geometry on a grid (e.g. its surface area vectors), made
+        by ``make()`` and kept on the body (the 8 most recent keys); made anew for a moving body, and not kept
+        when it depends on tensors requiring grad (shape parameters).
+
+        Args:
+            key: Hashable description (grid, dtype, device, what).
+            make: Builds the quantity.
+
+        Returns:
+            The quantity.
+        """
+        if not self.static:
+            return make()
+        hit = self._derived.get(key)
+        if hit is not None:
+            self._derived.move_to_end(key)
+            return hit
+        value = make()
+        if not value.requires_grad:
+            self._derived[key] = value
+            while len(self._derived) > 8:
+                self._derived.popitem(last=False)
+        return value
 
     @property
     def static(self) -> bool:
@@ -313,6 +339,10 @@ class SolidLayout:
             (None if every solid is no-slip).
         cell_fraction: Fluid fraction of each cell ``(1 or B, *res)``.
         bodies: The solids, in the order given.
+        solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
+            its solves are iterative. A dict for a layout that is used again and again (a stepper's static
+            bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
+            for it are kept there, and the direct solves that pay off only when reused are used.
     """
 
     theta: tuple
@@ -320,6 +350,16 @@ class SolidLayout:
     slip: tuple | None
     cell_fraction: torch.Tensor
     bodies: tuple
+    solvers: dict | None = field(default=None, repr=False)
+
+    def persistent(self) -> SolidLayout:
+        """This layout marked for reuse: solvers built for it are kept on it and direct solves are used.
+
+        Layouts that depend on tensors requiring grad (shape parameters) stay one-off.
+        """
+        if self.solvers is not None or any(t.requires_grad for t in self.theta):
+            return self
+        return replace(self, solvers={})
 
     def to(self, dtype=None, device=None) -> SolidLayout:
         """A copy with tensors converted."""
@@ -329,8 +369,9 @@ class SolidLayout:
         def cvs(ts):
             return None if ts is None else tuple(cv(t) for t in ts)
 
-        return SolidLayout(cvs(self.theta), cvs(self.solid_velocity), cvs(self.slip), cv(self.cell_fraction),
-                           self.bodies)
+        out = SolidLayout(cvs(self.theta), cvs(self.solid_velocity), cvs(self.slip), cv(self.cell_fraction),
+                          self.bodies)
+        return out if self.solvers is None else out.persistent()
 
 
 def sdf_gradient(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor:
@@ -346,12 +387,12 @@ def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor
     return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def _body_fraction(body: Body, points: torch.Tensor, t: float, dx: float) -> torch.Tensor:
+def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float) -> torch.Tensor:
     phi = body.sdf(points, t)
     return fluid_fraction(phi, sdf_gradient(body, points, t, 1e-3 * dx).abs().sum(-1), dx)
 
 
-def _as_solids(obstacles) -> list:
+def as_solids(obstacles) -> list:
     if obstacles is None:
         return []
     if isinstance(obstacles, (Obstacle, Body, Geometry, torch.Tensor)):
@@ -396,10 +437,6 @@ def open_face_masks(fluid: torch.Tensor, boundary: Boundary) -> tuple[torch.Tens
     return tuple(out)
 
 
-_CACHE: OrderedDict = OrderedDict()
-_CACHE_SIZE = 16
-
-
 def _check_placement(body: Body, grid: Grid, boundary: Boundary, t: float) -> None:
     lo, hi = body.bounding_box(t)
     if len(lo) != grid.rank:
@@ -417,7 +454,10 @@ def _check_placement(body: Body, grid: Grid, boundary: Boundary, t: float) -> No
 
 def solid_layout(obstacles, grid: Grid, boundary: Boundary, time: float = 0.0, dtype=torch.float64,
                  device=None) -> SolidLayout | None:
-    """Rasterise obstacles and bodies on ``grid`` at ``time`` (cached when every solid is static).
+    """Rasterise obstacles and bodies on ``grid`` at ``time``.
+
+    Each call rasterises anew (a pure function): a loop that steps past static bodies should hold the layout,
+    as :class:`~phisim.fluid.stepper.FluidStepper` does (``solid_layout(...).persistent()``).
 
     Args:
         obstacles: None, an :class:`Obstacle`, :class:`Body`, :class:`~phisim.fluid.geometry.Geometry`
@@ -436,28 +476,10 @@ def solid_layout(obstacles, grid: Grid, boundary: Boundary, time: float = 0.0, d
     """
     if isinstance(obstacles, SolidLayout):
         return obstacles.to(dtype=dtype, device=device) if obstacles.theta[0].dtype != dtype else obstacles
-    solids = _as_solids(obstacles)
+    solids = as_solids(obstacles)
     if not solids:
         return None
-    static = all(isinstance(s, Obstacle) or s.static for s in solids)
-    key = None
-    if static:
-        shape = tuple(tuple(type(c).__name__ for c in pair) for pair in boundary.sides)  # not the values: an
-        key = (tuple(id(s) for s in solids), grid, shape, dtype, str(device))  # inflow changes with time
-        hit = _CACHE.get(key)
-        if hit is not None:
-            _CACHE.move_to_end(key)
-            if hit[1] is not None:
-                return hit[1]
-    layout = _rasterise(solids, grid, boundary, float(time), dtype, device)
-    if key is not None:
-        # a layout that depends on tensors requiring grad (shape parameters, also ones captured by an SDF
-        # function) is never reused: the key is marked so that it is rasterised anew each time
-        keep = None if any(t.requires_grad for t in layout.theta) else layout
-        _CACHE[key] = (solids, keep)  # keep the solids alive so their ids stay unique
-        while len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    return layout
+    return _rasterise(solids, grid, boundary, float(time), dtype, device)
 
 
 def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
@@ -480,8 +502,8 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
             no_slip = True
         else:
             _check_placement(s, grid, boundary, t)
-            th = tuple(_body_fraction(s, grid.face_centers(i, work, device), t, h)[None] for i in range(rank))
-            cf = _body_fraction(s, grid.cell_centers(work, device), t, h)[None]
+            th = tuple(body_fraction(s, grid.face_centers(i, work, device), t, h)[None] for i in range(rank))
+            cf = body_fraction(s, grid.cell_centers(work, device), t, h)[None]
             sv = None
             if not s.static:
                 sv = tuple(s.velocity_at(grid.face_centers(i, work, device), t)[..., i][None] for i in range(rank))
@@ -537,7 +559,7 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
         ParameterError: For entries that are neither obstacles nor masks.
         ShapeError: For masks that do not fit the grid.
     """
-    solids = _as_solids(obstacles)
+    solids = as_solids(obstacles)
     if not solids:
         return None
     solid = None
@@ -546,7 +568,7 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
             m = ob.cell_mask(grid, device)
         else:
             _check_placement(ob, grid, Boundary.create("open", grid.rank), 0.0)
-            m = _body_fraction(ob, grid.cell_centers(torch.float64, device), 0.0, min(grid.dx)).detach() < 0.5
+            m = body_fraction(ob, grid.cell_centers(torch.float64, device), 0.0, min(grid.dx)).detach() < 0.5
         if m.ndim == grid.rank:
             m = m[None]
         if solid is None:

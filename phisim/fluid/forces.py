@@ -26,7 +26,6 @@ Coefficients: ``c = 2 F / (density U^2 L)`` with a reference speed ``U`` and len
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -34,9 +33,9 @@ import torch
 from phisim.checks import check_positive
 from phisim.errors import ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import Body, Obstacle, _body_fraction, unit_normal
+from phisim.fluid.bodies import Body, Obstacle, body_fraction, unit_normal
 from phisim.fluid.geometry import Geometry
-from phisim.fluid.projection import _check_velocity
+from phisim.fluid.projection import check_velocity
 
 __all__ = ["BodyForces", "body_forces", "probe_pressure"]
 
@@ -88,23 +87,10 @@ def _pressure_values(pressure, velocity: StaggeredGrid) -> torch.Tensor:
     return pressure.values
 
 
-_SURFACES: OrderedDict = OrderedDict()
-
-
 def _surface(body: Body, grid, t: float, like: torch.Tensor):
-    """Area vectors ``int n dS`` of the surface piece in each cell, ``(*res, d)`` (cached for static bodies)."""
-    key = None
-    if body.static:
-        key = (id(body), grid, like.dtype, str(like.device))
-        hit = _SURFACES.get(key)
-        if hit is not None and hit[0] is body and hit[1] is not None:
-            return hit[1]
-    vec = _surface_vectors(body, grid, t, like)
-    if key is not None:  # never reuse vectors that depend on shape parameters requiring grad
-        _SURFACES[key] = (body, None if vec.requires_grad else vec)
-        while len(_SURFACES) > 16:
-            _SURFACES.popitem(last=False)
-    return vec
+    """Area vectors ``int n dS`` of the surface piece in each cell, ``(*res, d)`` (kept on a resting body)."""
+    return body.derived(("surface", grid, like.dtype, str(like.device)),
+                        lambda: _surface_vectors(body, grid, t, like))
 
 
 def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
@@ -112,7 +98,7 @@ def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
     work = like.dtype
     area = []
     for i in range(grid.rank):
-        th = _body_fraction(body, grid.face_centers(i, work, like.device), t, h)
+        th = body_fraction(body, grid.face_centers(i, work, like.device), t, h)
         n = grid.resolution[i]
         a_i = math.prod(d for k, d in enumerate(grid.dx) if k != i)
         area.append((th.narrow(i, 1, n) - th.narrow(i, 0, n)) * a_i)
@@ -140,7 +126,7 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
     Raises:
         ParameterError: For a staircase Obstacle, non-positive dt or density, or mismatched fields.
     """
-    _check_velocity(velocity)
+    check_velocity(velocity)
     body = _as_body(body)
     dt = check_positive(dt, "dt")
     density = check_positive(density, "density")

@@ -70,8 +70,9 @@ from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
 from phisim.fluid.projection import impose_solids, make_incompressible
-from phisim.fluid.step import _to_time, kinetic_energy, normalize_energy
+from phisim.fluid.step import kinetic_energy, normalize_energy, to_time
 from phisim.ops.differential import gradient, laplace
+from phisim.solvers.diffusion import diffuse_staggered
 
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
 
@@ -228,7 +229,7 @@ def navier_stokes_rk_step(
         if a != 0.0:
             w = w + a * u0.with_boundary(w.boundary)
         t_out = time + float(dt) * (stages[k + 1][2] if k + 1 < len(stages) else 1.0)
-        w = _to_time(w, t_out)
+        w = to_time(w, t_out)
         layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
         w = impose_solids(w, layout)
         stage, pressure = make_incompressible(w, layout, solve=solve, pressure_guess=guess, time=t_out)
@@ -242,8 +243,6 @@ def navier_stokes_rk_step(
 
 def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
     """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
-    from phisim.solvers.diffusion import diffuse_staggered
-
     grid = velocity.grid
     t_new = time + float(dt)
     e0 = kinetic_energy(velocity) if energy_normalization else None
@@ -273,9 +272,10 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
             y = y.with_values(tuple(c - x for c, x in zip(y.values, grad_q[1])))
         if half_lap is not None:
             y = y + half_lap
-        y = impose_solids(_to_time(y, t_new), layout)
+        y = impose_solids(to_time(y, t_new), layout)
         if float(nu) != 0:
-            y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve)
+            y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve,
+                                  capacitance=None if layout is None else layout.solvers)
         return make_incompressible(y, layout, solve=solve, time=t_new,
                                    pressure_guess=None if grad_q is None else torch.zeros_like(grad_q[0].values))
 

@@ -39,23 +39,25 @@ References: Harlow & Welch (1965), Phys. Fluids 8 (the MAC grid); Chorin (1968),
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import replace
+from typing import NamedTuple
 
 import torch
 
-from phisim.boundary import NORMAL, Boundary, pad
+from phisim.boundary import NORMAL, Boundary
 from phisim.checks import all_finite
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import SolidLayout, solid_layout
-from phisim.ops.differential import _diff, divergence
-from phisim.padding import const
-from phisim.solvers.linalg import Solve
+from phisim.fluid.bodies import Obstacle, SolidLayout, as_solids, solid_layout
+from phisim.ops.differential import divergence
+from phisim.ops.stencil import face_divergence, face_gradient, normalize_kinds
+from phisim.solvers.box import box_solve
+from phisim.solvers.linalg import Solve, SolveInfo
 from phisim.solvers.masked import MaskedPoisson
-from phisim.solvers.poisson import _solve_trusted, field_kinds_and_values, normalize_kinds
+from phisim.solvers.poisson import field_kinds_and_values
 
-__all__ = ["PRESSURE_SOLVE", "make_incompressible", "relative_divergence", "impose_solids", "net_boundary_flux"]
+__all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "project_box", "make_incompressible",
+           "relative_divergence", "impose_solids", "net_boundary_flux"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -65,7 +67,7 @@ PRESSURE_SOLVE = Solve(rtol=1e-6)
 _PRESSURE_SOLVE_LOW = Solve(rtol=1e-5)
 
 
-def _check_velocity(velocity, what: str = "velocity") -> None:
+def check_velocity(velocity, what: str = "velocity") -> None:
     if not isinstance(velocity, StaggeredGrid):
         raise GridMismatchError(
             f"{what} must be a StaggeredGrid (MAC velocity), got {type(velocity).__name__}; convert a centred "
@@ -152,23 +154,101 @@ def _pressure_kinds(boundary: Boundary):
     return kinds
 
 
-_OPS: OrderedDict = OrderedDict()
-
-
-def _operator(layout: SolidLayout, kinds, dx, batch_like: torch.Tensor) -> MaskedPoisson:
-    grad = any(t.requires_grad for t in layout.theta)
-    key = (id(layout), kinds, batch_like.dtype, str(batch_like.device))
-    if not grad:
-        hit = _OPS.get(key)
-        if hit is not None and hit[0] is layout:
-            _OPS.move_to_end(key)
-            return hit[1]
-    op = MaskedPoisson(layout.theta, dx, kinds)
-    if not grad:
-        _OPS[key] = (layout, op)
-        while len(_OPS) > 16:
-            _OPS.popitem(last=False)
+def _operator(layout: SolidLayout, kinds, dx, direct="auto") -> MaskedPoisson:
+    """The pressure operator of ``layout``: kept on a persistent layout (with the direct solve where it
+    applies, unless ``direct`` is False), built anew for a one-off layout (PCG)."""
+    cache = layout.solvers
+    if cache is None:
+        return MaskedPoisson(layout.theta, dx, kinds, direct=False)
+    key = ("pressure", kinds, tuple(dx), direct)
+    op = cache.get(key)
+    if op is None:
+        op = cache[key] = MaskedPoisson(layout.theta, dx, kinds, direct=direct)
     return op
+
+
+class ProjectionResult(NamedTuple):
+    """The result of a :class:`Projection`."""
+
+    #: The divergence-free MAC velocity.
+    velocity: StaggeredGrid
+    #: The pressure potential, a scalar CenteredGrid.
+    pressure: CenteredGrid
+    #: The :class:`~phisim.solvers.linalg.SolveInfo` of the CG pressure solve; None for the exact spectral solve.
+    info: SolveInfo | None
+
+
+class Projection:
+    """The pressure projection of one domain, built once: ``Projection(grid, boundary, obstacles)(velocity)``.
+
+    The constructor validates the settings and rasterises static solids once; their masked pressure operator
+    (labels, null space, preconditioner, and the direct capacitance solve where it applies) is built at the
+    first call and kept. Moving bodies are rasterised at each call's ``time`` (PCG solves). Without solids the
+    projection is the exact spectral solve. :func:`make_incompressible` is the same projection as a pure
+    function (nothing kept between calls).
+
+    Args:
+        grid: The grid.
+        boundary: The velocity boundary.
+        obstacles: Solids, as for :func:`make_incompressible` (None: none).
+        solve: CG settings of the masked solve (default as :func:`make_incompressible`).
+        method: ``'auto'``, ``'spectral'`` or ``'cg'`` (see :func:`make_incompressible`).
+        dtype, device: Of the velocities this projection will be called with.
+        direct: The direct pressure solve of static solids (see :class:`~phisim.solvers.masked.MaskedPoisson`):
+            ``'auto'`` (default: where it applies and pays) or ``False`` (PCG).
+
+    Raises:
+        ParameterError: For an unknown method, ``'spectral'`` with solids, or solids outside the domain.
+    """
+
+    def __init__(self, grid, boundary: Boundary, obstacles=None, *, solve: Solve | None = None,
+                 method: str = "auto", dtype: torch.dtype = torch.float32, device=None, direct="auto"):
+        if method not in ("auto", "spectral", "cg"):
+            raise ParameterError(f"method must be 'auto', 'spectral' or 'cg', got {method!r}")
+        if solve is not None and not isinstance(solve, Solve):
+            raise ParameterError(f"solve must be a phisim.solvers.Solve, got {type(solve).__name__}")
+        if direct not in ("auto", False):
+            raise ParameterError(f"direct must be 'auto' or False, got {direct!r}")
+        self.grid, self.boundary, self.solve, self.method, self.direct = grid, boundary, solve, method, direct
+        self.dtype, self.device = dtype, torch.device(device or "cpu")
+        self.solids = tuple(as_solids(obstacles)) if not isinstance(obstacles, SolidLayout) else obstacles
+        self.static = isinstance(obstacles, SolidLayout) or all(
+            isinstance(s, Obstacle) or s.static for s in self.solids)
+        layout = solid_layout(obstacles, grid, boundary, 0.0, dtype, self.device)
+        if layout is not None and method == "spectral":
+            raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' "
+                                 "or 'cg'")
+        self.has_solids = layout is not None
+        self._layout = layout.persistent() if (layout is not None and self.static) else None
+
+    def layout(self, time: float = 0.0) -> SolidLayout | None:
+        """The solids at ``time`` (the held layout of static solids)."""
+        if not self.has_solids:
+            return None
+        if self._layout is not None:
+            return self._layout
+        return solid_layout(self.solids, self.grid, self.boundary, time, self.dtype, self.device)
+
+    def __call__(self, velocity: StaggeredGrid, *, pressure_guess=None, time: float = 0.0) -> ProjectionResult:
+        """Project ``velocity`` (its boundary faces set first); see :func:`make_incompressible`.
+
+        Raises:
+            GridMismatchError: For a velocity on another grid or with another boundary.
+            ParameterError: For a velocity of another dtype or device than the projection was built for.
+        """
+        check_velocity(velocity)
+        if velocity.grid != self.grid:
+            raise GridMismatchError(f"velocity grid {velocity.grid} differs from the projection's {self.grid}")
+        if velocity.dtype != self.dtype or velocity.device.type != self.device.type:
+            raise ParameterError(f"this projection was built for {self.dtype} on {self.device}; got a velocity "
+                                 f"of {velocity.dtype} on {velocity.device}")
+        return self._apply(velocity, self.layout(time), pressure_guess, time)
+
+    def _apply(self, velocity, layout, pressure_guess, time) -> ProjectionResult:
+        if layout is None and self.method != "cg":
+            out, pressure = project_box(velocity.with_boundary_faces(), check=True)
+            return ProjectionResult(out, pressure, None)
+        return _project(velocity.with_boundary_faces(), layout, self.solve, pressure_guess, self.direct)
 
 
 def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
@@ -216,7 +296,7 @@ def make_incompressible(
     method: str = "auto",
     return_info: bool = False,
     time: float = 0.0,
-):
+) -> tuple[StaggeredGrid, CenteredGrid]:
     """Project a MAC velocity onto the discretely divergence-free fields (pressure projection).
 
     Walls and inflows of ``velocity.boundary`` set their boundary faces; obstacles and bodies close or
@@ -235,15 +315,14 @@ def make_incompressible(
             tensor ``(B, *res)``. The direct solve ignores it.
         method: ``'auto'`` (spectral without solids, CG with them), ``'spectral'`` (rejects solids) or
             ``'cg'`` (weighted CG with spectral preconditioner even without solids).
-        return_info: Also return the :class:`~phisim.solvers.linalg.SolveInfo` of the CG solve (None for the
-            direct solve).
+        return_info: Removed (only ``False`` is accepted): a :class:`Projection` returns the velocity, the
+            pressure and the :class:`~phisim.solvers.linalg.SolveInfo`.
         time: Simulation time: positions and velocities of moving bodies.
 
     Returns:
         ``(velocity, pressure)``: the divergence-free StaggeredGrid (same grid/boundary) and the pressure
         potential as a scalar CenteredGrid ``(B, *res)`` with boundary ``velocity.boundary.for_pressure()``
-        (zero mean over each closed fluid region; 0 deep inside bodies). With ``return_info`` a third
-        element, the SolveInfo or None.
+        (zero mean over each closed fluid region; 0 deep inside bodies).
 
     Raises:
         GridMismatchError: If ``velocity`` is not a StaggeredGrid.
@@ -253,7 +332,10 @@ def make_incompressible(
         ShapeError: For masks or guesses of the wrong shape.
         SolveError: If the CG solve does not converge.
     """
-    _check_velocity(velocity)
+    check_velocity(velocity)
+    if return_info:
+        raise ParameterError("return_info was removed: make_incompressible returns (velocity, pressure); "
+                             "phisim.fluid.Projection(grid, boundary, obstacles)(velocity) also returns the SolveInfo")
     if method not in ("auto", "spectral", "cg"):
         raise ParameterError(f"method must be 'auto', 'spectral' or 'cg', got {method!r}")
     grid, boundary = velocity.grid, velocity.boundary
@@ -261,9 +343,9 @@ def make_incompressible(
     if layout is not None and method == "spectral":
         raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' or 'cg'")
     if layout is None and method != "cg":
-        out, pressure = _project_box(velocity.with_boundary_faces(), check=True)
-        return (out, pressure, None) if return_info else (out, pressure)
-    return _project(velocity.with_boundary_faces(), layout, solve, pressure_guess, method, return_info)
+        return project_box(velocity.with_boundary_faces(), check=True)
+    out = _project(velocity.with_boundary_faces(), layout, solve, pressure_guess)
+    return out.velocity, out.pressure
 
 
 def _box_constants(boundary: Boundary):
@@ -278,7 +360,7 @@ def _box_constants(boundary: Boundary):
     return boundary._memo("projection", make)
 
 
-def _project_box(v: StaggeredGrid, check: bool = True):
+def project_box(v: StaggeredGrid, check: bool = True):
     """The projection without solids by the direct spectral solve of ``v`` with its boundary faces set.
 
     ``check`` raises NonFiniteError for a non-finite divergence (as the spectral solve does); the other checks
@@ -288,24 +370,17 @@ def _project_box(v: StaggeredGrid, check: bool = True):
     p_boundary, kinds, _ = _box_constants(boundary)
     _check_balance(v)
     dx = grid.dx
-    dxt = [const(d, v.dtype, v.device) for d in dx]
-    div = None
-    for a, c in enumerate(v.values):  # the MAC divergence (as phisim.ops.differential.divergence)
-        t = _diff(c, 1 + a) / dxt[a]
-        div = t if div is None else div + t
-    if check and not math.isfinite(float(div.sum())) and not all_finite(div):  # one reduction unless suspect
+    div = face_divergence(v.values, dx)  # the MAC divergence
+    if check and not math.isfinite(float(div.detach().sum())) and not all_finite(div):  # one reduction unless suspect
         raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
-    p = _solve_trusted(div, dx, kinds)
+    p = box_solve(div, dx, kinds)
     pressure = CenteredGrid._trusted(p, grid, p_boundary)
-    comps = []
-    for a, c in enumerate(v.values):  # face gradient (as phisim.ops.differential.gradient(at='face'))
-        g = _diff(pad(p, p_boundary, dx, 1, axes=[a]), 1 + a) / dxt[a]
-        comps.append(c - g)
-    out = StaggeredGrid._trusted(tuple(comps), grid, boundary).with_boundary_faces()
+    comps = tuple(c - g for c, g in zip(v.values, face_gradient(p, dx, kinds)))  # zero pressure values
+    out = StaggeredGrid._trusted(comps, grid, boundary).with_boundary_faces()
     return out, pressure
 
 
-def _project(v, layout, solve, pressure_guess, method, return_info):
+def _project(v, layout, solve, pressure_guess, direct="auto") -> ProjectionResult:
     """The CG projection (solids, or ``method='cg'``) of ``v`` with its boundary faces set."""
     grid, boundary = v.grid, v.boundary
     _check_balance(v)
@@ -319,7 +394,7 @@ def _project(v, layout, solve, pressure_guess, method, return_info):
     if bool((cell.flatten(1).max(1).values <= 0).any()) and layout.bodies:
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
     flux = _blend(v.values, layout)
-    op = _operator(layout, kinds, grid.dx, v.values[0])
+    op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx, direct)
     rhs = -op.divergence(flux)
     x0 = _guess_tensor(pressure_guess, v)
     if solve is None:
@@ -335,7 +410,7 @@ def _project(v, layout, solve, pressure_guess, method, return_info):
     corrected = tuple(u - g for u, g in zip(v.values, grad))
     out = v.with_values(_blend(v.values, layout, corrected)).with_boundary_faces()
     pressure = CenteredGrid(p, grid, p_boundary)
-    return (out, pressure, info) if return_info else (out, pressure)
+    return ProjectionResult(out, pressure, info)
 
 
 def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None = None) -> torch.Tensor:
@@ -349,11 +424,11 @@ def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None
     Returns:
         ``(B,)`` tensor (detached).
     """
-    _check_velocity(velocity)
+    check_velocity(velocity)
     with torch.no_grad():
         d = divergence(velocity).values.flatten(1)
         if reference is not None:
-            _check_velocity(reference, "reference")
+            check_velocity(reference, "reference")
             ref = divergence(reference.with_boundary_faces()).values.flatten(1).norm(dim=1)
             return d.norm(dim=1) / ref.clamp_min(torch.finfo(d.dtype).tiny)
         scale = torch.stack([c.flatten(1).abs().max(1).values for c in velocity.values]).max(0).values

@@ -12,7 +12,7 @@ from __future__ import annotations
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import ParameterError
 from phisim.field import StaggeredGrid
-from phisim.fluid.projection import _check_velocity
+from phisim.fluid.projection import check_velocity
 from phisim.solvers.diffusion import diffuse_staggered
 from phisim.solvers.linalg import Solve
 
@@ -52,7 +52,7 @@ def diffuse_velocity(
             stability limit.
         SolveError: If a solve with ``fixed`` faces does not converge.
     """
-    _check_velocity(velocity)
+    check_velocity(velocity)
     dt = check_dt(dt)
     viscosity = check_nonnegative(viscosity, "viscosity")
     if scheme not in VISCOSITY_SCHEMES:

@@ -14,8 +14,8 @@ the old field there (multilinear interpolation, boundary-aware through one ghost
   (``clamp='minmax'``, the default); ``clamp='revert'`` falls back to the semi-Lagrangian value where the
   corrected value leaves that range (Selle et al., section 3), and ``clamp=None`` disables limiting.
 
-Back-tracing uses the velocity at the sample point itself (first-order Euler, ``integrator='euler'``, the
-standard choice and PhiFlow's) or a midpoint rule (``integrator='rk2'``), which samples the velocity once
+Back-tracing uses the velocity at the sample point itself (first-order Euler, ``trace='euler'``, the
+standard choice and PhiFlow's) or a midpoint rule (``trace='midpoint'``), which samples the velocity once
 more at ``x - dt/2 v(x)``. For a velocity that is uniform in space both are exact.
 
 Sample points and velocities:
@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import torch
 import torch.nn.functional as F
@@ -55,9 +56,11 @@ from phisim.checks import check_dt, check_finite
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, Field, StaggeredGrid
 from phisim.grid import Grid
+from phisim.ops.conservative import conservative_step
 from phisim.padding import const, plan_for
 
-__all__ = ["advect", "semi_lagrangian", "maccormack", "conservative", "SCHEMES", "SCALAR_SCHEMES", "LIMITERS"]
+__all__ = ["advect", "semi_lagrangian", "maccormack", "conservative", "SCHEMES", "SCALAR_SCHEMES", "LIMITERS", "TRACES",
+           "validate_advection", "advect_trusted"]
 
 #: Schemes that advect any field, staggered velocities included (``advect(v, v, dt)``).
 SCHEMES = ("semi_lagrangian", "maccormack")
@@ -66,7 +69,17 @@ SCHEMES = ("semi_lagrangian", "maccormack")
 SCALAR_SCHEMES = (*SCHEMES, "conservative")
 #: Slope limiters of the conservative scheme (``None``: unlimited central slopes).
 LIMITERS = ("van_leer", "mc", "minmod", None)
-_INTEGRATORS = ("euler", "rk2")
+#: Back-trace rules (``trace=``).
+TRACES = ("euler", "midpoint")
+
+
+def _trace_rule(trace: str, integrator: str | None) -> str:
+    """The back-trace rule; ``integrator=`` is its former name (``'rk2'`` meant ``'midpoint'``)."""
+    if integrator is None:
+        return trace
+    warnings.warn("advection's integrator= is now trace= ('euler' or 'midpoint'); 'integrator' names the time "
+                  "integrator of a whole fluid step", DeprecationWarning, stacklevel=3)
+    return {"rk2": "midpoint"}.get(integrator, integrator)
 _CLAMPS = ("minmax", "revert", None)
 _WIDTH = 1  # ghost layers used for interpolation
 
@@ -366,7 +379,7 @@ def _pad_centered(x: torch.Tensor, boundary: Boundary, dx, velocity_like: bool) 
     return p.reshape(B, C, *p.shape[1:])
 
 
-def _validate(field, velocity, dt, scheme, integrator, clamp):
+def validate_advection(field, velocity, dt, scheme, trace, clamp):
     if scheme not in SCALAR_SCHEMES:
         raise ParameterError(f"unknown advection scheme {scheme!r}; choose one of {SCALAR_SCHEMES}")
     if scheme == "conservative" and isinstance(field, StaggeredGrid):
@@ -374,8 +387,8 @@ def _validate(field, velocity, dt, scheme, integrator, clamp):
             "the conservative scheme transports cell-centred fields (markers, densities); advect a "
             f"StaggeredGrid with one of {SCHEMES}"
         )
-    if integrator not in _INTEGRATORS:
-        raise ParameterError(f"unknown integrator {integrator!r}; choose one of {_INTEGRATORS}")
+    if trace not in TRACES:
+        raise ParameterError(f"unknown back-trace rule trace={trace!r}; choose one of {TRACES}")
     if clamp not in _CLAMPS:
         raise ParameterError(f"unknown clamp {clamp!r}; choose one of {_CLAMPS}")
     if not isinstance(field, (CenteredGrid, StaggeredGrid)):
@@ -396,8 +409,9 @@ def _validate(field, velocity, dt, scheme, integrator, clamp):
     return dt
 
 
-def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian", integrator: str = "euler",
-           clamp: str | None = "minmax", limiter: str | None = "van_leer", cfl: float = 0.5) -> Field:
+def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian", trace: str = "euler",
+           clamp: str | None = "minmax", limiter: str | None = "van_leer", cfl: float = 0.5,
+           integrator: str | None = None) -> Field:
     """Advect ``field`` by ``velocity`` over one time step ``dt``.
 
     Args:
@@ -409,38 +423,39 @@ def advect(field: Field, velocity: Field, dt, *, scheme: str = "semi_lagrangian"
         scheme: ``'semi_lagrangian'`` (first order), ``'maccormack'`` (second order, clamped) or, for
             ``CenteredGrid`` fields only, ``'conservative'`` (finite-volume flux form, second order, keeps the
             total to round-off and non-negative data non-negative; see :func:`conservative`).
-        integrator: Back-trace rule: ``'euler'`` (``x - dt v(x)``) or ``'rk2'`` (midpoint).
+        trace: Back-trace rule: ``'euler'`` (``x - dt v(x)``) or ``'midpoint'``.
         clamp: MacCormack limiter: ``'minmax'`` (clamp to the interpolation stencil of the forward step),
             ``'revert'`` (use the semi-Lagrangian value where the corrected one leaves that range) or
             ``None``. Ignored by the semi-Lagrangian scheme.
         limiter: Slope limiter of the conservative scheme (see :func:`conservative`); ignored otherwise.
         cfl: Largest outflow Courant number per sub-step of the conservative scheme; ignored otherwise.
+        integrator: Former name of ``trace`` (``'rk2'`` = ``'midpoint'``); deprecated.
 
     Returns:
         A field of the same type, grid, boundary, shape and dtype as ``field``.
 
     Raises:
-        ParameterError: For a negative or non-finite ``dt`` or an unknown scheme/integrator/clamp.
+        ParameterError: For a negative or non-finite ``dt`` or an unknown scheme/trace/clamp.
         GridMismatchError: If the field and the velocity live on different grids, or are not fields.
         ShapeError: If a centred velocity does not have one component per axis, or the batch sizes differ.
         NonFiniteError: If the velocity contains NaN/Inf (checked on CPU only, where it costs no sync).
     """
-    dt = _validate(field, velocity, dt, scheme, integrator, clamp)
-    return _advect(field, velocity, dt, scheme, integrator, clamp, limiter, cfl)
+    trace = _trace_rule(trace, integrator)
+    dt = validate_advection(field, velocity, dt, scheme, trace, clamp)
+    return advect_trusted(field, velocity, dt, scheme, trace, clamp, limiter, cfl)
 
 
-def _advect(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", integrator: str = "euler",
+def advect_trusted(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", trace: str = "euler",
             clamp: str | None = "minmax", limiter: str | None = "van_leer", cfl: float = 0.5) -> Field:
     """:func:`advect` on arguments already validated by the caller (the entry of a fluid step)."""
     if scheme == "conservative":
-        from phisim.ops.conservative import conservative_step
 
         return conservative_step(field, velocity, dt, limiter=limiter, cfl=cfl)
     grid, boundary = field.grid, field.boundary
     if isinstance(field, CenteredGrid):
         vel = _broadcast_batch(_as_dtype(_velocity_at_centers(velocity), field.dtype), field.batch_size)
         loc = _location(grid, boundary, None)
-        vel, back = _trace_velocity(velocity, loc, vel, dt, integrator, scheme)
+        vel, back = _trace_velocity(velocity, loc, vel, dt, trace, scheme)
         values = field.values if field.is_vector else field.values.unsqueeze(1)
 
         velocity_like = field.is_vector and values.shape[1] == grid.rank
@@ -453,7 +468,7 @@ def _advect(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", 
     for i, comp in enumerate(field.values):
         vel = _broadcast_batch(_as_dtype(_velocity_at_faces(velocity, i), field.dtype), field.batch_size)
         loc = _location(grid, boundary, i)
-        vel, back = _trace_velocity(velocity, loc, vel, dt, integrator, scheme)
+        vel, back = _trace_velocity(velocity, loc, vel, dt, trace, scheme)
 
         pad_fn = loc.padder(comp.dtype, comp.device)
         if pad_fn is None:
@@ -467,23 +482,25 @@ def _advect(field: Field, velocity: Field, dt, scheme: str = "semi_lagrangian", 
     return StaggeredGrid._trusted(tuple(comps), grid, boundary)
 
 
-def _trace_velocity(velocity, loc, vel, dt, integrator, scheme):
-    """Velocities for the forward and (MacCormack) backward trace under the chosen integrator."""
-    if integrator == "euler":
+def _trace_velocity(velocity, loc, vel, dt, trace, scheme):
+    """Velocities for the forward and (MacCormack) backward trace under the chosen rule."""
+    if trace == "euler":
         return vel, None
     forward = _midpoint_velocity(velocity, loc, vel, dt)
     backward = _midpoint_velocity(velocity, loc, vel, -dt) if scheme == "maccormack" else None
     return forward, backward
 
 
-def semi_lagrangian(field: Field, velocity: Field, dt, *, integrator: str = "euler") -> Field:
+def semi_lagrangian(field: Field, velocity: Field, dt, *, trace: str = "euler", integrator: str | None = None
+                    ) -> Field:
     """Semi-Lagrangian advection ``q(x) <- q(x - dt v(x))`` (first order; Stam 1999).
 
     Args:
         field: ``CenteredGrid`` (scalar or vector) or ``StaggeredGrid`` to advect.
         velocity: Centred vector or staggered velocity on the same grid.
         dt: Time step ``>= 0``.
-        integrator: ``'euler'`` or ``'rk2'`` back-trace.
+        trace: ``'euler'`` or ``'midpoint'`` back-trace.
+        integrator: Former name of ``trace`` (deprecated).
 
     Returns:
         The advected field (same type, grid and boundary).
@@ -491,11 +508,11 @@ def semi_lagrangian(field: Field, velocity: Field, dt, *, integrator: str = "eul
     Raises:
         ParameterError, GridMismatchError, ShapeError, NonFiniteError: See :func:`advect`.
     """
-    return advect(field, velocity, dt, scheme="semi_lagrangian", integrator=integrator)
+    return advect(field, velocity, dt, scheme="semi_lagrangian", trace=_trace_rule(trace, integrator))
 
 
-def maccormack(field: Field, velocity: Field, dt, *, integrator: str = "euler",
-               clamp: str | None = "minmax") -> Field:
+def maccormack(field: Field, velocity: Field, dt, *, trace: str = "euler", clamp: str | None = "minmax",
+               integrator: str | None = None) -> Field:
     """MacCormack advection with extrema clamping (second order; Selle et al. 2008).
 
     ``q^ = SL(q, dt)``, ``q~ = SL(q^, -dt)``, ``q_new = q^ + (q - q~)/2``, clamped to the range of the
@@ -506,8 +523,9 @@ def maccormack(field: Field, velocity: Field, dt, *, integrator: str = "euler",
         field: ``CenteredGrid`` (scalar or vector) or ``StaggeredGrid`` to advect.
         velocity: Centred vector or staggered velocity on the same grid.
         dt: Time step ``>= 0``.
-        integrator: ``'euler'`` or ``'rk2'`` back-trace.
+        trace: ``'euler'`` or ``'midpoint'`` back-trace.
         clamp: ``'minmax'``, ``'revert'`` or ``None``.
+        integrator: Former name of ``trace`` (deprecated).
 
     Returns:
         The advected field (same type, grid and boundary).
@@ -515,7 +533,7 @@ def maccormack(field: Field, velocity: Field, dt, *, integrator: str = "euler",
     Raises:
         ParameterError, GridMismatchError, ShapeError, NonFiniteError: See :func:`advect`.
     """
-    return advect(field, velocity, dt, scheme="maccormack", integrator=integrator, clamp=clamp)
+    return advect(field, velocity, dt, scheme="maccormack", trace=_trace_rule(trace, integrator), clamp=clamp)
 
 
 def conservative(field: CenteredGrid, velocity: Field, dt, *, limiter: str | None = "van_leer",

@@ -25,7 +25,7 @@ from phisim.field import CenteredGrid, StaggeredGrid
 __all__ = ["gradient", "divergence", "laplace", "curl", "velocity_from_stream_function"]
 
 
-def _diff(x: torch.Tensor, dim: int) -> torch.Tensor:
+def diff(x: torch.Tensor, dim: int) -> torch.Tensor:
     n = x.shape[dim]
     return x.narrow(dim, 1, n - 1) - x.narrow(dim, 0, n - 1)
 
@@ -65,7 +65,7 @@ def gradient(field: CenteredGrid, at: str = "center", boundary=None) -> Centered
         comps = []
         for a in range(field.rank):
             p = pad(field.values, field.boundary, dx, 1, axes=[a])
-            comps.append(_diff(p, 1 + a) / dx[a])
+            comps.append(diff(p, 1 + a) / dx[a])
         return StaggeredGrid(tuple(comps), field.grid, out_boundary)
     if at == "center":
         comps = [_central(pad(field.values, field.boundary, dx, 1, axes=[a]), 1 + a, dx[a]) for a in range(field.rank)]
@@ -92,7 +92,7 @@ def divergence(field: StaggeredGrid | CenteredGrid) -> CenteredGrid:
     """
     if isinstance(field, StaggeredGrid):
         dx = field.grid.dx
-        div = sum(_diff(v, 1 + a) / dx[a] for a, v in enumerate(field.values))
+        div = sum(diff(v, 1 + a) / dx[a] for a, v in enumerate(field.values))
         return CenteredGrid(div, field.grid, field.boundary.for_scalar())
     if not isinstance(field, CenteredGrid) or not field.is_vector or field.values.shape[1] != field.rank:
         raise ShapeError(f"divergence needs a StaggeredGrid or a vector CenteredGrid with d components, got {field!r}")
@@ -181,8 +181,8 @@ def curl(field: CenteredGrid | StaggeredGrid, at: str = "center"):
     dx = field.grid.dx
     if rank == 2 and isinstance(field, StaggeredGrid):
         u, v = field.values
-        dv_dx = _diff(field.padded_component(1, 1).narrow(2, 1, v.shape[2]), 1) / dx[0]
-        du_dy = _diff(field.padded_component(0, 1).narrow(1, 1, u.shape[1]), 2) / dx[1]
+        dv_dx = diff(field.padded_component(1, 1).narrow(2, 1, v.shape[2]), 1) / dx[0]
+        du_dy = diff(field.padded_component(0, 1).narrow(1, 1, u.shape[1]), 2) / dx[1]
         w = dv_dx - du_dy  # (B, nx + 1, ny + 1)
         if at == "node":
             return w
@@ -227,6 +227,6 @@ def velocity_from_stream_function(psi_nodes: torch.Tensor, grid, boundary) -> St
                                                                                   grid.resolution[1] + 1):
         raise ShapeError(f"psi_nodes must have shape (B, nx + 1, ny + 1) for a 2-D grid, got {tuple(psi_nodes.shape)}")
     dx, dy = grid.dx
-    u = _diff(psi_nodes, 2) / dy
-    v = -_diff(psi_nodes, 1) / dx
+    u = diff(psi_nodes, 2) / dy
+    v = -diff(psi_nodes, 1) / dx
     return StaggeredGrid((u, v), grid, Boundary.create(boundary, 2))

@@ -1,9 +1,16 @@
-"""Argument handling and the second-order cell-centred stencil behind :mod:`phisim.solvers.poisson` (internal).
+"""The second-order cell-centred stencil: one weighted face-flux kernel, and its argument handling.
 
 Boundary kinds per axis side (``'periodic'``, ``'dirichlet'``, ``'neumann'``), cell sizes, right-hand sides and
 boundary values are checked here; the stencil ``∇²_h u = L₀ u + b`` is split into its zero-value part ``L₀`` and
-the boundary source ``b``. :mod:`phisim.solvers.poisson` re-exports the public names (``AXIS_KINDS``,
-``normalize_kinds``, ``boundary_source``, ``stencil_laplacian``).
+the boundary source ``b``.
+
+The kernel is ``div(w grad u)`` with face weights ``w`` (1 in an open box, fluid fractions of cut faces at
+bodies): :func:`face_gradient` (zero face values: the ghost is ``-u`` beside a Dirichlet side, the flux 0 beside a
+Neumann side, periodic axes wrap), :func:`face_divergence`, and its fused form for weights that do not change,
+:func:`weighted_diagonal` + :func:`face_couplings` + :func:`coupled_sum` (one product with the diagonal and two
+shifted multiply-adds per axis, a third of the passes over memory). The plain Laplacian
+(:func:`laplace_zero`, :func:`stencil_laplacian`), the masked operator of :mod:`phisim.solvers.masked` and the
+fluid projection all use these functions.
 """
 
 from __future__ import annotations
@@ -60,7 +67,7 @@ def normalize_kinds(kinds, rank: int) -> Kinds:
     return tuple(out)
 
 
-def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
+def normalize_dx(dx, rank: int) -> tuple[float, ...]:
     if isinstance(dx, torch.Tensor) and dx.numel() == 1:
         dx = float(dx)
     if isinstance(dx, (int, float, np.number)) and not isinstance(dx, bool):
@@ -86,7 +93,7 @@ def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
 _MIN_DX = 1e-18
 
 
-def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
+def check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     if not isinstance(rhs, torch.Tensor):
         raise ParameterError(
             f"{name} must be a torch.Tensor of shape (B, *resolution), got {type(rhs).__name__}"
@@ -104,11 +111,11 @@ def _check_rhs(rhs: torch.Tensor, name: str = "rhs") -> int:
     return rank
 
 
-def _is_zero(v) -> bool:
+def is_zero(v) -> bool:
     return v is None or (isinstance(v, (int, float)) and v == 0)
 
 
-def _normalize_values(values, rank: int, kinds: Kinds):
+def normalize_values(values, rank: int, kinds: Kinds):
     if values is None:
         return tuple((None, None) for _ in range(rank))
     values = tuple(values)
@@ -122,7 +129,7 @@ def _normalize_values(values, rank: int, kinds: Kinds):
         pair = (None, None) if v is None else tuple(v)
         if len(pair) != 2:
             raise BoundaryError(f"values[{axis}] must be a (lower, upper) pair, got {v!r}")
-        if kinds[axis][0] == "periodic" and not all(_is_zero(p) for p in pair):
+        if kinds[axis][0] == "periodic" and not all(is_zero(p) for p in pair):
             raise BoundaryError(f"axis {axis} is periodic and cannot carry boundary values {pair}")
         out.append(pair)
     return tuple(out)
@@ -158,12 +165,12 @@ def boundary_source(like: torch.Tensor, dx, kinds, values) -> torch.Tensor | Non
     """
     rank = like.ndim - 1
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
-    values = _normalize_values(values, rank, kinds)
+    dx = normalize_dx(dx, rank)
+    values = normalize_values(values, rank, kinds)
     b = None
     for a in range(rank):
         for side, v in enumerate(values[a]):
-            if _is_zero(v):
+            if is_zero(v):
                 continue
             kind = kinds[a][side]
             coef = 2.0 / dx[a] ** 2 if kind == "dirichlet" else 1.0 / dx[a]
@@ -214,68 +221,154 @@ def stencil_laplacian(u: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
     Raises:
         BoundaryError, ParameterError, ShapeError: For invalid kinds, dx, values or shapes.
     """
-    rank = _check_rhs(u, "u")
+    rank = check_rhs(u, "u")
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
-    out = _laplace_zero(u, dx, kinds)
+    dx = normalize_dx(dx, rank)
+    out = laplace_zero(u, dx, kinds)
     b = boundary_source(u, dx, kinds, values)
     return out if b is None else out + b
 
 
 @lru_cache(maxsize=64)
-def _stencil_diagonal(res: tuple[int, ...], dx: tuple[float, ...], kinds: Kinds, dtype: torch.dtype,
-                      device: torch.device) -> torch.Tensor:
+def stencil_diagonal(res: tuple[int, ...], dx: tuple[float, ...], kinds: Kinds, dtype: torch.dtype,
+                     device: torch.device) -> torch.Tensor:
     """Diagonal of the zero-value stencil ``(*res)``: ``-2/dx²`` per axis, ``-3/dx²`` in a cell beside a
-    Dirichlet side (ghost ``-u``), ``-1/dx²`` beside a Neumann side (ghost ``u``)."""
-    diag = torch.zeros(res, dtype=torch.float64)
-    for a, (lo, hi) in enumerate(kinds):
-        d = torch.full((res[a],), -2.0, dtype=torch.float64)
-        if lo != "periodic":
-            d[0] += -1.0 if lo == "dirichlet" else 1.0
-            d[-1] += -1.0 if hi == "dirichlet" else 1.0
-        shape = [1] * len(res)
-        shape[a] = res[a]
-        diag = diag + d.reshape(shape) / dx[a] ** 2
-    return diag.to(dtype=dtype, device=device)
+    Dirichlet side (ghost ``-u``), ``-1/dx²`` beside a Neumann side (ghost ``u``): :func:`weighted_diagonal` of
+    unit weights, negated."""
+    ones = tuple(torch.ones((1, *(n + 1 if b == a else n for b, n in enumerate(res))), dtype=torch.float64)
+                 for a in range(len(res)))
+    return (-weighted_diagonal(ones, dx, kinds)[0]).to(dtype=dtype, device=device)
 
 
-def _laplace_fused(u: torch.Tensor, dx, kinds: Kinds) -> torch.Tensor:
-    """The zero-value stencil as one product with its diagonal plus two shifted adds per axis (periodic
-    axes two more for the wrap): the same sums as the face-flux form, in a quarter of the passes."""
+def laplace_fused(u: torch.Tensor, dx, kinds: Kinds) -> torch.Tensor:
+    """The zero-value stencil in fused form (:func:`coupled_sum` with unit weights): the same sums as the
+    face-flux form, in a quarter of the passes."""
     res = tuple(u.shape[1:])
-    out = u * _stencil_diagonal(res, tuple(dx), kinds, u.dtype, u.device)
-    for a, (lo, _) in enumerate(kinds):
-        dim, n, h = 1 + a, res[a], 1.0 / dx[a] ** 2
-        if n > 1:
-            out.narrow(dim, 0, n - 1).add_(u.narrow(dim, 1, n - 1), alpha=h)
-            out.narrow(dim, 1, n - 1).add_(u.narrow(dim, 0, n - 1), alpha=h)
-        if lo == "periodic":
-            out.narrow(dim, 0, 1).add_(u.narrow(dim, n - 1, 1), alpha=h)
-            out.narrow(dim, n - 1, 1).add_(u.narrow(dim, 0, 1), alpha=h)
+    h = tuple(1.0 / d**2 for d in dx)
+    wrap = tuple(h[a] if lo == "periodic" else None for a, (lo, _) in enumerate(kinds))
+    return coupled_sum(u, stencil_diagonal(res, tuple(dx), kinds, u.dtype, u.device), h, wrap, 1.0)
+
+
+def laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:
+    """Stencil with zero boundary values; ``open_faces[a]`` (optional) weights the faces of axis ``a`` between
+    cells: faces ``1..n-1`` (``n - 1`` along ``a``), or on a periodic axis faces ``1..n`` (``n``, face ``n`` being the
+    wrap face). Without weights the fused form; with them ``div(w grad u)`` by :func:`face_gradient` and
+    :func:`face_divergence`."""
+    if open_faces is None and u.is_floating_point():
+        return laplace_fused(u, dx, kinds)
+    grads = face_gradient(u, dx, kinds)
+    if open_faces is not None:
+        weighted = []
+        for a, g in enumerate(grads):
+            dim, w = 1 + a, open_faces[a]
+            if kinds[a][0] == "periodic":  # weights of faces 1..n; face 0 is face n
+                n = w.shape[dim]
+                full = torch.cat([w.narrow(dim, n - 1, 1), w], dim)
+            else:
+                shape = list(w.shape)
+                shape[dim] = 1
+                edge = torch.ones(shape, dtype=w.dtype, device=w.device)
+                full = torch.cat([edge, w, edge], dim)
+            weighted.append(g * full)
+        grads = tuple(weighted)
+    return face_divergence(grads, dx)
+
+
+# ----------------------------------------------------------------------------------------------
+# the weighted face-flux kernel
+
+
+def face_gradient(u: torch.Tensor, dx, kinds: Kinds) -> tuple[torch.Tensor, ...]:
+    """Face gradient ``(u_k - u_{k-1}) / dx`` per axis with zero boundary values, shapes ``(B, *face_shape(a))``.
+
+    Dirichlet sides use the ghost ``-u`` (value 0 on the face), Neumann sides give 0, periodic axes wrap (face
+    ``n`` repeats face ``0``).
+    """
+    out = []
+    for a, (lo_k, hi_k) in enumerate(kinds):
+        dim, n, d = 1 + a, u.shape[1 + a], dx[a]
+        inner = (u.narrow(dim, 1, n - 1) - u.narrow(dim, 0, n - 1)) / d
+        if lo_k == "periodic":
+            g0 = (u.narrow(dim, 0, 1) - u.narrow(dim, n - 1, 1)) / d
+            out.append(torch.cat([g0, inner, g0], dim))
+            continue
+        first, last = u.narrow(dim, 0, 1), u.narrow(dim, n - 1, 1)
+        lo = 2 * first / d if lo_k == "dirichlet" else torch.zeros_like(first)
+        hi = -2 * last / d if hi_k == "dirichlet" else torch.zeros_like(last)
+        out.append(torch.cat([lo, inner, hi], dim))
+    return tuple(out)
+
+
+def face_divergence(flux, dx) -> torch.Tensor:
+    """MAC divergence ``sum_a (f_{k+1} - f_k) / dx_a`` of face values ``(B, *face_shape(a))`` per axis."""
+    out = None
+    for a, f in enumerate(flux):
+        dim = 1 + a
+        n = f.shape[dim] - 1
+        term = (f.narrow(dim, 1, n) - f.narrow(dim, 0, n)) / dx[a]
+        out = term if out is None else out + term
     return out
 
 
-def _laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:
-    """Stencil with zero boundary values; ``open_faces[a]`` (optional) weights interior faces of axis a."""
-    if open_faces is None and u.is_floating_point():
-        return _laplace_fused(u, dx, kinds)
-    out = torch.zeros_like(u)
-    for a, (lo, hi) in enumerate(kinds):
+def weighted_diagonal(weights, dx, kinds: Kinds) -> torch.Tensor:
+    """Diagonal of ``-div(w grad)`` per cell, ``(B, *res)``: ``sum_a (w_lo + w_hi) / dx_a²`` with the faces on
+    Dirichlet sides counted twice (the ghost is ``-u``) and those on Neumann sides not at all.
+
+    Args:
+        weights: Per axis ``a`` the face weights ``(B, *face_shape(a))`` (``n_a + 1`` faces along ``a``; on a
+            periodic axis face ``n`` is face ``0``).
+        dx: Spacing per axis.
+        kinds: Normalised kinds.
+    """
+    d = 0
+    for a, w in enumerate(weights):
         dim = 1 + a
-        n = u.shape[dim]
-        if lo == "periodic":
-            flux = (torch.roll(u, -1, dim) - u) / dx[a] ** 2  # face i+1/2, i = 0..n-1 (last wraps)
-            if open_faces is not None:
-                flux = flux * open_faces[a]
-            out = out + flux - torch.roll(flux, 1, dim)
-            continue
-        inner = (u.narrow(dim, 1, n - 1) - u.narrow(dim, 0, n - 1)) / dx[a] ** 2  # faces 1..n-1
-        if open_faces is not None:
-            inner = inner * open_faces[a]
-        # face differences (u_i - u_{i-1}) / dx^2 at faces 0..n; zero-value ghosts -u (Dirichlet), u (Neumann)
-        zero = torch.zeros_like(_slab(u, dim, 0))
-        lo_flux = 2 * _slab(u, dim, 0) / dx[a] ** 2 if lo == "dirichlet" else zero
-        hi_flux = -2 * _slab(u, dim, n - 1) / dx[a] ** 2 if hi == "dirichlet" else zero
-        faces = torch.cat([lo_flux, inner, hi_flux], dim=dim)
-        out = out + faces.narrow(dim, 1, n) - faces.narrow(dim, 0, n)
+        n = w.shape[dim] - 1
+        lo, hi = w.narrow(dim, 0, n), w.narrow(dim, 1, n)
+        lo_k, hi_k = kinds[a]
+        if lo_k == "periodic":
+            hi = torch.roll(lo, -1, dim)
+        else:
+            scale_lo = torch.ones(n, dtype=w.dtype, device=w.device)
+            scale_hi = torch.ones(n, dtype=w.dtype, device=w.device)
+            scale_lo[0] = 0.0 if lo_k == "neumann" else 2.0
+            scale_hi[-1] = 0.0 if hi_k == "neumann" else 2.0
+            shape = [1] * w.ndim
+            shape[dim] = n
+            lo, hi = lo * scale_lo.reshape(shape), hi * scale_hi.reshape(shape)
+        d = d + (lo + hi) / dx[a] ** 2
+    return d
+
+
+def face_couplings(weights, dx, kinds: Kinds, dtype: torch.dtype):
+    """Off-diagonal couplings of ``div(w grad)``: per axis the interior face weights over ``dx²``
+    ``(B, *res with n_a - 1 along a)``, and the periodic wrap face's (None on other axes)."""
+    couplings, wrap = [], []
+    for a, w in enumerate(weights):
+        dim = 1 + a
+        n = w.shape[dim] - 1
+        couplings.append((w.narrow(dim, 1, n - 1) / dx[a] ** 2).to(dtype).contiguous())
+        periodic = kinds[a][0] == "periodic"
+        wrap.append((w.narrow(dim, 0, 1) / dx[a] ** 2).to(dtype).contiguous() if periodic else None)
+    return tuple(couplings), tuple(wrap)
+
+
+def coupled_sum(u: torch.Tensor, diag, couplings, wrap, sign: float) -> torch.Tensor:
+    """``diag * u + sign * sum_a c_a (u_{k+1} + u_{k-1})``: the fused stencil.
+
+    ``couplings[a]``/``wrap[a]`` are tensors (:func:`face_couplings`) or plain numbers (uniform weights).
+    """
+    out = u * diag
+    for a, c in enumerate(couplings):
+        dim, n = 1 + a, u.shape[1 + a]
+        pairs = [(out.narrow(dim, 0, n - 1), u.narrow(dim, 1, n - 1), c),
+                 (out.narrow(dim, 1, n - 1), u.narrow(dim, 0, n - 1), c)] if n > 1 else []
+        if wrap[a] is not None:
+            pairs += [(out.narrow(dim, 0, 1), u.narrow(dim, n - 1, 1), wrap[a]),
+                      (out.narrow(dim, n - 1, 1), u.narrow(dim, 0, 1), wrap[a])]
+        for target, source, weight in pairs:
+            if isinstance(weight, torch.Tensor):
+                target.addcmul_(weight, source, value=sign)
+            else:
+                target.add_(source, alpha=sign * weight)
     return out

@@ -36,10 +36,25 @@ from typing import Any
 
 import torch
 
-from phisim.boundary import Boundary, Dirichlet, NoSlipWall
+from phisim.boundary import Boundary, Dirichlet, Inflow, NoSlipWall, Open
 from phisim.errors import ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid import (
+    Body,
+    FluidState,
+    FluidStepper,
+    Obstacle,
+    Sphere,
+    cfl_dt,
+    make_incompressible,
+    navier_stokes_step,
+    obstacle_mask,
+    solid_layout,
+)
 from phisim.grid import Grid
+from phisim.ops.advection import advect
+from phisim.simulate.noise import random_rectangles, spectral_noise
+from phisim.solvers.diffusion import diffuse
 
 __all__ = ["Param", "Simulation", "Scenario", "SCENARIOS", "COMMON_PARAMETERS"]
 
@@ -147,7 +162,6 @@ def _uniform(g: torch.Generator, shape, lo: float, hi: float, dtype=torch.float6
 
 
 def _build_smoke(cfg, p, batch, g, dtype, device) -> Simulation:
-    from phisim.fluid import FluidState, Obstacle, obstacle_mask, step
 
     dim = cfg["dim"]
     n = _resolution(cfg, dim)
@@ -177,11 +191,10 @@ def _build_smoke(cfg, p, batch, g, dtype, device) -> Simulation:
     source = torch.stack(sources)
     marker = CenteredGrid.zeros(grid, walls.for_scalar(), batch, dtype=dtype, device=device)
     velocity = StaggeredGrid.zeros(grid, walls, batch, dtype=dtype, device=device)
-    dt = cfg["dt"]
-
-    def advance(s):
-        return step(s, dt, viscosity=p["viscosity"], buoyancy_strength=p["buoyancy"], marker_source=source,
-                    obstacles=[obstacle], advection="maccormack", marker_advection="conservative")
+    stepper = FluidStepper(grid, walls, obstacles=[obstacle], viscosity=p["viscosity"], buoyancy=p["buoyancy"],
+                           marker_source=source, advection="maccormack", marker_advection="conservative",
+                           dt=cfg["dt"], dtype=dtype, device=device)
+    advance = stepper
 
     return Simulation(grid, walls, {"density": "scalar", "velocity": "staggered"},
                       FluidState(velocity, marker), advance,
@@ -193,8 +206,6 @@ def _build_smoke(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _divergence_free_noise(grid, boundary, batch, amplitude, g, dtype, device) -> StaggeredGrid:
-    from phisim.fluid import make_incompressible
-    from phisim.simulate.noise import spectral_noise
 
     noise = spectral_noise(grid, batch, scale=4.0, channels=grid.rank, generator=g, dtype=dtype, device=device)
     v = CenteredGrid(amplitude * noise.values, grid, boundary).to_staggered()
@@ -203,7 +214,6 @@ def _divergence_free_noise(grid, boundary, batch, amplitude, g, dtype, device) -
 
 
 def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
-    from phisim.fluid import navier_stokes_step
 
     res = _resolution(cfg, 2)
     grid = Grid(res, bounds=(1.0, 1.0))
@@ -224,7 +234,6 @@ def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _periodic_flow(grid, v0, p, dt, integrator: str = "split") -> Simulation:
-    from phisim.fluid import navier_stokes_step
 
     def advance(s):
         v, _ = navier_stokes_step(s, dt, viscosity=p["viscosity"], advection="maccormack", integrator=integrator)
@@ -279,8 +288,6 @@ def _build_turbulence(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _build_heat(cfg, p, batch, g, dtype, device) -> Simulation:
-    from phisim.simulate.noise import random_rectangles
-    from phisim.solvers.diffusion import diffuse
 
     dim = cfg["dim"]
     res = _resolution(cfg, dim)
@@ -303,9 +310,6 @@ def _build_heat(cfg, p, batch, g, dtype, device) -> Simulation:
 
 
 def _build_burgers(cfg, p, batch, g, dtype, device) -> Simulation:
-    from phisim.ops.advection import advect
-    from phisim.simulate.noise import spectral_noise
-    from phisim.solvers.diffusion import diffuse
 
     dim = cfg["dim"]
     res = _resolution(cfg, dim)
@@ -324,9 +328,6 @@ def _build_burgers(cfg, p, batch, g, dtype, device) -> Simulation:
 
 def _build_karman(cfg, p, batch, g, dtype, device) -> Simulation:
     """Flow past a cylinder in a channel (the DFG geometry, scaled by ``resolution`` cells across)."""
-    from phisim.boundary import Inflow, Open
-    from phisim.fluid import Body, FluidState, Sphere, cfl_dt, make_incompressible, solid_layout, step
-    from phisim.simulate.noise import spectral_noise
 
     height, length, diameter = 0.41, 2.2, 0.1
     ny = _resolution(cfg, 2)[1] if not isinstance(cfg["resolution"], int) else cfg["resolution"]
@@ -350,6 +351,8 @@ def _build_karman(cfg, p, batch, g, dtype, device) -> Simulation:
     solid = (lay.cell_fraction[0] < 0.5).to(dtype)
     nu, out_dt = float(p["viscosity"]), cfg["dt"]
     viscous_limit = 0.45 * min(grid.dx) ** 2 / (2 * grid.rank * nu)
+    stepper = FluidStepper(grid, v.boundary, obstacles=body, viscosity=nu, advection="maccormack", dtype=dtype,
+                           device=device)
 
     def advance(s):  # CFL sub-steps landing exactly on the output step
         target = s.time + out_dt
@@ -357,7 +360,7 @@ def _build_karman(cfg, p, batch, g, dtype, device) -> Simulation:
             dt = min(cfl_dt(s.velocity, 0.5, max_dt=out_dt), viscous_limit, target - s.time)
             if target - s.time - dt < 1e-3 * dt:
                 dt = target - s.time
-            s = step(s, dt, viscosity=nu, advection="maccormack", obstacles=body)
+            s = stepper(s, dt)
         return FluidState(s.velocity, s.marker, s.pressure, target)
 
     return Simulation(grid, v.boundary, {"velocity": "staggered"}, FluidState(v), advance,

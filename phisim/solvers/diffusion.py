@@ -31,16 +31,12 @@ import torch
 
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import BoundaryError, NonFiniteError, ParameterError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.ops.stencil import boundary_source, check_rhs, laplace_zero, normalize_dx, normalize_kinds
 from phisim.solvers import mac_diffusion as _mac
-from phisim.solvers.poisson import (
-    _check_rhs,
-    _laplace_zero,
-    _normalize_dx,
-    boundary_source,
-    field_kinds_and_values,
-    normalize_kinds,
-    spectral_apply,
-)
+from phisim.solvers.box import spectral_apply
+from phisim.solvers.linalg import Solve, cg
+from phisim.solvers.poisson import field_kinds_and_values
 from phisim.spectral import fft as _fft
 
 __all__ = [
@@ -75,7 +71,7 @@ def explicit_stability_limit(dx, viscosity: float) -> float:
     """
     nu = float(check_nonnegative(viscosity, "viscosity"))
     dx = (float(dx),) if isinstance(dx, (int, float)) else tuple(float(d) for d in dx)
-    dx = _normalize_dx(dx, len(dx))
+    dx = normalize_dx(dx, len(dx))
     if nu == 0:
         return math.inf
     return 1.0 / (2.0 * nu * sum(1.0 / d**2 for d in dx))
@@ -136,7 +132,7 @@ def diffuse_values(
         BoundaryError, ShapeError: Invalid kinds, values or shapes.
         NonFiniteError: NaN/Inf in ``u``.
     """
-    rank = _check_rhs(u, "u")
+    rank = check_rhs(u, "u")
     dt = check_dt(dt)
     nu = check_nonnegative(viscosity, "viscosity")
     if method not in DIFFUSION_METHODS:
@@ -146,7 +142,7 @@ def diffuse_values(
     if not bool(torch.isfinite(u).all()):
         raise NonFiniteError("diffuse: the state contains NaN or Inf")
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
+    dx = normalize_dx(dx, rank)
     tau = dt * nu  # ν t, a float or a 0-d tensor
     _check_product(tau)
     b = boundary_source(u, dx, kinds, values)
@@ -175,19 +171,18 @@ def diffuse_values(
                 "method='spectral'"
             )
         for _ in range(substeps):
-            lap = _laplace_zero(u, dx, kinds)
+            lap = laplace_zero(u, dx, kinds)
             if b is not None:
                 lap = lap + b
             u = u + h * lap
         return u
     # implicit
-    from phisim.solvers.linalg import Solve, cg
 
     if solve is None:
         solve = Solve(rtol=1e-10) if u.dtype == torch.float64 else Solve()
 
     def operator(x: torch.Tensor) -> torch.Tensor:
-        return x - h * _laplace_zero(x, dx, kinds)
+        return x - h * laplace_zero(x, dx, kinds)
 
     def precond(r: torch.Tensor) -> torch.Tensor:
         return spectral_apply(r, dx, kinds, lambda lam: 1.0 / (1.0 - lam * float(h)), engine=engine)
@@ -235,7 +230,6 @@ def diffuse(
             CenteredGrid nor a StaggeredGrid.
         BoundaryError, ShapeError, NonFiniteError: See :func:`diffuse_values`.
     """
-    from phisim.field import CenteredGrid, StaggeredGrid
 
     if isinstance(field, StaggeredGrid):
         if substeps != 1:
@@ -276,6 +270,7 @@ def diffuse_staggered(
     fixed=None,
     solve=None,
     engine: str | None = None,
+    capacitance: dict | None = None,
 ):
     """Viscous diffusion ``∂u/∂t = ν ∇²u`` of a MAC velocity over one step ``dt``, fast.
 
@@ -284,10 +279,10 @@ def diffuse_staggered(
     tangential velocity; open sides leave boundary faces free with a mirrored ghost). In a box (no
     ``fixed`` faces) every implicit method is solved exactly by one forward and one inverse DST/DCT/FFT
     per component, chosen per axis by the component's boundary kinds (table in
-    :mod:`phisim.solvers.mac_diffusion`). With ``fixed`` faces (bodies) the solve is direct too once the same faces
-    and ``ν dt`` come back (fixed-step runs): a capacitance matrix on the body surface (|S| box solves to build,
-    cached; then two box solves per call); the first call, a tensor ``ν dt`` or per-sample masks use conjugate
-    gradients preconditioned with the exact box solve.
+    :mod:`phisim.solvers.mac_diffusion`). With ``fixed`` faces (bodies) the solve uses conjugate gradients
+    preconditioned with the exact box solve, or, where the caller passes a ``capacitance`` dict (the solver
+    cache of a body layout it reuses), a direct capacitance matrix on the body surface (|S| box solves to build,
+    kept in that dict; then two box solves per call).
 
     Methods and their order in time:
 
@@ -312,6 +307,8 @@ def diffuse_staggered(
         solve: :class:`phisim.solvers.linalg.Solve` of the CG solve with ``fixed`` faces (default rtol 1e-10 in
             float64, 1e-6 in float32); the direct capacitance solve does not use it.
         engine: FFT engine (see :func:`phisim.spectral.fft.resolve_engine`).
+        capacitance: A dict owned by the caller in which direct solves for its ``fixed`` faces are kept (e.g.
+            ``SolidLayout.solvers`` of a persistent layout); None: conjugate gradients.
 
     Returns:
         The diffused StaggeredGrid (same grid and boundary; boundary faces re-imposed); differentiable
@@ -324,7 +321,7 @@ def diffuse_staggered(
         SolveError: If the CG solve with ``fixed`` faces does not converge.
     """
     return _mac.diffuse_staggered(velocity, dt, viscosity=viscosity, method=method, fixed=fixed, solve=solve,
-                                  engine=engine)
+                                  capacitance=capacitance, engine=engine)
 
 
 def _slice_channel(v, c: int):
@@ -432,7 +429,7 @@ def fourier_heat(
         ParameterError: Negative/non-finite dt or viscosity, or a non-float tensor.
         ShapeError: Wrong rank.
     """
-    rank = _check_rhs(x, "x")
+    rank = check_rhs(x, "x")
     res = tuple(x.shape[1:])
     decay = heat_decay_factors(res, dt, viscosity=viscosity, dtype=x.dtype, device=x.device)
     return _fft.fourier_multiply(x, decay, tuple(range(1, rank + 1)), engine=engine)

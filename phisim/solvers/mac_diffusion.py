@@ -26,10 +26,10 @@ needs a DST-I, computed from a real FFT of twice its length; on grids of about 9
 treats it as periodic over faces ``0..n-1`` (an FFT of length n) and restores the zero on face 0 with one
 Green's-function correction per transverse mode (:func:`phisim.spectral.fft.wall_solve`, exact, 20-30 % faster).
 
-Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. When
-the same faces and ``θ ν dt`` come back (fixed-step runs) the θ-scheme is solved directly with a capacitance
-matrix on the body surface (:class:`_CapacitanceSolve`: two box solves and a small LU solve per call);
-otherwise by :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG
+Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. Where the
+caller keeps the faces for reuse (it passes a ``capacitance`` dict, e.g. a stepper's static bodies) the θ-scheme
+is solved directly with a capacitance matrix on the body surface (:class:`_CapacitanceSolve`: two box solves
+and a small LU solve per call), built at the first request and kept in that dict; otherwise by :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG
 operator is made symmetric by halving the rows of free boundary faces on open sides (the vertex-centred
 Neumann stencil is symmetric in that weighted inner product).
 """
@@ -45,7 +45,9 @@ import torch
 from phisim.boundary import pad_staggered_component, set_boundary_faces
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import ParameterError, ShapeError
-from phisim.solvers.poisson import _TRANSFORM, _axis_eigs
+from phisim.field import StaggeredGrid
+from phisim.solvers.box import TRANSFORMS, axis_eigenvalues
+from phisim.solvers.linalg import Solve, cg
 from phisim.spectral import fft as _fft
 from phisim.spectral.pocket import wall_transposes
 
@@ -105,8 +107,8 @@ class _Component:
                 self.odd = odd
                 continue
             pair = tuple("dirichlet" if c.rule("tangential", i)[0] == "odd" else "neumann" for c in (lo, hi))
-            kinds.append(_TRANSFORM[pair])
-            eigs.append(_axis_eigs(grid.resolution[a], pair, self.dx[a], False))
+            kinds.append(TRANSFORMS[pair])
+            eigs.append(axis_eigenvalues(grid.resolution[a], pair, self.dx[a], False))
             scale /= 2 * grid.resolution[a]
         if boundary.is_periodic(i):
             self.first, self.count, self.odd = 0, n, None
@@ -361,10 +363,8 @@ def _fixed_masks(fixed, velocity):
 
 
 def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixed=None, solve=None,
-                      engine: str | None = None):
+                      capacitance: dict | None = None, engine: str | None = None):
     """See :func:`phisim.solvers.diffusion.diffuse_staggered` (the public entry point)."""
-    from phisim.field import StaggeredGrid
-    from phisim.solvers.linalg import Solve, cg
 
     if not isinstance(velocity, StaggeredGrid):
         raise ParameterError(f"diffuse_staggered expects a StaggeredGrid, got {type(velocity).__name__}")
@@ -429,7 +429,7 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
             out.append(full if full is not None else comp.embed(comp.apply(rhs, inverse, engine, prescaled=True), u))
             continue
         # bodies: a direct capacitance solve once the same body and ν dt come back (fixed steps), else CG
-        cap = _capacitance(comp, mask, theta * alpha, u.device, engine)
+        cap = _capacitance(comp, mask, theta * alpha, u.device, engine, capacitance)
         if cap is not None:
             out.append(cap.solve(comp, rhs, x, inverse, u, engine))
             continue
@@ -475,16 +475,6 @@ def _phi1(z: torch.Tensor) -> torch.Tensor:
 
 #: Most surface faces per component for which a dense capacitance matrix is built.
 CAPACITANCE_MAX_FACES = 4096
-_CAP_CACHE: dict = {}  # (geometry, θ ν dt, device) -> [[mask, requests, solve], ...]
-_CAP_CACHE_SIZE = 16  # bodies (masks) held in all
-#: Requests of one (body, θ ν dt) answered by CG before the capacitance matrix is built: ``imex2`` solves twice
-#: per step with the same ν dt/2, so a time step that changes every step (CFL control) never builds one.
-CAPACITANCE_BUILD_AFTER = 2
-#: Surface faces per CG request before the build: the matrix is built once the CG calls have cost about as
-#: many box solves as the build (|S|), see :func:`_capacitance`.
-CAPACITANCE_FACES_PER_REQUEST = 32
-
-
 class _CapacitanceSolve:
     """Exact solve of ``(I - a L₀) u = f`` on the free faces with ``u`` prescribed on the fixed faces.
 
@@ -562,41 +552,25 @@ def _surface(comp, fixed: torch.Tensor) -> torch.Tensor:
     return (fixed & near).flatten().nonzero().squeeze(1)
 
 
-def _capacitance(comp, mask: torch.Tensor, coef, device, engine) -> _CapacitanceSolve | None:
-    """The cached capacitance solve for this component, body and ``coef = θ ν dt``, or None (use CG).
+def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | None) -> _CapacitanceSolve | None:
+    """The capacitance solve for this component, body and ``coef = θ ν dt``, kept in ``cache``; or None (CG).
 
-    None for a tensor ``coef`` (its gradient needs the CG path), per-sample masks, more than
-    :data:`CAPACITANCE_MAX_FACES` surface faces, and until the same (body, coef) has been requested more than
-    ``max(CAPACITANCE_BUILD_AFTER, |S| / CAPACITANCE_FACES_PER_REQUEST)`` times. The matrix costs |S| box solves;
-    one PCG solve costs about 30-70 (2-D, 48²-256², per component), so building once the CG calls have spent
-    about as much as the build bounds the total at about twice the better choice in hindsight, and the matrix
-    pays off when the same body and time step keep coming back (fixed-step runs).
+    None without a ``cache`` (a one-off solve: the matrix costs |S| box solves, one PCG solve about 30-70 in
+    2-D at 48²-256² per component, so it pays only when the same body and time step come back, and the owner
+    of the body's layout says so by passing its cache), for a tensor ``coef`` (its gradient needs the CG path),
+    per-sample masks and more than :data:`CAPACITANCE_MAX_FACES` surface faces. With a cache the solve is built
+    at the first request, so every solve of one owner takes the same path.
     """
-    if isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
+    if cache is None or isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
         return None
-    key = (comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first, comp.count, comp.odd,
-           float(coef), str(device))
-    entries = _CAP_CACHE.setdefault(key, [])  # [mask, requests, solve, surface], compared by content
-    for entry in entries:
-        if torch.equal(entry[0], mask):
-            break
-    else:
-        if sum(len(e) for e in _CAP_CACHE.values()) >= _CAP_CACHE_SIZE:
-            _CAP_CACHE.clear()
-            entries = _CAP_CACHE.setdefault(key, [])
-        entry = [mask.detach().clone(), 0, None, None]
-        entries.append(entry)
-    entry[1] += 1
-    if entry[2] is not None or entry[1] <= CAPACITANCE_BUILD_AFTER:
-        return entry[2] or None
+    key = ("capacitance", comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first,
+           comp.count, comp.odd, float(coef), str(device))
+    hit = cache.get(key)
+    if hit is not None and torch.equal(hit[0], mask):
+        return hit[1] or None
     fixed = comp.restrict(mask).detach()
-    if entry[3] is None:
-        entry[3] = _surface(comp, fixed[0])
-    surface = entry[3]
-    if surface.numel() > CAPACITANCE_MAX_FACES:
-        entry[2] = False  # never: use CG
-        return None
-    if entry[1] <= surface.numel() // CAPACITANCE_FACES_PER_REQUEST:
-        return None
-    entry[2] = _CapacitanceSolve(comp, surface, fixed, float(coef), device, engine)
-    return entry[2]
+    surface = _surface(comp, fixed[0])
+    solver = False if surface.numel() > CAPACITANCE_MAX_FACES else _CapacitanceSolve(
+        comp, surface, fixed, float(coef), device, engine)
+    cache[key] = (mask.detach().clone(), solver)
+    return solver or None

@@ -26,10 +26,11 @@ the elimination also takes a quarter to a third off warm-started solves (plume a
 :class:`MaskedPoisson` computes the labels, null space and eigenvalues once; a fluid solver keeps one per
 body layout and calls :meth:`MaskedPoisson.solve` every step.
 
-Direct solve. An operator solved again and again (a static body) switches from PCG to an exact solve by the box
-inverse and a capacitance matrix on its cut faces (:mod:`phisim.solvers.direct`; two box solves per call,
-built once the PCG solves have cost about as much as the build). Its answer is CG's start, so CG still checks
-it (zero iterations in float64, a couple in float32) and provides the gradient. :data:`DIRECT` switches it off.
+Direct solve. An operator solved again and again (a static body) is solved exactly by the box inverse and a
+capacitance matrix on its cut faces (:mod:`phisim.solvers.direct`; two box solves per call, built at the first
+solve). Whether an operator uses it is decided once, in its constructor (``direct=``), so every solve of one
+operator takes the same path. Its answer is CG's start, so CG still checks it (zero iterations in float64, a
+couple in float32) and provides the gradient. The fluid projection asks for it for static bodies only.
 """
 
 from __future__ import annotations
@@ -42,28 +43,31 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from phisim.errors import ParameterError, ShapeError
+from phisim.ops.stencil import (
+    coupled_sum,
+    face_couplings,
+    face_divergence,
+    face_gradient,
+    normalize_dx,
+    normalize_kinds,
+    weighted_diagonal,
+)
+from phisim.solvers.box import (
+    TRANSFORMS,
+    apply_multiplier,
+    inverse_eigenvalues,
+    is_singular,
+    transform_layout,
+    transform_scale,
+)
 from phisim.solvers.direct import MAX_RANK, MAX_RANK_SQUARED_PER_CELL, WoodburySolve
 from phisim.solvers.linalg import Solve, SolveInfo, cg
-from phisim.solvers.poisson import (
-    _TRANSFORM,
-    _apply_multiplier,
-    _inverse_eigs,
-    _layout,
-    _normalize_dx,
-    _singular,
-    _transform_scale,
-    normalize_kinds,
-)
 from phisim.spectral.fft import r2r_multiply
 
 __all__ = ["MaskedPoisson"]
 
-#: Solve a layout that keeps coming back directly (:mod:`phisim.solvers.direct`); False: always PCG.
-DIRECT = True
-#: Requests of one operator answered by PCG before its direct solve is built, at least ...
-DIRECT_BUILD_AFTER = 2
-#: ... and one per this many cut faces (the build costs one box solve per face; a PCG solve about 10-20).
-DIRECT_FACES_PER_REQUEST = 16
+#: Values of ``MaskedPoisson(direct=...)``.
+DIRECT_CHOICES = ("auto", True, False)
 
 #: Cells whose diagonal is at most this fraction of the open-box diagonal are eliminated exactly in the
 #: preconditioner when they couple to no other such cell (0: off). 0.2 measured best over a cold solve with a
@@ -106,13 +110,22 @@ class MaskedPoisson:
         dx: Cell spacing, one per axis (or a float).
         kinds: Box boundary kinds of the pressure (see :func:`phisim.solvers.poisson.normalize_kinds`).
         engine: FFT engine of the preconditioner.
+        direct: Whether :meth:`solve` starts from the exact direct solve (box inverse plus a capacitance matrix
+            on the cut faces, :mod:`phisim.solvers.direct`; CG then only checks and polishes it). ``'auto'``
+            (default): where it applies (one layout shared by the batch, weights without gradient, a box with a
+            Dirichlet side or a closed box with one fluid region, 2-D or 3-D, CPU, at most
+            :data:`~phisim.solvers.direct.MAX_RANK` cut faces) and pays (``k² <= MAX_RANK_SQUARED_PER_CELL``
+            cells for ``k`` cut faces). ``False``: always PCG. ``True``: wherever it applies, paying or not, and an
+            error where it does not apply. The choice is made here, once, so every solve of an operator takes the same path.
+            Building it costs one box solve per cut face at the first solve: worth it for an operator solved
+            many times (a static body), not for one used once (a moving body's layout at one instant).
 
     Raises:
         ShapeError: For weights that do not fit one grid.
-        ParameterError: For weights outside ``[0, 1]`` or non-finite.
+        ParameterError: For weights outside ``[0, 1]`` or non-finite, or a ``direct`` that cannot apply.
     """
 
-    def __init__(self, weights, dx, kinds, *, engine: str | None = None):
+    def __init__(self, weights, dx, kinds, *, engine: str | None = None, direct: bool | str = "auto"):
         weights = tuple(weights)
         rank = len(weights)
         if rank == 0:
@@ -126,7 +139,7 @@ class MaskedPoisson:
             if not bool(torch.isfinite(wd).all()) or bool((wd < 0).any()) or bool((wd > 1).any()):
                 raise ParameterError(f"face weights of axis {a} must be finite and in [0, 1]")
         self.rank, self.resolution = rank, res
-        self.dx = _normalize_dx(dx, rank)
+        self.dx = normalize_dx(dx, rank)
         self.kinds = normalize_kinds(kinds, rank)
         self.engine = engine
         self.weights = weights
@@ -152,38 +165,28 @@ class MaskedPoisson:
         if bool((active.flatten(1).sum(1) == 0).any()):
             raise ParameterError("every face weight of a sample is 0: there is no fluid to solve for")
         self.null = self._null_space()
-        self._inv = _inverse_eigs(res, self.dx, self.kinds, active.device)
+        self._inv = inverse_eigenvalues(res, self.dx, self.kinds, active.device)
         dw = self._diagonal(tuple(w.detach() for w in weights))
         d0 = self._diagonal(tuple(torch.ones_like(w[:1]) for w in weights))
         frac = tuple(((w.detach() > 0) & (w.detach() < 1)).to(w.dtype) for w in weights)
         cut = active & (dw < d0 * (1 - 1e-9)) & (dw > 0) & (self._diagonal(frac) > 0)  # cells with cut faces
         self._cut_inv = torch.where(cut, 1.0 / torch.where(cut, dw, torch.ones_like(dw)), torch.zeros_like(dw))
         self._scale2 = tuple(1.0 / d**2 for d in self.dx)
-        self._direct = None  # WoodburySolve once set up; False where the direct solve does not apply
-        self._requests = 0
         self._beta_inv = None  # 1 / smallest non-zero box eigenvalue (singular boxes, see _box_inverse)
+        self._direct_pending = None
+        if not any(direct is c for c in DIRECT_CHOICES):
+            raise ParameterError(f"direct must be 'auto', True or False, got {direct!r}")
+        self._direct = self._direct_applies(direct is True) if direct is not False else False
+        if direct is True and self._direct is False:
+            raise ParameterError("direct=True: the direct solve does not apply to this operator (it needs one layout "
+                                 "shared by the batch, weights without gradient, 2-D or 3-D, the CPU, a Dirichlet "
+                                 "side or one closed fluid region, and few enough cut faces)")
 
     # ---- structure ---------------------------------------------------------------------------------------
 
     def _diagonal(self, weights) -> torch.Tensor:
-        """Diagonal of ``-div(w grad)`` per cell (Dirichlet faces count twice: the ghost is ``-p``)."""
-        d = 0
-        for a, w in enumerate(weights):
-            n, dim = self.resolution[a], 1 + a
-            lo, hi = w.narrow(dim, 0, n), w.narrow(dim, 1, n)
-            lo_k, hi_k = self.kinds[a]
-            if lo_k == "periodic":
-                hi = torch.roll(lo, -1, dim)
-            else:
-                scale_lo = torch.ones(n, dtype=w.dtype, device=w.device)
-                scale_hi = torch.ones(n, dtype=w.dtype, device=w.device)
-                scale_lo[0] = 0.0 if lo_k == "neumann" else 2.0
-                scale_hi[-1] = 0.0 if hi_k == "neumann" else 2.0
-                shape = [1] * w.ndim
-                shape[dim] = n
-                lo, hi = lo * scale_lo.reshape(shape), hi * scale_hi.reshape(shape)
-            d = d + (lo + hi) / self.dx[a] ** 2
-        return d
+        """Diagonal of ``-div(w grad)`` per cell (see :func:`phisim.ops.stencil.weighted_diagonal`)."""
+        return weighted_diagonal(weights, self.dx, self.kinds)
 
     def _null_space(self) -> torch.Tensor | None:
         """Normalised indicators ``(B, K, *res)`` of the regions without a Dirichlet side, or None."""
@@ -258,34 +261,14 @@ class MaskedPoisson:
     # ---- operators ---------------------------------------------------------------------------------------
 
     def gradient(self, p: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Face gradient ``(p_k - p_{k-1}) / dx`` per axis, boundary faces by kind, shapes ``face_shape(a)``.
-
-        Dirichlet sides use the ghost ``-p`` (value 0 on the face), Neumann sides give 0, periodic axes wrap
-        (face ``n`` repeats face ``0``).
-        """
-        out = []
-        for a in range(self.rank):
-            dim, n, d = 1 + a, self.resolution[a], self.dx[a]
-            lo_k, hi_k = self.kinds[a]
-            if lo_k == "periodic":
-                g0 = (p.narrow(dim, 0, 1) - p.narrow(dim, n - 1, 1)) / d
-                inner = (p.narrow(dim, 1, n - 1) - p.narrow(dim, 0, n - 1)) / d
-                out.append(torch.cat([g0, inner, g0], dim))
-                continue
-            inner = (p.narrow(dim, 1, n - 1) - p.narrow(dim, 0, n - 1)) / d
-            first, last = p.narrow(dim, 0, 1), p.narrow(dim, n - 1, 1)
-            lo = 2 * first / d if lo_k == "dirichlet" else torch.zeros_like(first)
-            hi = -2 * last / d if hi_k == "dirichlet" else torch.zeros_like(last)
-            out.append(torch.cat([lo, inner, hi], dim))
-        return tuple(out)
+        """Face gradient ``(p_k - p_{k-1}) / dx`` per axis, boundary faces by kind, shapes ``face_shape(a)``
+        (:func:`phisim.ops.stencil.face_gradient`: Dirichlet sides use the ghost ``-p``, Neumann sides give 0,
+        periodic axes wrap)."""
+        return face_gradient(p, self.dx, self.kinds)
 
     def divergence(self, flux) -> torch.Tensor:
         """MAC divergence ``sum_a (f_{k+1} - f_k) / dx_a`` of face values ``(B, *face_shape(a))``."""
-        out = 0
-        for a, f in enumerate(flux):
-            dim, n = 1 + a, self.resolution[a]
-            out = out + (f.narrow(dim, 1, n) - f.narrow(dim, 0, n)) / self.dx[a]
-        return out
+        return face_divergence(flux, self.dx)
 
     def _cast(self, name: str, t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """``t`` in ``dtype``, converted once per dtype (tensors that require grad are never cached)."""
@@ -328,28 +311,15 @@ class MaskedPoisson:
         if hit is None:
             w = tuple(wi.detach() for wi in self.weights)
             diag = torch.where(self.active, self._diagonal(w), torch.ones((), dtype=w[0].dtype))
-            couplings, wrap = [], []
-            for a, wa in enumerate(w):
-                dim, n = 1 + a, self.resolution[a]
-                couplings.append((wa.narrow(dim, 1, n - 1) / self.dx[a] ** 2).to(dtype).contiguous())
-                periodic = self.kinds[a][0] == "periodic"
-                wrap.append((wa.narrow(dim, 0, 1) / self.dx[a] ** 2).to(dtype).contiguous() if periodic else None)
-            hit = self._casts[key] = (diag.to(dtype).contiguous(), tuple(couplings), tuple(wrap))
+            couplings, wrap = face_couplings(w, self.dx, self.kinds, dtype)
+            hit = self._casts[key] = (diag.to(dtype).contiguous(), couplings, wrap)
         return hit
 
     def _apply_fixed(self, p: torch.Tensor) -> torch.Tensor:
-        # The operator as one diagonal product plus two shifted multiply-adds per axis: the same numbers as
-        # ``_apply`` (gradient, weights, divergence, masking) in a third of the passes over memory.
+        # The operator in fused form (phisim.ops.stencil.coupled_sum): the same numbers as ``_apply``
+        # (gradient, weights, divergence, masking) in a third of the passes over memory.
         diag, couplings, wrap = self._stencil(p.dtype)
-        out = diag * p
-        for a, c in enumerate(couplings):
-            dim, n = 1 + a, self.resolution[a]
-            out.narrow(dim, 0, n - 1).addcmul_(c, p.narrow(dim, 1, n - 1), value=-1)
-            out.narrow(dim, 1, n - 1).addcmul_(c, p.narrow(dim, 0, n - 1), value=-1)
-            if wrap[a] is not None:
-                out.narrow(dim, 0, 1).addcmul_(wrap[a], p.narrow(dim, n - 1, 1), value=-1)
-                out.narrow(dim, n - 1, 1).addcmul_(wrap[a], p.narrow(dim, 0, 1), value=-1)
-        return out
+        return coupled_sum(p, diag, couplings, wrap, -1.0)
 
     def _leaves(self):
         """Weakly connected cells eliminated exactly in the preconditioner, or None.
@@ -445,61 +415,56 @@ class MaskedPoisson:
         """``(-∇²_box)⁺ (pre f)``: the exact (pseudo-)inverse of the unweighted box, the constant mode dropped
         where the box is singular. Walls and open sides only, no autograd: mask, transform, multiply and
         transform back in one pass (:func:`phisim.spectral.fft.r2r_multiply`)."""
-        r2r, per = _layout(self.kinds)
+        r2r, per = transform_layout(self.kinds)
         if not per and not f.requires_grad:
             key = ("mult", f.dtype)
             mult = self._casts.get(key)
             if mult is None:
-                mult = self._casts[key] = (-self._inv * _transform_scale(self.resolution, self.kinds)).to(f.dtype)
-            fwd = tuple(_TRANSFORM[self.kinds[a]][0] for a in r2r)
-            inv = tuple(_TRANSFORM[self.kinds[a]][1] for a in r2r)
+                mult = self._casts[key] = (-self._inv * transform_scale(self.resolution, self.kinds)).to(f.dtype)
+            fwd = tuple(TRANSFORMS[self.kinds[a]][0] for a in r2r)
+            inv = tuple(TRANSFORMS[self.kinds[a]][1] for a in r2r)
             y = r2r_multiply(f, fwd, inv, tuple(1 + a for a in r2r), mult, pre=pre, engine=self.engine)
             if y is not None:
                 return y
-        return -_apply_multiplier(f if pre is None else f * pre, self.kinds, self._inv, self.engine)
+        return -apply_multiplier(f if pre is None else f * pre, self.kinds, self._inv, self.engine)
 
     def _box_inverse(self, f: torch.Tensor) -> torch.Tensor:
         """``(-∇²_box)⁻¹ f`` of the unweighted box, exact. A singular box (no Dirichlet side) is made definite by
         ``β 11ᵀ / N`` with ``β`` its smallest non-zero eigenvalue: its pseudo-inverse plus ``mean(f) / β``."""
         y = self._box_pinv(f)
-        if _singular(self.kinds):
+        if is_singular(self.kinds):
             if self._beta_inv is None:
                 self._beta_inv = float(self._inv.abs().max())
             y = y + f.mean(tuple(range(1, f.ndim)), keepdim=True) * self._beta_inv
         return y
 
-    def _direct_solver(self, dtype: torch.dtype):
-        """The factored direct solve of this operator, or None (PCG).
+    def _direct_applies(self, always: bool):
+        """None where the direct solve applies (built at the first solve), else False; ``always``: also where it
+        may not pay (``k² > MAX_RANK_SQUARED_PER_CELL`` cells)."""
+        one_closed_region = is_singular(self.kinds) and self.null is not None and self.null.shape[1] == 1
+        if (self.batch != 1 or self.rank < 2 or (self.null is not None and not one_closed_region)
+                or self.active.device.type != "cpu" or any(w.requires_grad for w in self.weights)):
+            return False
+        solver = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
+                               self._box_inverse)
+        k = solver.rank
+        if k > MAX_RANK or (not always and k * k > MAX_RANK_SQUARED_PER_CELL * math.prod(self.resolution)):
+            return False
+        self._direct_pending = solver
+        return None
 
-        It applies to one layout shared by the batch, weights without gradient, either a box with a Dirichlet
-        side and no fluid region closed off from it (a definite system) or a closed box with one fluid region
-        (the constants its only null space; the box operator is then regularised, see :meth:`_box_inverse`, and
-        the answer projected), on the CPU, with at most
-        :data:`phisim.solvers.direct.MAX_RANK` cut faces. It is built once the operator has been solved more
-        than ``max(DIRECT_BUILD_AFTER, k / DIRECT_FACES_PER_REQUEST)`` times (its ``k`` box solves then cost
-        about as much as the PCG solves so far), so a layout that changes every step never builds one.
-        """
-        if self._direct is False or not DIRECT:
+    @property
+    def uses_direct_solve(self) -> bool:
+        """Whether :meth:`solve` starts from the direct solve (float32/float64 right-hand sides)."""
+        return self._direct is not False
+
+    def _direct_solver(self, dtype: torch.dtype):
+        """The factored direct solve of this operator (factored at the first request), or None (PCG)."""
+        if self._direct is False or dtype not in (torch.float32, torch.float64):
             return None
-        self._requests += 1
         if self._direct is None:
-            one_closed_region = _singular(self.kinds) and self.null is not None and self.null.shape[1] == 1
-            if (self.batch != 1 or self.rank < 2 or (self.null is not None and not one_closed_region)
-                    or self.active.device.type != "cpu" or any(w.requires_grad for w in self.weights)
-                    or dtype not in (torch.float32, torch.float64)):
-                self._direct = False
-                return None
-            if self._requests <= DIRECT_BUILD_AFTER:  # a layout used once or twice (moving bodies) costs nothing
-                return None
-            self._direct = WoodburySolve(tuple(w[0] for w in self.weights), self.active[0], self.dx, self.kinds,
-                                         self._box_inverse)
-            k = self._direct.rank
-            if k > MAX_RANK or k * k > MAX_RANK_SQUARED_PER_CELL * math.prod(self.resolution):
-                self._direct = False
-                return None
-        if self._direct.lu is None:
-            if self._requests <= max(DIRECT_BUILD_AFTER, self._direct.rank // DIRECT_FACES_PER_REQUEST):
-                return None
+            self._direct = self._direct_pending
+            self._direct_pending = None
             self._direct.factor()
         return self._direct
 

@@ -44,26 +44,33 @@ size", J. Comput. Phys. 75, and Strang (1999), "The discrete cosine transform", 
 
 from __future__ import annotations
 
-import math
 import warnings
-from collections.abc import Sequence
-from functools import lru_cache
+from typing import Any, NamedTuple
 
 import torch
 
 from phisim.checks import all_finite
 from phisim.errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
+from phisim.field import CenteredGrid
 from phisim.ops.stencil import (
     AXIS_KINDS,
     Kinds,
-    _check_rhs,
-    _laplace_zero,
-    _normalize_dx,
     boundary_source,
+    check_rhs,
+    laplace_zero,
+    normalize_dx,
     normalize_kinds,
     stencil_laplacian,
 )
-from phisim.spectral import fft as _fft
+from phisim.solvers.box import (
+    apply_multiplier,
+    is_singular,
+    laplacian_eigenvalues,
+    solve_multiplier,
+    spectral_apply,
+)
+from phisim.solvers.linalg import Solve, SolveInfo
+from phisim.solvers.masked import MaskedPoisson
 
 __all__ = [
     "AXIS_KINDS",
@@ -74,176 +81,13 @@ __all__ = [
     "spectral_poisson_solve",
     "spectral_apply",
     "masked_poisson_solve",
+    "masked_poisson_solve_with_info",
+    "Solved",
     "masked_laplacian",
     "solve_poisson",
+    "solve_poisson_with_info",
     "field_kinds_and_values",
 ]
-
-_TRANSFORM = {
-    ("dirichlet", "dirichlet"): ("dst2", "dst3"),
-    ("neumann", "neumann"): ("dct2", "dct3"),
-    ("dirichlet", "neumann"): ("dst4", "dst4"),
-    ("neumann", "dirichlet"): ("dct4", "dct4"),
-}
-
-# ----------------------------------------------------------------------------------------------
-# eigenvalues and spectral application
-
-
-def _axis_eigs(
-    n: int, pair: tuple[str, str], dx: float, halved: bool, continuous: bool = False
-) -> torch.Tensor:
-    k = torch.arange(n, dtype=torch.float64)
-    if continuous:  # eigenvalues -(wavenumber)^2 of the continuous Laplacian for the same modes
-        if pair[0] == "periodic":
-            lam = -((2 * math.pi * torch.minimum(k, n - k) / (n * dx)) ** 2)
-            return lam[: n // 2 + 1] if halved else lam
-        shift = {("dirichlet", "dirichlet"): 1.0, ("neumann", "neumann"): 0.0}.get(pair, 0.5)
-        return -((math.pi * (k + shift) / (n * dx)) ** 2)
-    if pair[0] == "periodic":
-        lam = -4 * torch.sin(math.pi * k / n) ** 2
-        if halved:
-            lam = lam[: n // 2 + 1]
-    elif pair == ("dirichlet", "dirichlet"):
-        lam = -4 * torch.sin(math.pi * (k + 1) / (2 * n)) ** 2
-    elif pair == ("neumann", "neumann"):
-        lam = -4 * torch.sin(math.pi * k / (2 * n)) ** 2
-    else:
-        lam = -4 * torch.sin(math.pi * (2 * k + 1) / (4 * n)) ** 2
-    return lam / dx**2
-
-
-def _layout(kinds: Kinds) -> tuple[list[int], list[int]]:
-    """Spatial axes transformed by real-to-real kinds, and the periodic ones (FFT)."""
-    r2r = [a for a, p in enumerate(kinds) if p[0] != "periodic"]
-    per = [a for a, p in enumerate(kinds) if p[0] == "periodic"]
-    return r2r, per
-
-
-def laplacian_eigenvalues(
-    resolution: Sequence[int],
-    dx,
-    kinds,
-    *,
-    dtype: torch.dtype = torch.float64,
-    device=None,
-    halved: bool = True,
-    spectrum: str = "stencil",
-) -> torch.Tensor:
-    """Eigenvalues of the face-boundary cell-centred Laplacian stencil in the solver's spectral layout.
-
-    Args:
-        resolution: Cells per axis.
-        dx: Spacing (float or one per axis).
-        kinds: Boundary kinds (see :func:`normalize_kinds`).
-        dtype: Output dtype.
-        device: Output device.
-        halved: Whether the last periodic axis is stored as ``n//2 + 1`` rfft bins (solver layout).
-        spectrum: ``'stencil'`` (eigenvalues of the discrete stencil, ``-4 sin²(θ/2)/dx²``) or
-            ``'continuous'`` (``-κ²`` of the continuous Laplacian for the same modes, ``κ = θ/dx``).
-
-    Returns:
-        Tensor of shape ``resolution`` (last periodic axis halved when ``halved``) holding
-        ``Σ_axes λ_axis(k_axis)`` (non-positive; units 1/length²).
-
-    Raises:
-        BoundaryError: For an invalid kinds specification.
-        ParameterError: For an invalid dx.
-    """
-    resolution = tuple(int(n) for n in resolution)
-    rank = len(resolution)
-    kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
-    _check_spectrum(spectrum)
-    return _eigs_cached(
-        resolution, dx, kinds, dtype, torch.device(device or "cpu"), halved, spectrum == "continuous"
-    )
-
-
-def _check_spectrum(spectrum: str) -> None:
-    if spectrum not in ("stencil", "continuous"):
-        raise ParameterError(f"spectrum must be 'stencil' or 'continuous', got {spectrum!r}")
-
-
-@lru_cache(maxsize=128)
-def _eigs_cached(resolution, dx, kinds, dtype, device, halved, continuous=False) -> torch.Tensor:
-    _, per = _layout(kinds)
-    last_per = per[-1] if per else None
-    total = torch.zeros((), dtype=torch.float64)
-    for a, n in enumerate(resolution):
-        lam = _axis_eigs(n, kinds[a], dx[a], halved and a == last_per, continuous)
-        shape = [1] * len(resolution)
-        shape[a] = -1
-        total = total + lam.reshape(shape)
-    return total.to(dtype=dtype, device=device)
-
-
-def _singular(kinds: Kinds) -> bool:
-    return all("dirichlet" not in p for p in kinds)
-
-
-def spectral_apply(
-    x: torch.Tensor, dx, kinds, fn, *, engine: str | None = None, spectrum: str = "stencil"
-) -> torch.Tensor:
-    """Apply a function of the Laplacian, ``φ(∇²_h) x``, exactly by diagonalisation.
-
-    Args:
-        x: Tensor ``(B, *resolution)``, float32/float64.
-        dx: Spacing (float or one per axis).
-        kinds: Boundary kinds (see :func:`normalize_kinds`); boundary values are zero here.
-        fn: Maps the eigenvalue tensor (solver layout, see :func:`laplacian_eigenvalues`, float64)
-            to the per-mode multipliers (real, same shape, broadcastable).
-        engine: FFT engine (see :func:`phisim.spectral.fft.resolve_engine`).
-        spectrum: ``'stencil'`` or ``'continuous'`` eigenvalues (see :func:`laplacian_eigenvalues`).
-
-    Returns:
-        ``φ(∇²_h) x``, shape and dtype of ``x``; differentiable w.r.t. ``x``.
-
-    Raises:
-        BoundaryError, ParameterError, ShapeError: For invalid kinds, dx or shapes.
-    """
-    rank = _check_rhs(x, "x")
-    kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
-    _check_spectrum(spectrum)
-    lam = _eigs_cached(tuple(x.shape[1:]), dx, kinds, torch.float64, x.device, True, spectrum == "continuous")
-    mult = fn(lam)
-    return _apply_multiplier(x, kinds, mult, engine)
-
-
-def _transform_scale(res, kinds: Kinds) -> float:
-    """Normalisation of an unnormalised forward + inverse real-to-real transform pair."""
-    r2r, _ = _layout(kinds)
-    return 1.0 / math.prod(2 * res[a] for a in r2r) if r2r else 1.0
-
-
-def _apply_multiplier(x: torch.Tensor, kinds: Kinds, mult: torch.Tensor, engine, prescaled: bool = False
-                      ) -> torch.Tensor:
-    """Forward transforms, multiply by ``mult`` (multipliers in solver layout), inverse transforms.
-
-    ``mult`` is float64 and gets the transforms' normalisation here, unless ``prescaled`` (then it already
-    carries it and has ``x``'s dtype).
-    """
-    r2r, per = _layout(kinds)
-    res = x.shape[1:]
-    y = x
-    if r2r:
-        fwd = tuple(_TRANSFORM[kinds[a]][0] for a in r2r)
-        y = _fft.r2rn(y, fwd, tuple(1 + a for a in r2r), engine=engine)
-    m = mult if prescaled else (mult * _transform_scale(res, kinds)).to(x.dtype)
-    if per:
-        axes = tuple(1 + a for a in per)
-        Y = _fft.rfftn(y, axes, engine=engine)
-        y = _fft.irfftn(Y * m, tuple(res[a] for a in per), axes, engine=engine)
-    elif r2r and not (torch.is_grad_enabled() and y.requires_grad):
-        y = y.mul_(m)  # y is the transform's fresh output
-    else:
-        y = y * m
-    if r2r:
-        inv = tuple(_TRANSFORM[kinds[a]][1] for a in r2r)
-        y = _fft.r2rn(y, inv, tuple(1 + a for a in r2r), engine=engine)
-    return y
-
 
 # ----------------------------------------------------------------------------------------------
 # the direct solver
@@ -323,9 +167,9 @@ def spectral_poisson_solve(
         ShapeError: Wrong rhs rank or value shapes.
         NonFiniteError: NaN/Inf in ``rhs``.
     """
-    rank = _check_rhs(rhs)
+    rank = check_rhs(rhs)
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
+    dx = normalize_dx(dx, rank)
     _check_incompatible(incompatible)
     if not all_finite(rhs):
         raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
@@ -333,36 +177,20 @@ def spectral_poisson_solve(
     b = boundary_source(rhs, dx, kinds, values)
     if b is not None:
         f = f - b
-    singular = _singular(kinds)
+    singular = is_singular(kinds)
     if singular:
         f = _remove_mean(f, incompatible=incompatible, compat_rtol=compat_rtol, what="spectral_poisson_solve")
-    inv = _solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
-    return _apply_multiplier(f, kinds, inv, engine, prescaled=True)
+    inv = solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
+    return apply_multiplier(f, kinds, inv, engine, prescaled=True)
 
 
-def _solve_trusted(rhs: torch.Tensor, dx: tuple[float, ...], kinds: Kinds) -> torch.Tensor:
-    """:func:`spectral_poisson_solve` with ``incompatible='project'`` and zero boundary values, for callers
-    that pass a finite ``rhs``, normalised ``kinds`` and a float tuple ``dx`` (the pressure projection)."""
-    f = rhs
-    if _singular(kinds):
-        f = f - f.mean(dim=tuple(range(1, f.ndim)), keepdim=True)
-    inv = _solve_multiplier(tuple(rhs.shape[1:]), dx, kinds, rhs.device, rhs.dtype)
-    return _apply_multiplier(f, kinds, inv, None, prescaled=True)
+class Solved(NamedTuple):
+    """A solution with the report of the solve that produced it."""
 
-
-@lru_cache(maxsize=128)
-def _solve_multiplier(resolution, dx, kinds, device, dtype) -> torch.Tensor:
-    """Inverse eigenvalues times the transforms' normalisation, in the solve's dtype (cached)."""
-    return (_inverse_eigs(resolution, dx, kinds, device) * _transform_scale(resolution, kinds)).to(dtype)
-
-
-@lru_cache(maxsize=128)
-def _inverse_eigs(resolution, dx, kinds, device) -> torch.Tensor:
-    lam = _eigs_cached(resolution, dx, kinds, torch.float64, device, True)
-    inv = torch.where(lam == 0, torch.zeros_like(lam), 1.0 / torch.where(lam == 0, torch.ones_like(lam), lam))
-    if _singular(kinds):
-        inv.reshape(-1)[0] = 0.0  # the constant mode (index 0 in every layout) is projected out
-    return inv
+    #: The solution (tensor or field, as the function documents).
+    solution: Any
+    #: The :class:`~phisim.solvers.linalg.SolveInfo` of an iterative solve; None for an exact spectral solve.
+    info: SolveInfo | None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -397,11 +225,11 @@ def masked_laplacian(u: torch.Tensor, mask: torch.Tensor, dx, kinds, values=None
     Raises:
         BoundaryError, ParameterError, ShapeError: For invalid arguments.
     """
-    rank = _check_rhs(u, "u")
+    rank = check_rhs(u, "u")
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
+    dx = normalize_dx(dx, rank)
     m = _mask_tensor(mask, u)
-    out = _laplace_zero(u * m, dx, kinds, _open_faces(m, kinds)) * m
+    out = laplace_zero(u * m, dx, kinds, _open_faces(m, kinds)) * m
     b = boundary_source(u, dx, kinds, values)
     return out if b is None else out + b * m
 
@@ -459,9 +287,9 @@ def masked_poisson_solve(
     preconditioner: str | None = "spectral",
     incompatible: str = "raise",
     compat_rtol: float | None = None,
-    return_info: bool = False,
     engine: str | None = None,
-):
+    return_info: bool = False,
+) -> torch.Tensor:
     """Solve ``∇²_h u = rhs`` on the fluid cells of a box with obstacles by preconditioned CG.
 
     Obstacle cells (``mask`` False) are excluded; faces between fluid and obstacle cells are
@@ -485,22 +313,30 @@ def masked_poisson_solve(
         preconditioner: ``'spectral'`` (default) or None (plain CG).
         incompatible: ``'raise'``, ``'warn'`` or ``'project'`` (see :func:`spectral_poisson_solve`).
         compat_rtol: Tolerance of the compatibility check.
-        return_info: Also return the :class:`phisim.solvers.linalg.SolveInfo` (iterations per sample).
+        return_info: Removed (only ``False`` is accepted): :func:`masked_poisson_solve_with_info` returns the
+            solution with its :class:`~phisim.solvers.linalg.SolveInfo`.
         engine: FFT engine of the preconditioner.
 
     Returns:
-        ``u`` (shape of ``rhs``), or ``(u, info)`` with ``return_info``. Differentiable w.r.t. ``rhs``
+        ``u`` (shape of ``rhs``). Differentiable w.r.t. ``rhs``
         (implicit adjoint solve).
 
     Raises:
         SolveError: CG did not converge.
         ParameterError, BoundaryError, ShapeError, NonFiniteError: For invalid input.
     """
-    from phisim.solvers.linalg import Solve
+    if return_info:
+        _no_return_info({"return_info": True})
+    return _masked_solve(rhs, mask, dx, kinds, values, solve=solve, x0=x0, preconditioner=preconditioner,
+                         incompatible=incompatible, compat_rtol=compat_rtol, engine=engine).solution
 
-    rank = _check_rhs(rhs)
+
+def _masked_solve(rhs, mask, dx=1.0, kinds="neumann", values=None, *, solve=None, x0=None,
+                  preconditioner="spectral", incompatible="raise", compat_rtol=None, engine=None) -> Solved:
+
+    rank = check_rhs(rhs)
     kinds = normalize_kinds(kinds, rank)
-    dx = _normalize_dx(dx, rank)
+    dx = normalize_dx(dx, rank)
     _check_incompatible(incompatible)
     if preconditioner not in ("spectral", None):
         raise ParameterError(f"preconditioner must be 'spectral' or None, got {preconditioner!r}")
@@ -510,14 +346,13 @@ def masked_poisson_solve(
     m = _mask_tensor(mask, rhs)
     if bool((m.flatten(1).sum(1) == 0).any()):
         raise ParameterError("masked_poisson_solve: the mask has no fluid cell in some sample")
-    from phisim.solvers.masked import MaskedPoisson
 
     f = rhs
     b = boundary_source(rhs, dx, kinds, values)
     if b is not None:
         f = f - b
     f = f * m
-    op = MaskedPoisson(_mask_face_weights(m, kinds), dx, kinds, engine=engine)
+    op = MaskedPoisson(_mask_face_weights(m, kinds), dx, kinds, engine=engine, direct=False)
     if op.singular:  # every closed fluid region needs a compatible rhs of its own
         tol = _compat_tol(rhs.dtype) if compat_rtol is None else compat_rtol
         with torch.no_grad():
@@ -542,8 +377,29 @@ def masked_poisson_solve(
             if incompatible == "warn":
                 warnings.warn(msg, RuntimeWarning, stacklevel=2)
     x, info = op.solve(-f, solve=solve, x0=x0, preconditioned=preconditioner is not None)
-    x = x * m
-    return (x, info) if return_info else x
+    return Solved(x * m, info)
+
+
+def masked_poisson_solve_with_info(rhs: torch.Tensor, mask: torch.Tensor, dx=1.0, kinds="neumann", values=None,
+                                   **settings) -> Solved:
+    """:func:`masked_poisson_solve` that also returns the report of its CG solve.
+
+    Args:
+        rhs, mask, dx, kinds, values: As :func:`masked_poisson_solve`.
+        **settings: Its keyword settings (``solve``, ``x0``, ``preconditioner``, ``incompatible``,
+            ``compat_rtol``, ``engine``).
+
+    Returns:
+        ``Solved(solution, info)``: the solution ``(B, *resolution)`` and its
+        :class:`~phisim.solvers.linalg.SolveInfo`.
+    """
+    _no_return_info(settings)
+    return _masked_solve(rhs, mask, dx, kinds, values, **settings)
+
+
+def _no_return_info(settings: dict) -> None:
+    if settings.pop("return_info", False):
+        raise ParameterError("return_info was removed: the *_with_info functions return (solution, info)")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -596,7 +452,7 @@ def solve_poisson(
     compat_rtol: float | None = None,
     engine: str | None = None,
     return_info: bool = False,
-):
+) -> CenteredGrid:
     """Solve ``∇² u = rhs`` for a scalar :class:`phisim.field.CenteredGrid`, boundary from the field.
 
     The solution takes the grid and boundary of ``rhs``: its boundary conditions (values on the cell
@@ -610,16 +466,33 @@ def solve_poisson(
         incompatible: Singular-problem policy (see :func:`spectral_poisson_solve`).
         compat_rtol: Tolerance of the compatibility check.
         engine: FFT engine.
-        return_info: With a mask, also return the SolveInfo.
+        return_info: Removed (only ``False`` is accepted): :func:`solve_poisson_with_info` also returns the
+            report.
 
     Returns:
-        The solution as a CenteredGrid (and the SolveInfo with ``mask`` and ``return_info``).
+        The solution as a CenteredGrid.
 
     Raises:
         ShapeError: For a vector field.
         ParameterError, BoundaryError, SolveError: See the tensor-level solvers.
     """
-    from phisim.field import CenteredGrid
+    if return_info:
+        _no_return_info({"return_info": True})
+    return solve_poisson_with_info(rhs, mask=mask, solve=solve, incompatible=incompatible, compat_rtol=compat_rtol,
+                                   engine=engine).solution
+
+
+def solve_poisson_with_info(rhs, *, mask=None, solve=None, incompatible: str = "raise",
+                            compat_rtol: float | None = None, engine: str | None = None) -> Solved:
+    """:func:`solve_poisson` that also returns the report of the solve.
+
+    Args:
+        rhs, mask, solve, incompatible, compat_rtol, engine: As :func:`solve_poisson`.
+
+    Returns:
+        ``Solved(solution, info)``: the CenteredGrid and the :class:`~phisim.solvers.linalg.SolveInfo` of the
+        masked CG solve, or ``None`` for the exact spectral solve (no mask).
+    """
 
     if not isinstance(rhs, CenteredGrid):
         raise ParameterError(
@@ -636,21 +509,9 @@ def solve_poisson(
         u = spectral_poisson_solve(
             rhs.values, dx, kinds, values, incompatible=incompatible, compat_rtol=compat_rtol, engine=engine
         )
-        return rhs.with_values(u)
+        return Solved(rhs.with_values(u), None)
     if isinstance(mask, CenteredGrid):
         mask = mask.values
-    out = masked_poisson_solve(
-        rhs.values,
-        mask,
-        dx,
-        kinds,
-        values,
-        solve=solve,
-        incompatible=incompatible,
-        compat_rtol=compat_rtol,
-        return_info=return_info,
-        engine=engine,
-    )
-    if return_info:
-        return rhs.with_values(out[0]), out[1]
-    return rhs.with_values(out)
+    out = _masked_solve(rhs.values, mask, dx, kinds, values, solve=solve, incompatible=incompatible,
+                        compat_rtol=compat_rtol, engine=engine)
+    return Solved(rhs.with_values(out.solution), out.info)

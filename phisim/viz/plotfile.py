@@ -18,7 +18,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from phisim.boundary import Periodic
 from phisim.errors import FileFormatError, ParameterError
+from phisim.io import read_simulation, read_training
+from phisim.viz.plot import ffmpeg_available, new_figure, plot_curves, save_figure
 
 __all__ = ["DERIVED", "field_frames", "obstacle_of", "plot_frames", "animate_file", "plot_training_file",
            "plot_file"]
@@ -36,7 +39,6 @@ def _velocity_name(data) -> str:
 
 
 def _periodic_axes(data) -> list[bool]:
-    from phisim.boundary import Periodic
 
     return [isinstance(lo, Periodic) for lo, _ in data.boundary.sides]
 
@@ -139,7 +141,6 @@ def plot_frames(data, name: str, path: str | Path, *, sample: int = 0, frames: S
     Raises:
         ParameterError: Unknown field or frame index out of range.
     """
-    from phisim.viz.plot import new_figure, save_figure
 
     arr = field_frames(data, name, sample)
     T = arr.shape[0]
@@ -188,7 +189,6 @@ def animate_file(data, name: str, path: str | Path, *, sample: int = 0, fps: int
     """
     from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
 
-    from phisim.viz.plot import ffmpeg_available, new_figure
 
     p = Path(path)
     suffix = p.suffix.lower()
@@ -229,8 +229,6 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
     Raises:
         FileFormatError: No training curves in the file.
     """
-    from phisim.io.simulation import read_training
-    from phisim.viz.plot import plot_curves, save_figure
 
     curves = read_training(path)
     if not curves:
@@ -290,7 +288,6 @@ def plot_file(path: str | Path, out: str | Path | None = None, *, field: str | N
         FileFormatError: Not a readable HDF5 file, or neither simulation fields nor training curves.
         ParameterError: Unknown field, sample or frame.
     """
-    from phisim.io.simulation import read_simulation
 
     path = Path(path)
     try:
@@ -304,7 +301,6 @@ def plot_file(path: str | Path, out: str | Path | None = None, *, field: str | N
     if animation not in (None, "gif", "mp4"):
         raise ParameterError(f"animation must be 'gif', 'mp4' or None, got {animation!r}")
     if animation == "mp4":
-        from phisim.viz.plot import ffmpeg_available
 
         if not ffmpeg_available():
             raise ParameterError("writing MP4 needs ffmpeg on the PATH; install ffmpeg or write a .gif")

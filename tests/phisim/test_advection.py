@@ -228,7 +228,7 @@ def test_batch_is_independent_and_velocity_batch_one_broadcasts():
 def test_rk2_exact_for_uniform_and_better_for_rotation():
     grid = Grid((48, 48), bounds=[(-1, 1), (-1, 1)])
     u = StaggeredGrid.uniform((0.3, 0.2), grid, "periodic", dtype=F64)
-    torch.testing.assert_close(semi_lagrangian(u, u, 2.0, integrator="rk2").values[0], u.values[0],
+    torch.testing.assert_close(semi_lagrangian(u, u, 2.0, trace="midpoint").values[0], u.values[0],
                                rtol=0, atol=1e-13)
     # rigid rotation, a large time step: the Euler trace drifts outward, the midpoint trace much less
     rot = StaggeredGrid.from_function(lambda x: torch.stack([-x[..., 1], x[..., 0]], -1), grid, "open", dtype=F64)
@@ -237,12 +237,12 @@ def test_rk2_exact_for_uniform_and_better_for_rotation():
     exact_c = (centre[0] * math.cos(angle), centre[0] * math.sin(angle))
     exact = _gauss(grid.cell_centers(F64), exact_c, sigma, (10.0, 10.0))
     err = {}
-    for integ in ("euler", "rk2"):
+    for integ in ("euler", "midpoint"):
         q = q0
         for _ in range(2):
-            q = maccormack(q, rot, angle / 2, integrator=integ)
+            q = maccormack(q, rot, angle / 2, trace=integ)
         err[integ] = float((q.values[0] - exact).abs().max())
-    assert err["rk2"] < 0.5 * err["euler"], err
+    assert err["midpoint"] < 0.5 * err["euler"], err
 
 
 def test_vector_field_channels_advected_together():
@@ -327,7 +327,7 @@ def test_gradcheck_centred_velocity_3d_and_rk2():
 
     def fn(q, v):
         return semi_lagrangian(CenteredGrid(q, grid, "periodic"), CenteredGrid(v, grid, "periodic"), 0.6,
-                               integrator="rk2").values
+                               trace="midpoint").values
 
     assert torch.autograd.gradcheck(fn, (vals, vel), eps=1e-6, atol=1e-7)
 
@@ -363,7 +363,7 @@ def test_mismatched_grids_and_bad_velocity_raise():
     with pytest.raises(ParameterError):
         advect(q, v, 0.1, scheme="upwind")
     with pytest.raises(ParameterError):
-        advect(q, v, 0.1, integrator="rk4")
+        advect(q, v, 0.1, trace="rk4")
     with pytest.raises(ParameterError):
         maccormack(q, v, 0.1, clamp="soft")
 
@@ -382,3 +382,13 @@ def test_boundary_with_list_values_is_accepted():
     v = StaggeredGrid.zeros(grid, lid, dtype=F64)
     out = semi_lagrangian(v, StaggeredGrid.uniform((0.0, -1.0), grid, "open", dtype=F64), 0.5)
     torch.testing.assert_close(out.values[0][0, 1:-1, -1], torch.ones(4, dtype=F64))
+
+
+def test_former_integrator_keyword_maps_to_trace_with_a_warning():
+    grid = Grid((8, 8))
+    q = CenteredGrid.from_function(lambda x: torch.sin(x[..., 0]), grid, "periodic", dtype=torch.float64)
+    v = CenteredGrid(torch.ones(1, 2, 8, 8, dtype=torch.float64) * 0.3, grid, "periodic")
+    with pytest.warns(DeprecationWarning, match="trace="):
+        old = semi_lagrangian(q, v, 0.5, integrator="rk2")
+    new = semi_lagrangian(q, v, 0.5, trace="midpoint")
+    torch.testing.assert_close(old.values, new.values, rtol=0, atol=0)

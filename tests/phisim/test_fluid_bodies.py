@@ -368,36 +368,32 @@ def test_inflow_on_any_side(rank):
 
 
 @pytest.mark.parametrize("closed", [False, True])
-def test_static_body_runs_switch_to_the_direct_pressure_solve_and_agree_with_pcg(closed, monkeypatch):
-    # A flow past a static body repeats the same projection: after a few steps the pressure is solved directly
-    # (phisim.solvers.direct). Over a run the velocities must agree with an all-PCG run to the PCG tolerance,
-    # in a channel (inflow / outflow) and in a closed box (a singular pressure system).
-    from phisim.fluid import projection
-    from phisim.solvers import masked as poisson_masked
+def test_a_stepper_solves_static_bodies_directly_and_agrees_with_the_pcg_of_the_pure_step(closed):
+    # A FluidStepper holds its static body's layout and solves the pressure directly (phisim.solvers.direct)
+    # from the first step; the pure function rasterises and solves by PCG every step. Over a run the velocities
+    # must agree to the PCG tolerance, in a channel (inflow / outflow) and in a closed box (a singular system).
+    from phisim.fluid import FluidState, FluidStepper
 
-    monkeypatch.setattr(poisson_masked, "DIRECT_FACES_PER_REQUEST", 8)
-    grid = Grid((32, 16), bounds=[(0, 2.0), (0, 1.0)])
+    grid = Grid((48, 24), bounds=[(0, 2.0), (0, 1.0)])
     boundary = "wall" if closed else {"x": (Inflow((1.0, 0.0)), Open()), "y": "wall"}
     body = Body(Sphere((0.5, 0.45), 0.15))
     tight = Solve(rtol=1e-11)
-
-    def run(direct):
-        monkeypatch.setattr(poisson_masked, "DIRECT", direct)
-        projection._OPS.clear()
-        v = StaggeredGrid.zeros(grid, boundary, dtype=torch.float64)
-        if closed:  # something to project: a swirl
-            v = v.with_values((v.values[0] + 0.3, v.values[1])).with_boundary_faces()
-        p = None
-        for k in range(30):
-            v, p = navier_stokes_step(v, 0.02, viscosity=0.01, obstacles=body, solve=tight, pressure_guess=p,
-                                      time=0.02 * k)
-        ops = [op for _, op in projection._OPS.values()]
-        return v, ops
-
-    ref, ops = run(False)
-    assert all(op._direct is None or op._direct is False for op in ops)
-    out, ops = run(True)
-    assert any(op._direct and op._direct.lu is not None for op in ops)  # the direct solve was built and used
+    v0 = StaggeredGrid.zeros(grid, boundary, dtype=torch.float64)
+    if closed:  # something to project: a swirl
+        v0 = v0.with_values((v0.values[0] + 0.3, v0.values[1])).with_boundary_faces()
+    v, p = v0, None
+    for k in range(30):
+        v, p = navier_stokes_step(v, 0.02, viscosity=0.01, obstacles=body, solve=tight, pressure_guess=p,
+                                  time=0.02 * k)
+    ref = v
+    stepper = FluidStepper(grid, v0.boundary, obstacles=body, viscosity=0.01, advection="semi_lagrangian",
+                           pressure=tight, dtype=torch.float64, dt=0.02)
+    state = FluidState(v0)
+    for _ in range(30):
+        state = stepper(state)
+    (op,) = [o for k, o in stepper.obstacles.solvers.items() if k[0] == "pressure"]
+    assert op.uses_direct_solve and op._direct.lu is not None  # the direct solve was built and used
+    out = state.velocity
     for a, b in zip(out.values, ref.values):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-8 * float(b.abs().max()))
     assert float(divergence(out).values.abs().max()) < 1e-8

@@ -11,7 +11,9 @@ from phisim.solvers.linalg import Solve
 from phisim.solvers.poisson import (
     masked_laplacian,
     masked_poisson_solve,
+    masked_poisson_solve_with_info,
     solve_poisson,
+    solve_poisson_with_info,
     spectral_poisson_solve,
     stencil_laplacian,
 )
@@ -252,10 +254,8 @@ def test_spectral_preconditioner_cuts_iterations_fivefold_128():
     f = torch.randn(2, n, n, dtype=torch.float64, generator=torch.Generator().manual_seed(1)) * mask
     f = f - f.sum(dim=(1, 2), keepdim=True) / mask.sum() * mask
     settings = Solve(rtol=1e-6)
-    _, pre = masked_poisson_solve(f, mask, 1.0, "neumann", solve=settings, return_info=True)
-    _, plain = masked_poisson_solve(
-        f, mask, 1.0, "neumann", solve=settings, preconditioner=None, return_info=True
-    )
+    _, pre = masked_poisson_solve_with_info(f, mask, 1.0, "neumann", solve=settings)
+    _, plain = masked_poisson_solve_with_info(f, mask, 1.0, "neumann", solve=settings, preconditioner=None)
     assert pre.all_converged and plain.all_converged
     assert (pre.iterations * 5 <= plain.iterations).all(), (pre.iterations, plain.iterations)
 
@@ -327,15 +327,38 @@ def test_masked_solve_handles_enclosed_pockets_per_region():
     ((("neumann", "dirichlet"), ("dirichlet", "dirichlet"), ("periodic", "periodic")), (2, 3, 4, 5)),
 ])
 def test_fused_stencil_equals_face_flux_form(kinds, shape):
-    from phisim.solvers.poisson import _laplace_zero, _open_faces, normalize_kinds
+    from phisim.ops.stencil import laplace_zero
+    from phisim.solvers.poisson import _open_faces, normalize_kinds
 
     rank = len(shape) - 1
     k = normalize_kinds(kinds, rank)
     dx = (0.7, 1.3, 0.9)[:rank]
     u = torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     ones = _open_faces(torch.ones(shape, dtype=torch.float64), k)  # all faces open: the face-flux form
-    ref = _laplace_zero(u, dx, k, ones)
+    ref = laplace_zero(u, dx, k, ones)
     torch.testing.assert_close(stencil_laplacian(u, dx, kinds), ref, rtol=1e-13, atol=1e-13)
     torch.testing.assert_close(stencil_laplacian(u.float(), dx, kinds), ref.float(), rtol=1e-5, atol=1e-5)
     v = u[:1].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda t: stencil_laplacian(t, dx, kinds), (v,))
+
+
+def test_one_return_type_and_the_with_info_variants():
+    n = 16
+    mask = torch.ones(n, n, dtype=torch.bool)
+    mask[6:10, 6:10] = False
+    f = torch.randn(1, n, n, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * mask
+    f = f - f.sum() / mask.sum() * mask
+    u = masked_poisson_solve(f, mask, 1.0, "neumann")
+    assert isinstance(u, torch.Tensor)
+    out = masked_poisson_solve_with_info(f, mask, 1.0, "neumann")
+    torch.testing.assert_close(out.solution, u, rtol=0, atol=0)
+    assert out.info.all_converged
+    with pytest.raises(ParameterError, match="return_info was removed"):
+        masked_poisson_solve(f, mask, 1.0, "neumann", return_info=True)
+    from phisim import CenteredGrid, Grid
+
+    rhs = CenteredGrid(f, Grid((n, n)), "neumann")
+    field, info = solve_poisson_with_info(rhs, mask=mask)
+    torch.testing.assert_close(field.values, solve_poisson(rhs, mask=mask).values, rtol=0, atol=0)
+    assert info.all_converged
+    assert solve_poisson_with_info(rhs).info is None  # the exact spectral solve

@@ -4,8 +4,8 @@ gradient/weights/divergence form, and the closed-box null-space projection."""
 import pytest
 import torch
 
+from phisim.solvers.box import apply_multiplier
 from phisim.solvers.masked import MaskedPoisson
-from phisim.solvers.poisson import _apply_multiplier
 
 KINDS = [
     (("neumann", "neumann"), ("neumann", "neumann")),
@@ -56,7 +56,7 @@ def test_preconditioner_fast_path_equals_composed_form_and_is_symmetric(kinds):
     gen = torch.Generator().manual_seed(5)
     r = op.project(torch.randn(2, *res, dtype=torch.float64, generator=gen))
     act = op.active.double()
-    ref = -_apply_multiplier(r * act, op.kinds, op._inv, op.engine)
+    ref = -apply_multiplier(r * act, op.kinds, op._inv, op.engine)
     ref = op.project(torch.where(op.active, ref, r) + op._cut_inv * r)
     torch.testing.assert_close(op._precondition(r), ref, rtol=1e-12, atol=1e-12)
     s = op.project(torch.randn(2, *res, dtype=torch.float64, generator=gen))
@@ -83,14 +83,14 @@ def test_closed_box_projection_removes_the_region_mean_only():
 def _disc_and_box_operator(n=24):
     from phisim.boundary import Boundary
     from phisim.fluid import Body, Box, Sphere, solid_layout
-    from phisim.fluid.projection import _operator, _pressure_kinds
     from phisim.grid import Grid
+    from phisim.solvers.poisson import field_kinds_and_values
 
     grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
     boundary = Boundary.create({"x": ("wall", "open"), "y": "wall"}, 2)
     bodies = [Body(Sphere((0.3, 0.45), 0.17)), Body(Box((0.55, 0.25), (0.8, 0.7)))]
     layout = solid_layout(bodies, grid, boundary, 0.0, torch.float64)
-    return _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
+    return MaskedPoisson(layout.theta, grid.dx, field_kinds_and_values(boundary.for_pressure())[0])
 
 
 def test_leaves_are_weak_cells_that_touch_no_other_leaf():
@@ -180,21 +180,15 @@ DIRECT_CASES = [
 
 
 @pytest.mark.parametrize("name, res, centres, radius, kinds", DIRECT_CASES, ids=[c[0] for c in DIRECT_CASES])
-def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radius, kinds, monkeypatch):
-    from phisim.solvers import masked as pm
+def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radius, kinds):
     from phisim.solvers.linalg import Solve
 
     weights = _disc_weights(res, centres, radius)
     dx = tuple(1.0 / res[0] for _ in res)
     rhs = torch.randn(2, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    monkeypatch.setattr(pm, "DIRECT", False)
-    ref, info = MaskedPoisson(weights, dx, kinds).solve(rhs, solve=Solve(rtol=1e-13))
+    ref, info = MaskedPoisson(weights, dx, kinds, direct=False).solve(rhs, solve=Solve(rtol=1e-13))
     assert bool(info.converged.all())
-    monkeypatch.setattr(pm, "DIRECT", True)
-    monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
-    monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 10**9)
-    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)  # tiny grids: rank large against the cells
-    op = MaskedPoisson(weights, dx, kinds)
+    op = MaskedPoisson(weights, dx, kinds, direct=True)  # tiny grids: the rank is large against the cells
     p, info = op.solve(rhs, solve=Solve(rtol=1e-10))
     assert op._direct and op._direct.lu is not None
     # the direct answer alone meets the tolerance: CG, which checks it, takes no iteration
@@ -219,46 +213,47 @@ def test_direct_solve_is_exact_and_equals_converged_pcg(name, res, centres, radi
     torch.testing.assert_close(p32.double(), ref, rtol=0, atol=2e-5 * float(ref.abs().max()))
 
 
-def test_direct_solve_is_built_after_enough_requests_and_declines_what_it_cannot_do(monkeypatch):
-    from phisim.solvers import masked as pm
+def test_direct_solve_is_chosen_at_construction_and_declines_what_it_cannot_do():
+    from phisim.errors import ParameterError
     from phisim.solvers.linalg import Solve
 
-    monkeypatch.setattr(pm, "DIRECT_FACES_PER_REQUEST", 4)
-    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)
     res, kinds = (16, 12), (("neumann", "dirichlet"), ("neumann", "neumann"))
     weights = _disc_weights(res, [(0.4, 0.35)], 0.15)
     rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    op = MaskedPoisson(weights, 1 / 16, kinds)
-    calls = 0
-    while True:
-        _, info = op.solve(rhs, solve=Solve(rtol=1e-10))
-        calls += 1
-        if op._direct and op._direct.lu is not None:
-            break
-        assert int(info.iterations[0]) > 0 and calls < 100  # PCG until then
-    assert calls == max(pm.DIRECT_BUILD_AFTER, op._direct.rank // 4) + 1
-    # per-sample layouts, weights with gradient, two closed fluid regions, a rank too large for the grid: PCG
+    # the first solve already uses it: every solve of one operator takes the same path
+    op = MaskedPoisson(weights, 1 / 16, kinds, direct=True)
+    assert op.uses_direct_solve
+    _, info = op.solve(rhs, solve=Solve(rtol=1e-10))
+    assert int(info.iterations[0]) == 0 and op._direct.lu is not None
+    assert not MaskedPoisson(weights, 1 / 16, kinds, direct=False).uses_direct_solve
+    # 'auto': where it pays, k² <= MAX_RANK_SQUARED_PER_CELL cells for k cut faces
+    from phisim.solvers.direct import MAX_RANK_SQUARED_PER_CELL
+
+    k = op._direct.rank
+    pays = k * k <= MAX_RANK_SQUARED_PER_CELL * 16 * 12
+    assert MaskedPoisson(weights, 1 / 16, kinds).uses_direct_solve == pays
+    # per-sample layouts, weights with gradient, two closed fluid regions: PCG, and direct=True is an error
     two = [torch.cat([w, torch.ones_like(w)]) for w in weights]
     grad = [w.clone().requires_grad_(True) for w in weights]
     closed = (("neumann", "neumann"), ("neumann", "neumann"))
     split = [w.clone() for w in weights]
     split[0][:, 8] = 0.0  # a closed box cut in two by a wall: two fluid regions, two constants in the null space
-    for ws, k, limit in ((two, kinds, 64), (grad, kinds, 64), (split, closed, 64), (weights, kinds, 0)):
-        monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", limit)
+    for ws, k in ((two, kinds), (grad, kinds), (split, closed)):
         op = MaskedPoisson(ws, 1 / 16, k)
-        for _ in range(4):
-            op.solve(rhs.expand(ws[0].shape[0], *res), solve=Solve(rtol=1e-8))
+        assert not op.uses_direct_solve
+        op.solve(rhs.expand(ws[0].shape[0], *res), solve=Solve(rtol=1e-8))
         assert op._direct is False
+        with pytest.raises(ParameterError, match="direct=True"):
+            MaskedPoisson(ws, 1 / 16, k, direct=True)
+    with pytest.raises(ParameterError, match="direct must be"):
+        MaskedPoisson(weights, 1 / 16, kinds, direct="yes")
 
 
-def test_direct_solve_keeps_the_rhs_gradient(monkeypatch):
-    from phisim.solvers import masked as pm
+def test_direct_solve_keeps_the_rhs_gradient():
     from phisim.solvers.linalg import Solve
 
-    monkeypatch.setattr(pm, "DIRECT_BUILD_AFTER", 0)
-    monkeypatch.setattr(pm, "MAX_RANK_SQUARED_PER_CELL", 10**9)
     res, kinds = (8, 6), (("neumann", "dirichlet"), ("neumann", "neumann"))
-    op = MaskedPoisson(_disc_weights(res, [(0.45, 0.35)], 0.2), 1 / 8, kinds)
+    op = MaskedPoisson(_disc_weights(res, [(0.45, 0.35)], 0.2), 1 / 8, kinds, direct=True)
     rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(3), requires_grad=True)
     assert torch.autograd.gradcheck(lambda f: op.solve(f, solve=Solve(rtol=1e-12))[0], (rhs,))
     assert op._direct and op._direct.lu is not None

@@ -220,10 +220,14 @@ def test_wall_solve_agrees_with_the_dst1_solve_at_any_viscosity(dtype, alpha, mo
         assert float(a[:, 0].abs().max()) == 0 or float(a[:, :, 0].abs().max()) == 0  # the walls stay exactly zero
 
 
+def _built(cache: dict) -> list:
+    """The capacitance solves kept in a caller's cache."""
+    return [v[1] for k, v in cache.items() if k[0] == "capacitance" and v[1]]
+
+
 @pytest.mark.skipif("pyfftw" not in fft.available_engines(), reason="the fast path runs with the pyfftw engine")
 @pytest.mark.parametrize("rank", [2, 3])
 def test_capacitance_with_the_wall_solve_equals_converged_cg(rank, monkeypatch):
-    from phisim.solvers import mac_diffusion as _mac_diffusion
     from phisim.solvers.linalg import Solve
 
     res = (10, 8) if rank == 2 else (6, 5, 7)
@@ -231,12 +235,11 @@ def test_capacitance_with_the_wall_solve_equals_converged_cg(rank, monkeypatch):
     v = _random_velocity(grid, "wall", batch=2)
     masks = _body_masks(grid)
     v = v.with_values(tuple(torch.where(m, torch.randn_like(c), c) for c, m in zip(v.values, masks)))
-    _mac_diffusion._CAP_CACHE.clear()
-    nu = torch.tensor(1.0, dtype=F64)  # a tensor viscosity keeps the CG path
-    cg = diffuse_staggered(v, 0.02, viscosity=nu, method="crank_nicolson", fixed=masks, solve=Solve(rtol=1e-13))
+    cg = diffuse_staggered(v, 0.02, viscosity=1.0, method="crank_nicolson", fixed=masks, solve=Solve(rtol=1e-13))
+    cache: dict = {}
+    diffuse_staggered(v, 0.02, viscosity=1.0, method="crank_nicolson", fixed=masks, capacitance=cache)
     calls = _count_wall_solves(monkeypatch)
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 2):
-        out = diffuse_staggered(v, 0.02, viscosity=1.0, method="crank_nicolson", fixed=masks)
+    out = diffuse_staggered(v, 0.02, viscosity=1.0, method="crank_nicolson", fixed=masks, capacitance=cache)
     assert calls[-2 * rank:] == [True] * (2 * rank)  # both box solves of every component
     for a, b in zip(out.values, cg.values):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-11)
@@ -353,7 +356,6 @@ def _body_masks(grid):
                                             (3, "wall"), (3, {"x": "periodic", "y": "free_slip", "z": "open"})])
 @pytest.mark.parametrize("method", ["implicit", "crank_nicolson"])
 def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
-    from phisim.solvers import mac_diffusion as _mac_diffusion
     from phisim.solvers.linalg import Solve
 
     res = (10, 8) if rank == 2 else (6, 5, 7)
@@ -361,22 +363,19 @@ def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
     v = _random_velocity(grid, boundary, batch=2)
     masks = _body_masks(grid)
     v = v.with_values(tuple(torch.where(m, torch.randn_like(c), c) for c, m in zip(v.values, masks)))
-    _mac_diffusion._CAP_CACHE.clear()
     tight = Solve(rtol=1e-13)
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER):
-        first = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, solve=tight)  # PCG
-    assert not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries)
-    second = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, solve=tight)  # builds C
-    assert sum(bool(e[2]) for entries in _mac_diffusion._CAP_CACHE.values() for e in entries) == rank
-    third = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, solve=tight)  # cached C
+    first = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, solve=tight)  # PCG: no cache
+    cache: dict = {}
+    second = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, capacitance=cache)  # builds C
+    assert len(_built(cache)) == rank
+    third = diffuse_staggered(v, 0.02, viscosity=1.0, method=method, fixed=masks, capacitance=cache)  # kept C
     for a, b, c, m, u in zip(first.values, second.values, third.values, masks, v.values):
         torch.testing.assert_close(b, a, rtol=0, atol=1e-12)
         torch.testing.assert_close(c, b, rtol=0, atol=0)
         torch.testing.assert_close(b[:, m], u[:, m], rtol=0, atol=0)
     # float32: the same direct solve, to float32 round-off
     v32 = v.with_values(tuple(c.float() for c in v.values))
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
-        out32 = diffuse_staggered(v32, 0.02, viscosity=1.0, method=method, fixed=masks)
+    out32 = diffuse_staggered(v32, 0.02, viscosity=1.0, method=method, fixed=masks, capacitance={})
     for a, b in zip(out32.values, second.values):
         assert a.dtype == torch.float32
         torch.testing.assert_close(a.double(), b, rtol=0, atol=2e-5 * float(b.abs().max()))
@@ -385,91 +384,73 @@ def test_capacitance_solve_equals_converged_cg(rank, boundary, method):
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_capacitance_with_the_torch_engine_matches_pyfftw(dtype):
     # the composed, differentiable transforms (the path accelerators take) give the same direct solve
-    from phisim.solvers import mac_diffusion as _mac_diffusion
-
     grid = Grid((9, 8), bounds=[(0, 0.9), (0, 0.8)])
     v = _random_velocity(grid, "wall", batch=2)
     v = v.with_values(tuple(c.to(dtype) for c in v.values))
     masks = _body_masks(grid)
     outs = {}
     for engine in ("torch", None):
-        _mac_diffusion._CAP_CACHE.clear()
-        for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
-            outs[engine] = diffuse_staggered(v, 0.03, viscosity=1.0, method="crank_nicolson", fixed=masks,
-                                             engine=engine)
-        assert any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries)
+        cache: dict = {}
+        outs[engine] = diffuse_staggered(v, 0.03, viscosity=1.0, method="crank_nicolson", fixed=masks,
+                                         engine=engine, capacitance=cache)
+        assert _built(cache)
     tol = 1e-12 if dtype == F64 else 2e-6
     for a, b in zip(outs["torch"].values, outs[None].values):
         torch.testing.assert_close(a, b, rtol=0, atol=tol * float(b.abs().max()))
 
 
 def test_capacitance_declines_what_it_cannot_do():
-    from phisim.solvers import mac_diffusion as _mac_diffusion
-
     grid = Grid((8, 6), bounds=[(0, 1), (0, 0.75)])
     v = _random_velocity(grid, "wall", batch=2)
     masks = _body_masks(grid)
-    _mac_diffusion._CAP_CACHE.clear()
+    cache: dict = {}
     per_sample = [torch.stack([m, torch.zeros_like(m)]) for m in masks]  # a different body per sample
-    for _ in range(3):
-        a = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=per_sample)
+    a = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=per_sample, capacitance=cache)
     nu = torch.tensor(1.0, dtype=F64)
-    for _ in range(3):  # a tensor viscosity keeps the CG path (its gradient)
-        diffuse_staggered(v, 0.05, viscosity=nu, fixed=masks)
-    assert not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries)
+    diffuse_staggered(v, 0.05, viscosity=nu, fixed=masks, capacitance=cache)  # a tensor viscosity: CG (gradient)
+    assert not _built(cache)
     # sample 1 has no body: the box solve
     box = diffuse_staggered(v, 0.05, viscosity=1.0)
     for x, y in zip(a.values, box.values):
         torch.testing.assert_close(x[1], y[1], rtol=0, atol=1e-9)
     # a changed body (same shape) is a new matrix, not a stale one
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
-        b = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=masks)
+    b = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=masks, capacitance=cache)
     moved = [torch.roll(m, 1, 0) for m in masks]
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
-        c = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=moved)
+    c = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=moved, capacitance=cache)
     ref = diffuse_staggered(v, 0.05, viscosity=nu, fixed=moved)  # CG
     for x, y, z in zip(b.values, c.values, ref.values):
         assert float((x - y).abs().max()) > 1e-3
         torch.testing.assert_close(y, z, rtol=0, atol=1e-8)
 
 
-def test_capacitance_is_built_once_cg_has_cost_about_as_much(monkeypatch):
-    from phisim.solvers import mac_diffusion as _mac_diffusion
-
-    monkeypatch.setattr(_mac_diffusion, "CAPACITANCE_FACES_PER_REQUEST", 4)
+def test_capacitance_is_built_at_the_first_request_of_its_owner_and_never_without_one():
     grid = Grid((12, 10), bounds=[(0, 1.2), (0, 1)])
     v = _random_velocity(grid, "wall", batch=1)
     mask = torch.zeros(grid.face_shape(0), dtype=torch.bool)
     mask[3:8, 2:7] = True  # surface: the faces of the block's rim
-    _mac_diffusion._CAP_CACHE.clear()
-    calls = 0
-    while not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries):
-        diffuse_staggered(v, 0.05, viscosity=1.0, fixed=(mask, None))
-        calls += 1
-        assert calls < 50
-    (entry,) = [e for entries in _mac_diffusion._CAP_CACHE.values() for e in entries]
-    k = entry[2].surface.numel()
-    assert k == 5 * 5 - 3 * 3  # the rim of a 5 x 5 block of faces
-    assert calls == max(_mac_diffusion.CAPACITANCE_BUILD_AFTER, k // 4) + 1
+    cg = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=(mask, None))
+    cache: dict = {}
+    out = diffuse_staggered(v, 0.05, viscosity=1.0, fixed=(mask, None), capacitance=cache)
+    (solver,) = _built(cache)
+    assert solver.surface.numel() == 5 * 5 - 3 * 3  # the rim of a 5 x 5 block of faces
+    for a, b in zip(out.values, cg.values):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-8)
 
 
 def test_gradcheck_capacitance_path():
-    from phisim.solvers import mac_diffusion as _mac_diffusion
-
     grid = Grid((5, 4), bounds=[(0, 1), (0, 0.8)])
     b = Boundary.create({"x": "wall", "y": "open"}, 2)
     mask = (torch.zeros(6, 4, dtype=torch.bool).index_fill_(0, torch.tensor([2]), True), None)
     u0 = torch.randn(1, 6, 4, dtype=F64, requires_grad=True)
     w0 = torch.randn(1, 5, 5, dtype=F64, requires_grad=True)
+    cache: dict = {}
 
     def fn(u, w):
         v = StaggeredGrid((u, w), grid, b).with_boundary_faces()
-        return diffuse_staggered(v, 0.1, viscosity=0.7, method="crank_nicolson", fixed=mask).values
+        return diffuse_staggered(v, 0.1, viscosity=0.7, method="crank_nicolson", fixed=mask, capacitance=cache).values
 
-    _mac_diffusion._CAP_CACHE.clear()
-    for _ in range(_mac_diffusion.CAPACITANCE_BUILD_AFTER + 1):
-        fn(u0.detach(), w0.detach())
-    assert any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries)
+    fn(u0.detach(), w0.detach())
+    assert _built(cache)
     assert torch.autograd.gradcheck(fn, (u0, w0))
 
 

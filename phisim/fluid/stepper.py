@@ -1,0 +1,335 @@
+"""The fluid stepper: one object per simulation set-up, settings checked and operators built once.
+
+:class:`FluidStepper` is the way to advance an incompressible flow: its constructor validates every setting
+(schemes, viscosity, buoyancy, pressure-solve settings, dtype and device) and builds what depends only on the
+settings and the geometry (the static solids' layout and, at its first use, their masked pressure operator with
+the direct solve and the viscous capacitance solves, kept on that layout); calling it advances a
+:class:`~phisim.fluid.step.FluidState`. Every name has one meaning (see ``docs/SCHEMES.md``):
+
+* ``advection``: the self-advection scheme of the split step, ``'maccormack'`` (default) or
+  ``'semi_lagrangian'``; ``marker_advection`` the marker's scheme (default: ``advection``);
+* ``viscosity_scheme``: the time discretisation of viscosity in the split step, ``'explicit'`` (default),
+  ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'``;
+* ``integrator``: the time integrator of the whole step, ``'split'`` (default; first order), ``'rk2'``
+  (Heun), ``'rk3'`` (SSP-RK3) or ``'imex2'`` (Crank-Nicolson viscosity, Heun convection).
+
+:func:`step` and :func:`navier_stokes_step` are the same steps as pure functions (nothing is kept between
+calls: solids are rasterised and their pressure operator built at every call, solved by PCG).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import torch
+
+from phisim.boundary import Boundary
+from phisim.checks import check_dt, check_finite_number, check_nonnegative
+from phisim.errors import GridMismatchError, ParameterError
+from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
+from phisim.fluid.integrators import INTEGRATORS, navier_stokes_rk_step
+from phisim.fluid.projection import check_velocity
+from phisim.fluid.step import (
+    FluidState,
+    apply_buoyancy,
+    buoyancy,
+    buoyancy_args,
+    finish_step,
+    kinetic_energy,
+    scalar_values,
+    to_time,
+)
+from phisim.fluid.viscosity import VISCOSITY_SCHEMES
+from phisim.grid import Grid
+from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect, advect_trusted, validate_advection
+from phisim.solvers.linalg import Solve
+
+__all__ = ["FluidStepper", "step", "navier_stokes_step"]
+
+
+class FluidStepper:
+    """An incompressible-flow time step with its settings and precomputed operators: ``state = stepper(state)``.
+
+    Args:
+        grid: The grid.
+        boundary: The velocity boundary (a :class:`~phisim.boundary.Boundary` or any specification
+            :class:`~phisim.field.StaggeredGrid` accepts, e.g. ``{"x": "wall", "y": "periodic"}``).
+        obstacles: Solids (see :func:`~phisim.fluid.projection.make_incompressible`). Static ones are rasterised
+            here, once, and their solvers kept; moving bodies are rasterised at each step's time.
+        viscosity: Kinematic viscosity ``>= 0``.
+        advection: ``'maccormack'`` (default) or ``'semi_lagrangian'`` self-advection (split integrator).
+        marker_advection: Marker transport scheme (one of :data:`phisim.ops.advection.SCALAR_SCHEMES`);
+            default ``advection``.
+        viscosity_scheme: ``'explicit'`` (default), ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'``.
+        integrator: ``'split'`` (default), ``'rk2'``, ``'rk3'`` or ``'imex2'``.
+        buoyancy: Buoyancy per unit marker (acceleration); needs a marker in the state.
+        buoyancy_direction: The "up" vector (default the last axis).
+        marker_source: Marker added per unit time, CenteredGrid or tensor ``(1 or B, *res)``.
+        energy_normalization: Rescale the velocity to its kinetic energy at the start of each step.
+        pressure: :class:`~phisim.solvers.linalg.Solve` settings of the masked pressure solve (and of viscous
+            solves with bodies); default: :data:`~phisim.fluid.projection.PRESSURE_SOLVE` in float64, rtol
+            1e-5 in float32.
+        dt: Default time step of a call (a call may pass its own).
+        dtype, device: Of the states this stepper advances.
+
+    Raises:
+        ParameterError: For an unknown scheme or integrator, a negative viscosity or dt, a non-finite
+            buoyancy, ``pressure`` that is not a Solve, or solids that do not fit the domain.
+        ShapeError, GridMismatchError: For a marker source that does not fit the grid.
+
+    Example:
+        >>> from phisim import Grid
+        >>> from phisim.fluid import FluidStepper, FluidState, Body, Sphere
+        >>> grid = Grid((64, 32), bounds=[(0, 2), (0, 1)])
+        >>> stepper = FluidStepper(grid, {"x": "periodic", "y": "wall"}, obstacles=Body(Sphere((0.5, 0.5), 0.1)),
+        ...                        viscosity=1e-3, dt=0.01)
+        >>> state = FluidState(StaggeredGrid.zeros(grid, stepper.boundary))
+        >>> state = stepper(state)   # doctest: +SKIP
+    """
+
+    def __init__(self, grid: Grid, boundary, *, obstacles=None, viscosity: float = 0.0,
+                 advection: str = "maccormack", marker_advection: str | None = None,
+                 viscosity_scheme: str = "explicit", integrator: str = "split", buoyancy: float = 0.0,
+                 buoyancy_direction: Sequence[float] | None = None, marker_source=None,
+                 energy_normalization: bool = False, pressure: Solve | None = None, dt=None,
+                 dtype: torch.dtype = torch.float32, device=None):
+        if not isinstance(grid, Grid):
+            raise ParameterError(f"grid must be a phisim.Grid, got {type(grid).__name__}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+        template = StaggeredGrid.zeros(grid, boundary, 1, dtype=dtype, device=device)
+        self.grid: Grid = grid
+        self.boundary: Boundary = template.boundary
+        self.dtype, self.device = dtype, template.device
+        if advection not in SCHEMES:
+            raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+        marker_advection = advection if marker_advection is None else marker_advection
+        if marker_advection not in SCALAR_SCHEMES:
+            raise ParameterError(f"unknown marker_advection {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
+        if viscosity_scheme not in VISCOSITY_SCHEMES:
+            raise ParameterError(f"unknown viscosity_scheme {viscosity_scheme!r}; choose one of {VISCOSITY_SCHEMES}")
+        if integrator not in INTEGRATORS:
+            raise ParameterError(f"unknown integrator {integrator!r}; choose one of {tuple(INTEGRATORS)}")
+        if pressure is not None and not isinstance(pressure, Solve):
+            raise ParameterError(f"pressure must be a phisim.solvers.Solve, got {type(pressure).__name__}")
+        if not isinstance(energy_normalization, bool):
+            raise ParameterError(f"energy_normalization must be True or False, got {energy_normalization!r}")
+        self.viscosity = check_nonnegative(viscosity, "viscosity")
+        self.buoyancy = check_finite_number(buoyancy, "buoyancy")
+        self.buoyancy_direction = buoyancy_args(self.buoyancy, buoyancy_direction, grid.rank)[1]
+        self.advection, self.marker_advection = advection, marker_advection
+        self.viscosity_scheme, self.integrator = viscosity_scheme, integrator
+        self.energy_normalization, self.pressure = energy_normalization, pressure
+        self.dt = None if dt is None else check_dt(dt)
+        self.marker_source = None
+        if marker_source is not None:
+            src, _ = scalar_values(marker_source, grid)
+            self.marker_source = src.to(dtype=dtype, device=self.device)
+        solids = as_solids(obstacles) if obstacles is not None else []
+        layout = solid_layout(obstacles, grid, self.boundary, 0.0, dtype, self.device)
+        static = all(isinstance(s, Obstacle) or s.static for s in solids)
+        #: The solids as passed to the step: the held (persistent) layout of static solids, the solids
+        #: themselves when some move, None without solids.
+        self.obstacles = None if layout is None else (layout.persistent() if static else tuple(solids))
+
+    def __call__(self, state: FluidState, dt=None) -> FluidState:
+        """Advance ``state`` by ``dt`` (default: the stepper's ``dt``).
+
+        Raises:
+            GridMismatchError: For a state on another grid or with another boundary.
+            ParameterError: For a state of another dtype or device, or no dt.
+        """
+        if not isinstance(state, FluidState):
+            raise ParameterError(f"a FluidStepper advances a FluidState, got {type(state).__name__}")
+        v = state.velocity
+        check_velocity(v)
+        if v.grid != self.grid:
+            raise GridMismatchError(f"state grid {v.grid} differs from the stepper's {self.grid}")
+        if v.dtype != self.dtype or v.device.type != self.device.type:
+            raise ParameterError(f"this stepper was built for {self.dtype} on {self.device}; the state is "
+                                 f"{v.dtype} on {v.device}")
+        dt = self.dt if dt is None else dt
+        if dt is None:
+            raise ParameterError("no dt: pass one to the call or to the FluidStepper")
+        return step(state, dt, viscosity=self.viscosity, buoyancy_strength=self.buoyancy,
+                    buoyancy_direction=self.buoyancy_direction, advection=self.advection,
+                    viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
+                    obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
+                    integrator=self.integrator, marker_advection=self.marker_advection)
+
+    def __repr__(self) -> str:
+        return (f"FluidStepper({self.grid}, integrator={self.integrator!r}, advection={self.advection!r}, "
+                f"viscosity={self.viscosity}, viscosity_scheme={self.viscosity_scheme!r})")
+
+
+def navier_stokes_step(
+    velocity: StaggeredGrid,
+    dt,
+    *,
+    viscosity: float = 0.0,
+    advection: str = "semi_lagrangian",
+    viscosity_scheme: str = "explicit",
+    force: StaggeredGrid | None = None,
+    obstacles=None,
+    solve: Solve | None = None,
+    pressure_guess: CenteredGrid | torch.Tensor | None = None,
+    energy_normalization: bool = False,
+    time: float = 0.0,
+    integrator: str = "split",
+) -> tuple[StaggeredGrid, CenteredGrid]:
+    """One incompressible Navier-Stokes step: advect, force, diffuse, project (and optionally renormalise).
+
+    ``u* = A(u; u, dt) + dt f``, the boundary (inflow profiles) and the bodies taken to time ``time + dt``,
+    the bodies' velocity imposed on the faces they cover (:func:`impose_solids`, so that viscosity sees
+    each body's velocity at its surface), ``u** = diffuse(u*)``, ``u_new, p = make_incompressible(u**)``; with
+    ``energy_normalization`` the result is rescaled to the kinetic energy of ``u`` (E5 of the paper).
+    First order in time (operator splitting); second order in space with MacCormack advection. With
+    ``integrator`` other than ``'split'`` the step is :func:`~phisim.fluid.integrators.navier_stokes_rk_step`
+    (second order in time; central convection, so ``advection`` and ``viscosity_scheme`` do not apply).
+
+    Args:
+        velocity: MAC velocity ``(B, *face_shape(i))`` per component.
+        dt: Time step ``>= 0``.
+        viscosity: Kinematic viscosity ``>= 0`` (0 skips diffusion).
+        advection: ``'semi_lagrangian'`` or ``'maccormack'`` self-advection.
+        viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (see
+            :func:`diffuse_velocity`; the implicit ones are exact spectral solves, about as cheap as explicit).
+        force: Optional body force (acceleration) as a StaggeredGrid on the same grid.
+        obstacles: Obstacles (see :func:`make_incompressible`).
+        solve: CG settings of the masked pressure solve and of implicit viscosity.
+        pressure_guess: Previous pressure, the warm start of the CG pressure solve.
+        energy_normalization: Rescale the result to ``kinetic_energy(velocity)``.
+        time: Simulation time at the start of the step (moving bodies, time-dependent inflows).
+        integrator: ``'split'`` (this function's first-order step, default), ``'rk2'``, ``'rk3'`` or
+            ``'imex2'`` (see :mod:`phisim.fluid.integrators`; ``'imex2'`` treats viscosity implicitly and
+            needs the previous pressure as ``pressure_guess`` for second order at walls).
+
+    Returns:
+        ``(velocity, pressure)`` after the step.
+
+    Raises:
+        ParameterError: For invalid parameters or schemes.
+        GridMismatchError: If ``velocity``/``force`` are not matching StaggeredGrids.
+        SolveError: If a CG solve does not converge.
+    """
+    check_velocity(velocity)
+    dt = check_dt(dt)
+    if advection not in SCHEMES:
+        raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    if integrator != "split":
+        if force is not None:
+            check_velocity(force, "force")
+        return navier_stokes_rk_step(velocity, dt, viscosity=viscosity, integrator=integrator, force=force,
+                                     time=time, obstacles=obstacles, solve=solve, pressure_guess=pressure_guess,
+                                     energy_normalization=energy_normalization)
+    e0 = kinetic_energy(velocity) if energy_normalization else None
+    v = advect(velocity, velocity, dt, scheme=advection)
+    v = to_time(v, float(time) + float(dt))
+    if force is not None:
+        check_velocity(force, "force")
+        if force.grid != v.grid:
+            raise GridMismatchError(f"force grid {force.grid} differs from the velocity grid {v.grid}")
+        v = v + dt * force.with_boundary(v.boundary)
+    return finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess,
+                        float(time) + float(dt))
+
+
+
+def step(
+    state: FluidState,
+    dt,
+    *,
+    viscosity: float = 0.0,
+    buoyancy_strength: float = 0.0,
+    buoyancy_direction: Sequence[float] | None = None,
+    advection: str = "maccormack",
+    viscosity_scheme: str = "explicit",
+    marker_source: CenteredGrid | torch.Tensor | None = None,
+    obstacles=None,
+    solve: Solve | None = None,
+    energy_normalization: bool = False,
+    integrator: str = "split",
+    marker_advection: str | None = None,
+) -> FluidState:
+    """Advance a smoke simulation by ``dt``: marker transport, buoyancy, Navier-Stokes step.
+
+    Order: ``marker <- A(marker; u) + dt * source`` (zeroed in cells entirely inside solids),
+    ``u <- A(u; u)``, buoyancy from the new marker, the solids' velocity imposed (moving bodies at
+    ``time + dt``), viscosity, projection (warm-started from ``state.pressure``), optional energy rescaling.
+
+    Args:
+        state: Current :class:`FluidState`.
+        dt: Time step ``>= 0``.
+        viscosity: Kinematic viscosity.
+        buoyancy_strength: Buoyancy per unit marker (see :func:`buoyancy`); needs a marker.
+        buoyancy_direction: "Up" vector (default the last axis).
+        advection: ``'semi_lagrangian'`` or ``'maccormack'`` (for the velocity of the split step, and for
+            the marker unless ``marker_advection`` says otherwise).
+        viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (split step).
+        marker_source: Marker added per unit time (an inflow), CenteredGrid or tensor ``(B or 1, *res)``.
+        obstacles: Obstacles (see :func:`make_incompressible`).
+        solve: CG settings.
+        energy_normalization: Rescale the velocity to its energy at the start of the step.
+        integrator: ``'split'`` (first order, default), ``'rk2'``, ``'rk3'`` or ``'imex2'`` (second order in
+            time for the velocity; see :mod:`phisim.fluid.integrators`). The buoyancy of the new marker is
+            then a force held constant over the step.
+        marker_advection: Scheme of the marker transport: one of
+            :data:`phisim.ops.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
+            in closed boxes and periodic domains and never makes it negative. Default: ``advection``.
+
+    Returns:
+        The new state (``time + dt``).
+
+    Raises:
+        ParameterError, ShapeError, GridMismatchError, SolveError: See the functions it composes.
+    """
+    dt = check_dt(dt)
+    v0 = state.velocity
+    check_velocity(v0)
+    if advection not in SCHEMES:
+        raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    marker_advection = advection if marker_advection is None else marker_advection
+    if marker_advection not in SCALAR_SCHEMES:
+        raise ParameterError(f"unknown marker advection scheme {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
+    e0 = kinetic_energy(v0) if energy_normalization else None
+    marker = state.marker
+    # validated once here (types, grids, dt, a finite velocity); the inner calls take the trusted paths
+    if marker is not None:
+        validate_advection(marker, v0, dt, marker_advection, "euler", "minmax")
+    else:
+        validate_advection(v0, v0, dt, advection, "euler", "minmax")
+    if marker is not None:
+        marker = advect_trusted(marker, v0, dt, scheme=marker_advection)
+        if marker_source is not None:
+            src, _ = scalar_values(marker_source, marker.grid)
+            marker = marker + dt * src.to(dtype=marker.dtype, device=marker.device)
+        layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary,
+                                                             state.time + float(dt), marker.dtype, marker.device)
+        if layout is not None:  # no marker in cells entirely inside a solid
+            marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
+    elif buoyancy_strength != 0:
+        raise ParameterError("buoyancy_strength needs a marker in the state")
+    lift = marker is not None and buoyancy_strength != 0
+    if lift:
+        strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
+        scalar_values(state.marker, v0.grid)  # a scalar CenteredGrid on the velocity's grid
+    t_new = state.time + float(dt)
+    if integrator != "split":
+        force = None
+        if marker is not None and buoyancy_strength != 0:
+            force = buoyancy(StaggeredGrid.zeros(v0.grid, v0.boundary, v0.batch_size, dtype=v0.dtype,
+                                                 device=v0.device), marker, 1.0, strength=buoyancy_strength,
+                             direction=buoyancy_direction)
+        v, p = navier_stokes_rk_step(v0, dt, viscosity=viscosity, integrator=integrator, force=force,
+                                     time=state.time, obstacles=obstacles, solve=solve,
+                                     pressure_guess=state.pressure, energy_normalization=energy_normalization)
+        return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
+    v = advect_trusted(v0, v0, dt, scheme=advection)
+    v = to_time(v, t_new)
+    if lift:  # sets the boundary faces
+        v = apply_buoyancy(v, marker.values, marker.boundary, dt, strength, direction)
+    v, p = finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new,
+                        faces_set=lift)
+    return replace(state, velocity=v, marker=marker, pressure=p, time=state.time + float(dt))
