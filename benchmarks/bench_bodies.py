@@ -32,12 +32,12 @@ from timing import synchronize  # noqa: E402
 
 from phisim.boundary import Boundary  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fluid import Body, Box, Sphere, solid_layout  # noqa: E402
-from phisim.fluid.projection import _operator, _pressure_kinds  # noqa: E402
+from phisim.fluid import Body, Box, FluidState, FluidStepper, Projection, Sphere, solid_layout  # noqa: E402  # noqa: E402
 from phisim.grid import Grid  # noqa: E402
-from phisim.solvers import masked as pm  # noqa: E402
-from phisim.solvers.linalg import Solve  # noqa: E402
 from phisim.solvers.box import TRANSFORMS, apply_multiplier, transform_layout, transform_scale  # noqa: E402
+from phisim.solvers.linalg import Solve  # noqa: E402
+from phisim.solvers.masked import MaskedPoisson  # noqa: E402
+from phisim.solvers.poisson import field_kinds_and_values  # noqa: E402
 from phisim.spectral.fft import r2r_multiply  # noqa: E402
 
 
@@ -72,7 +72,8 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     bodies = [Body(Sphere((0.3, 0.45), 0.1)), Body(Box((0.55, 0.2), (0.65, 0.35))),
               Body(Box((0.6, 0.6), (0.75, 0.7)))]
     layout = solid_layout(bodies, grid, boundary, 0.0, dtype, device)
-    op = _operator(layout, _pressure_kinds(boundary), grid.dx, layout.theta[0])
+    kinds = field_kinds_and_values(boundary.for_pressure())[0]
+    op = MaskedPoisson(layout.theta, grid.dx, kinds, direct=False)  # the PCG figures
     g = torch.Generator().manual_seed(0)
     rhs = torch.randn(1, n, n, generator=g, dtype=torch.float64).to(device=device, dtype=dtype) * op.active.to(dtype)
     x = torch.randn(rhs.shape, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
@@ -89,7 +90,6 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
         op.apply(x)
 
     tol = Solve(rtol=1e-6 if dtype == torch.float64 else 1e-5, raise_on_failure=False, refine=False)
-    pm.DIRECT = False  # the PCG figures: no direct solve of this (repeatedly solved) layout
     _, info = op.solve(rhs, solve=tol)
     iters = int(info.iterations[0])
     t_floor = _best(floor, repeat, 20, device)
@@ -107,37 +107,27 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
     # the direct solve of the same operator (CPU): built once (k box solves), then two box solves per call
     direct = {}
     if device.type == "cpu":
-        pm.DIRECT = True
-        op._direct = None  # the same operator: set the direct solve up anew and build it on this request
-        op._requests = 10**9
         t = time.perf_counter()
-        op.solve(rhs, solve=tol)
+        dop = MaskedPoisson(layout.theta, grid.dx, kinds, direct=True)  # the same layout, solved directly
+        dop.solve(rhs, solve=tol)  # the first solve builds it
         t_build = time.perf_counter() - t
         with torch.no_grad():
-            t_direct = _best(lambda: op.solve(rhs, solve=tol), repeat, 3, device)
-        _, dinfo = op.solve(rhs, solve=tol)
-        direct = {"direct_ms": 1e3 * t_direct, "direct_build_ms": 1e3 * t_build, "rank": op._direct.rank,
+            t_direct = _best(lambda: dop.solve(rhs, solve=tol), repeat, 3, device)
+        _, dinfo = dop.solve(rhs, solve=tol)
+        direct = {"direct_ms": 1e3 * t_direct, "direct_build_ms": 1e3 * t_build, "rank": dop._direct.rank,
                   "direct_iterations": int(dinfo.iterations[0])}
     return {"n": n, "dtype": str(dtype).replace("torch.", ""), "floor_ms": 1e3 * t_floor,
             "iteration_ms": 1e3 * per_iter, "ratio": per_iter / t_floor, "iterations_to_rtol": iters,
             "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
 
 
-def _median_step_ms(step, state, steps: int, direct: bool) -> float:
-    """Median ms of ``state = step(state)`` over the last half of ``steps`` steps, the pressure by PCG only or
-    with the direct solve (a fresh operator cache, so the direct solve is built within the run)."""
-    from phisim.fluid import projection
-
-    pm.DIRECT = direct
-    projection._OPS.clear()
+def _median_step_ms(step, state, steps: int) -> float:
+    """Median ms of ``state = step(state, k)`` over the last half of ``steps`` steps."""
     times = []
-    try:
-        for k in range(steps):
-            t = time.perf_counter()
-            state = step(state, k)
-            times.append(time.perf_counter() - t)
-    finally:
-        pm.DIRECT = True
+    for k in range(steps):
+        t = time.perf_counter()
+        state = step(state, k)
+        times.append(time.perf_counter() - t)
     return 1e3 * statistics.median(times[steps // 2:])
 
 
@@ -147,7 +137,6 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve."""
     from phisim import Open, StaggeredGrid
     from phisim.boundary import Inflow
-    from phisim.fluid import navier_stokes_step
 
     u = 0.5
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
@@ -156,11 +145,10 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
                                     grid, {"x": (Inflow((u, 0.0)), Open()), "y": "wall"}, dtype=dtype)
     body = Body(Sphere((0.25 * n, 0.52 * n), 0.06 * n))
 
-    def step(state, k):
-        return navier_stokes_step(state[0], 1.0, viscosity=u * 0.12 * n / 100, advection="semi_lagrangian",
-                                  obstacles=body, pressure_guess=state[1], time=float(k), viscosity_scheme="implicit")
-
-    return _median_step_ms(step, (v, None), steps, direct)
+    stepper = FluidStepper(grid, v.boundary, obstacles=body, viscosity=u * 0.12 * n / 100,
+                           advection="semi_lagrangian", viscosity_scheme="implicit", dt=1.0, dtype=dtype,
+                           direct="auto" if direct else False)
+    return _median_step_ms(lambda state, k: stepper(state), FluidState(v), steps)
 
 
 def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
@@ -168,7 +156,7 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
     from phisim import CenteredGrid, StaggeredGrid
-    from phisim.fluid import buoyancy, make_incompressible
+    from phisim.fluid import buoyancy
     from phisim.ops.advection import maccormack, semi_lagrangian
 
     grid = Grid((n, n), bounds=[(0.0, float(n)), (0.0, float(n))])
@@ -180,14 +168,16 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     boxes = [((round(0.35 * n), round(0.45 * n)), (round(0.55 * n), round(0.52 * n))),
              ((round(0.55 * n), round(0.68 * n)), (round(0.80 * n), round(0.74 * n)))]
     bodies = [Body(Box(lo, hi)) for lo, hi in boxes]
+    project = Projection(grid, v.boundary, bodies, dtype=dtype, direct="auto" if direct else False)
 
     def step(state, k):
         m, vel, p = state
         m = maccormack(m, vel, 1.0) + source
         vel = buoyancy(semi_lagrangian(vel, vel, 1.0), m, 1.0, strength=0.1)
-        return (m, *make_incompressible(vel, bodies, pressure_guess=p))
+        out = project(vel, pressure_guess=p)
+        return m, out.velocity, out.pressure
 
-    return _median_step_ms(step, (smoke, v, None), steps, direct)
+    return _median_step_ms(step, (smoke, v, None), steps)
 
 
 def main(argv=None) -> int:

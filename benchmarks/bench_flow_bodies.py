@@ -117,16 +117,14 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
     from phisim import CenteredGrid, Grid, Open, StaggeredGrid
     from phisim.boundary import Inflow
     from phisim.checks import check_device
-    from phisim.fluid import Body, Box, Obstacle, Sphere, buoyancy, make_incompressible, navier_stokes_step
+    from phisim.fluid import Body, Box, FluidState, FluidStepper, Obstacle, Projection, Sphere, buoyancy
     from phisim.ops.advection import maccormack, semi_lagrangian
     from phisim.ops.differential import divergence
-    from phisim.solvers import masked as poisson_masked
     from phisim.solvers.linalg import Solve
     from phisim.solvers.masked import MaskedPoisson
 
-    # Like for like: both codes iterate (CG) to the same stopping rule; phisim's direct solve of a layout that
-    # keeps coming back (the wake's static disc) is measured by benchmarks/bench_bodies.py instead.
-    poisson_masked.DIRECT = False
+    # Like for like: both codes iterate (CG) to the same stopping rule (direct=False); phisim's direct solve of a
+    # layout that keeps coming back (the wake's static disc) is measured by benchmarks/bench_bodies.py instead.
     infos = []
     orig = MaskedPoisson.solve
 
@@ -149,13 +147,14 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
         source = torch.as_tensor(init["inflow"]).to(dev)
         v = StaggeredGrid([torch.as_tensor(c).to(dev) for c in init["velocity"]], grid, "wall")
         solids = [Obstacle.box(lo, hi) if staircase else Body(Box(lo, hi)) for lo, hi in p["boxes"]]
+        project = Projection(grid, v.boundary, solids, solve=solve, dtype=dtype, device=dev, direct=False)
 
         def step(state):
             m, vel, pr = state
             m = maccormack(m, vel, dt) + source * dt
             vel = semi_lagrangian(vel, vel, dt)
             vel = buoyancy(vel, m, dt, strength=p["buoyancy"])
-            vel, pr = make_incompressible(vel, solids, solve=solve, pressure_guess=pr)
+            vel, pr, _ = project(vel, pressure_guess=pr)
             return m, vel, pr
 
         state = (smoke, v, None)
@@ -168,11 +167,13 @@ def _run_phisim(name: str, n: int, warm: int, steps: int, repeat: int, staircase
         solids = (Obstacle.sphere(p["center"], p["radius"]) if staircase
                   else Body(Sphere(p["center"], p["radius"])))
 
+        stepper = FluidStepper(grid, v.boundary, obstacles=solids, viscosity=p["nu"], advection="semi_lagrangian",
+                               pressure=solve, dt=dt, dtype=dtype, device=dev, direct=False)
+
         def step(state):
             t, vel, pr = state
-            vel, pr = navier_stokes_step(vel, dt, viscosity=p["nu"], advection="semi_lagrangian",
-                                         obstacles=solids, solve=solve, pressure_guess=pr, time=t)
-            return t + dt, vel, pr
+            s = stepper(FluidState(vel, None, pr, t))
+            return s.time, s.velocity, s.pressure
 
         state = (0.0, v, None)
     for _ in range(warm):

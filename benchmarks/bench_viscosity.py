@@ -41,7 +41,7 @@ from timing import synchronize  # noqa: E402
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fluid import navier_stokes_step  # noqa: E402
+from phisim.fluid import FluidState, FluidStepper, navier_stokes_step  # noqa: E402
 from phisim.fluid.bodies import Body  # noqa: E402
 from phisim.fluid.geometry import Sphere  # noqa: E402
 from phisim.solvers import mac_diffusion as _mac_diffusion  # noqa: E402
@@ -82,9 +82,9 @@ NOTES = """Reading the tables:
   component), LU-factored once per body and ν dt, then two exact box solves and one |S|-sized triangular solve
   per component: 2.3-2.6x explicit at 48²-64², 2.9-3.4x at 128², 4.2-4.5x at 256² (both precisions), i.e.
   about twice the box solve, the floor of this method (the second solve's source is sparse, but its answer
-  is not). The build (|S| box solves) runs once the PCG calls on the same body and ν dt have cost about as
-  much (`CAPACITANCE_FACES_PER_REQUEST`; call 3-10 here). PCG with the exact box solve as preconditioner (the
-  first calls, a tensor ν, per-sample bodies) costs 30-58x explicit. Only `imex2` pays the body solve: the
+  is not). The build (|S| box solves) runs at the first call of an owner that keeps the body (a stepper's static
+  bodies pass their solver cache as `capacitance=`). PCG with the exact box solve as preconditioner (pure
+  function calls, a tensor ν, per-sample bodies) costs 30-58x explicit. Only `imex2` pays the body solve: the
   split step imposes bodies before and after a box solve, so its viscosity costs the box column.
 - In whole steps with a body the viscosity solves no longer dominate (last table): 5-7 % of a split step and
   12-19 % of an `imex2` step at 48²-256² (ν dt / dx² = 0.3-1.3 per solve); the masked pressure projection
@@ -148,17 +148,14 @@ def table(sizes, dtype) -> list[str]:
         explicit = bench(lambda v=v, h=dt_explicit: diffuse_staggered(v, h, viscosity=NU, method="explicit"))
         implicit = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="implicit"))
         cn = bench(lambda v=v, h=dt: diffuse_staggered(v, h, viscosity=NU, method="crank_nicolson"))
-        _mac_diffusion._CAP_CACHE.clear()
-        calls = 0
-        while not any(e[2] for entries in _mac_diffusion._CAP_CACHE.values() for e in entries) and calls < 100:
-            t0, c0 = time.perf_counter(), time.process_time()  # PCG until the call that builds the matrices
-            diffuse_staggered(v, dt, viscosity=NU, method="implicit", fixed=masks, solve=solve)
-            build = (1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0))
-            calls += 1
-        surface = max(e[2].surface.numel() for entries in _mac_diffusion._CAP_CACHE.values() for e in entries
-                      if e[2])
-        body = bench(lambda v=v, h=dt, m=masks, s=solve: diffuse_staggered(v, h, viscosity=NU, method="implicit",
-                                                                           fixed=m, solve=s))
+        cache: dict = {}  # the body's solver cache, as a stepper keeps it for its static bodies
+        t0, c0 = time.perf_counter(), time.process_time()  # the first call with the cache builds the matrices
+        diffuse_staggered(v, dt, viscosity=NU, method="implicit", fixed=masks, solve=solve, capacitance=cache)
+        build = (1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0))
+        calls = 1
+        surface = max(s.surface.numel() for k, (_, s) in cache.items() if k[0] == "capacitance" and s)
+        body = bench(lambda v=v, h=dt, m=masks, s=solve, c=cache: diffuse_staggered(
+            v, h, viscosity=NU, method="implicit", fixed=m, solve=s, capacitance=c))
         # a tensor viscosity keeps the PCG path (what the first call with a new body or ν dt runs)
         nu_t = torch.tensor(NU, dtype=dtype, device=DEVICE)
         pcg = bench(lambda v=v, h=dt, m=masks, s=solve, nu=nu_t: diffuse_staggered(
@@ -261,9 +258,11 @@ def bench_body_steps(sizes, dtype, repeat: int = 10) -> list[str]:
                 dtype=dtype, device=DEVICE) for i in range(2)), grid, "wall").with_boundary_faces()
             row = []
             for kw in ({"viscosity_scheme": "implicit"}, {"integrator": "imex2"}):
-                def step(kw=kw, v=v, n=n):
-                    return navier_stokes_step(v, 0.5 / n, viscosity=0.01, advection="maccormack", obstacles=[body],
-                                              **kw)
+                stepper = FluidStepper(grid, v.boundary, obstacles=[body], viscosity=0.01, advection="maccormack",
+                                       dt=0.5 / n, dtype=dtype, device=DEVICE, **kw)
+
+                def step(stepper=stepper, v=v):
+                    return stepper(FluidState(v))
                 for _ in range(12):
                     step()
                 samples = []

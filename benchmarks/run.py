@@ -592,8 +592,8 @@ def _fft_decision(base: str) -> list[str]:
         "",
         f"- made by {cmd} ({runs}{m['date']}, {m['machine']}); "
         "one step = rfftn, multiply by the precomputed decay, irfftn; inputs from `benchmarks/inputs.py`.",
-        "- `phisim.spectral.fft` rows call `phisim.spectral.fft.rfftn/irfftn` (torch tensors in and out, autograd wrappers, "
-        "plan cache) with the same multiply; the gap to the raw engine is the wrapper's cost.",
+        "- `phisim.spectral.fft` rows call `phisim.spectral.fft.rfftn/irfftn` (torch tensors in and out, autograd "
+        "wrappers, plan cache) with the same multiply; the gap to the raw engine is the wrapper's cost.",
         "",
     ]
     # the decision: which engine wins at one thread, and whether a second FFTW thread pays off

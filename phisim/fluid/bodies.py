@@ -352,14 +352,27 @@ class SolidLayout:
     bodies: tuple
     solvers: dict | None = field(default=None, repr=False)
 
-    def persistent(self) -> SolidLayout:
-        """This layout marked for reuse: solvers built for it are kept on it and direct solves are used.
+    def persistent(self, direct: bool | str = "auto") -> SolidLayout:
+        """This layout marked for reuse: solvers built for it are kept on it.
+
+        Args:
+            direct: ``'auto'``: the direct solves that pay off when reused (the pressure's capacitance solve where
+                it applies and pays, the viscous capacitance solves) are used; ``False``: iterative solves only.
 
         Layouts that depend on tensors requiring grad (shape parameters) stay one-off.
         """
-        if self.solvers is not None or any(t.requires_grad for t in self.theta):
+        if direct not in ("auto", False):
+            raise ParameterError(f"direct must be 'auto' or False, got {direct!r}")
+        if any(t.requires_grad for t in self.theta):
             return self
-        return replace(self, solvers={})
+        if self.solvers is not None and self.solvers.get("direct") == direct:
+            return self
+        return replace(self, solvers={"direct": direct})
+
+    @property
+    def direct(self) -> bool | str:
+        """The direct-solve policy of a persistent layout (False for a one-off layout)."""
+        return False if self.solvers is None else self.solvers["direct"]
 
     def to(self, dtype=None, device=None) -> SolidLayout:
         """A copy with tensors converted."""
@@ -371,7 +384,7 @@ class SolidLayout:
 
         out = SolidLayout(cvs(self.theta), cvs(self.solid_velocity), cvs(self.slip), cv(self.cell_fraction),
                           self.bodies)
-        return out if self.solvers is None else out.persistent()
+        return out if self.solvers is None else out.persistent(self.direct)
 
 
 def sdf_gradient(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor:

@@ -275,7 +275,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         y = impose_solids(to_time(y, t_new), layout)
         if float(nu) != 0:
             y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve,
-                                  capacitance=None if layout is None else layout.solvers)
+                                  capacitance=layout.solvers if layout is not None and layout.direct else None)
         return make_incompressible(y, layout, solve=solve, time=t_new,
                                    pressure_guess=None if grad_q is None else torch.zeros_like(grad_q[0].values))
 

@@ -154,12 +154,13 @@ def _pressure_kinds(boundary: Boundary):
     return kinds
 
 
-def _operator(layout: SolidLayout, kinds, dx, direct="auto") -> MaskedPoisson:
-    """The pressure operator of ``layout``: kept on a persistent layout (with the direct solve where it
-    applies, unless ``direct`` is False), built anew for a one-off layout (PCG)."""
+def _operator(layout: SolidLayout, kinds, dx) -> MaskedPoisson:
+    """The pressure operator of ``layout``: kept on a persistent layout (with the direct solve where it applies
+    and the layout's policy allows it), built anew for a one-off layout (PCG)."""
     cache = layout.solvers
     if cache is None:
         return MaskedPoisson(layout.theta, dx, kinds, direct=False)
+    direct = layout.direct
     key = ("pressure", kinds, tuple(dx), direct)
     op = cache.get(key)
     if op is None:
@@ -219,7 +220,7 @@ class Projection:
             raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' "
                                  "or 'cg'")
         self.has_solids = layout is not None
-        self._layout = layout.persistent() if (layout is not None and self.static) else None
+        self._layout = layout.persistent(direct) if (layout is not None and self.static) else None
 
     def layout(self, time: float = 0.0) -> SolidLayout | None:
         """The solids at ``time`` (the held layout of static solids)."""
@@ -248,7 +249,7 @@ class Projection:
         if layout is None and self.method != "cg":
             out, pressure = project_box(velocity.with_boundary_faces(), check=True)
             return ProjectionResult(out, pressure, None)
-        return _project(velocity.with_boundary_faces(), layout, self.solve, pressure_guess, self.direct)
+        return _project(velocity.with_boundary_faces(), layout, self.solve, pressure_guess)
 
 
 def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
@@ -380,7 +381,7 @@ def project_box(v: StaggeredGrid, check: bool = True):
     return out, pressure
 
 
-def _project(v, layout, solve, pressure_guess, direct="auto") -> ProjectionResult:
+def _project(v, layout, solve, pressure_guess) -> ProjectionResult:
     """The CG projection (solids, or ``method='cg'``) of ``v`` with its boundary faces set."""
     grid, boundary = v.grid, v.boundary
     _check_balance(v)
@@ -394,7 +395,7 @@ def _project(v, layout, solve, pressure_guess, direct="auto") -> ProjectionResul
     if bool((cell.flatten(1).max(1).values <= 0).any()) and layout.bodies:
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
     flux = _blend(v.values, layout)
-    op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx, direct)
+    op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx)
     rhs = -op.divergence(flux)
     x0 = _guess_tensor(pressure_guess, v)
     if solve is None:

@@ -73,6 +73,9 @@ class FluidStepper:
             1e-5 in float32.
         dt: Default time step of a call (a call may pass its own).
         dtype, device: Of the states this stepper advances.
+        direct: ``'auto'`` (default): static solids get the direct solves that pay off when reused (pressure:
+            :class:`~phisim.solvers.masked.MaskedPoisson` ``direct='auto'``; viscosity of ``'imex2'``: capacitance
+            solves); ``False``: iterative solves only.
 
     Raises:
         ParameterError: For an unknown scheme or integrator, a negative viscosity or dt, a non-finite
@@ -94,7 +97,7 @@ class FluidStepper:
                  viscosity_scheme: str = "explicit", integrator: str = "split", buoyancy: float = 0.0,
                  buoyancy_direction: Sequence[float] | None = None, marker_source=None,
                  energy_normalization: bool = False, pressure: Solve | None = None, dt=None,
-                 dtype: torch.dtype = torch.float32, device=None):
+                 dtype: torch.dtype = torch.float32, device=None, direct: bool | str = "auto"):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim.Grid, got {type(grid).__name__}")
         if dtype not in (torch.float32, torch.float64):
@@ -132,7 +135,9 @@ class FluidStepper:
         static = all(isinstance(s, Obstacle) or s.static for s in solids)
         #: The solids as passed to the step: the held (persistent) layout of static solids, the solids
         #: themselves when some move, None without solids.
-        self.obstacles = None if layout is None else (layout.persistent() if static else tuple(solids))
+        if direct not in ("auto", False):
+            raise ParameterError(f"direct must be 'auto' or False, got {direct!r}")
+        self.obstacles = None if layout is None else (layout.persistent(direct) if static else tuple(solids))
 
     def __call__(self, state: FluidState, dt=None) -> FluidState:
         """Advance ``state`` by ``dt`` (default: the stepper's ``dt``).
@@ -169,7 +174,7 @@ def navier_stokes_step(
     dt,
     *,
     viscosity: float = 0.0,
-    advection: str = "semi_lagrangian",
+    advection: str = "maccormack",
     viscosity_scheme: str = "explicit",
     force: StaggeredGrid | None = None,
     obstacles=None,
@@ -193,7 +198,7 @@ def navier_stokes_step(
         velocity: MAC velocity ``(B, *face_shape(i))`` per component.
         dt: Time step ``>= 0``.
         viscosity: Kinematic viscosity ``>= 0`` (0 skips diffusion).
-        advection: ``'semi_lagrangian'`` or ``'maccormack'`` self-advection.
+        advection: ``'maccormack'`` (default) or ``'semi_lagrangian'`` self-advection.
         viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (see
             :func:`diffuse_velocity`; the implicit ones are exact spectral solves, about as cheap as explicit).
         force: Optional body force (acceleration) as a StaggeredGrid on the same grid.
