@@ -12,7 +12,8 @@ on stdout:
 
 A case: ``eq`` (``"ks1d"``: conservative Kuramoto-Sivashinsky; ``"ns2d"``: 2-D Navier-Stokes in vorticity form),
 ``n`` (points per axis), ``batch``, ``mode`` (``"step"`` or ``"rollout"``), ``steps``, ``dt``, ``domain``,
-``viscosity`` (ns2d), ``order`` (ETDRK order). The initial state is the analytic field of
+``viscosity`` (ns2d), ``order`` (ETDRK order); ``"fft2d"`` times one ``rfft2`` + ``irfft2`` pair of the ns2d state
+(the transform floor). The initial state is the analytic field of
 :func:`initial_state`, which ``bench_etdrk.py`` builds identically.
 """
 
@@ -61,6 +62,8 @@ def build(case: dict):
     import jax.numpy as jnp
 
     n, dt, length, order = case["n"], case["dt"], case["domain"], case["order"]
+    if case["eq"] == "fft2d":  # the FFT floor: one forward and one inverse real 2-D transform
+        return jax.jit(jax.vmap(lambda u: jnp.fft.irfft2(jnp.fft.rfft2(u), s=(n, n)))), jnp.asarray(initial_state(case))
     if case["eq"] == "ks1d":
         stepper = ex.stepper.KuramotoSivashinskyConservative(1, length, n, dt, order=order)
     elif case["eq"] == "ns2d":
