@@ -204,7 +204,7 @@ def markdown(res: dict) -> list[str]:
                       "measured ones (worst for the DCT/DST of the Poisson solves), so the default keeps "
                       "FFTW_MEASURE and makes it reproducible with the per-machine wisdom file: the first process "
                       "on a machine pays the measurement once per transform size, every later process plans from "
-                      "the file (bit-identical results, `tests/phisim/test_reproducible.py`)."]
+                      "the file (bit-identical results, `tests/phisim/spectral/test_reproducible.py`)."]
         lines.append("")
     if res.get("float32"):
         where = res["float32"][0].get("device", "cpu")
@@ -220,7 +220,7 @@ def markdown(res: dict) -> list[str]:
                   "rounds here), at a cost comparable to the float64 solve. From 128^2 on no float32 vector meets "
                   "rtol 1e-5 (rounding the float64 solution alone leaves the residual in the 'rounding floor' "
                   "column); the solve then reports the tolerance widened by that floor, and the true residual "
-                  "of the returned float32 solution meets it (`tests/phisim/test_float32_default.py`, 64^2 to "
+                  "of the returned float32 solution meets it (`tests/phisim/solvers/test_float32_default.py`, 64^2 to "
                   "512^2 and 64^3)."]
         lines.append("")
     if res.get("journal"):
@@ -251,7 +251,7 @@ def markdown(res: dict) -> list[str]:
                   "inside an HDF5 metadata flush can leave a file HDF5 rejects as a whole (seen in 1 of 100 kills "
                   "in an earlier run of this script: 'addr overflow'), and a file cut short (power loss) is never "
                   "readable. With the journal every kill and every cut reads back to the completed frames "
-                  "(`tests/phisim/test_crash_safety.py`: 200 + 60 kills and a cut at every record boundary)."]
+                  "(`tests/phisim/io/test_crash_safety.py`: 200 + 60 kills and a cut at every record boundary)."]
         lines.append("")
     return lines
 

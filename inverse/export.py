@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from phisim.errors import FileFormatError
+from phisim.io import read_training
+
 __all__ = ["export_csv", "TensorBoardLogger", "tensorboard_available"]
 
 
@@ -32,8 +35,6 @@ def export_csv(path: str | os.PathLike, out_dir: str | os.PathLike) -> list[Path
     Raises:
         FileFormatError: The file cannot be read or holds no training curves.
     """
-    from phisim.errors import FileFormatError
-    from phisim.io import read_training
 
     curves = read_training(path)
     if not curves:

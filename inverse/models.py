@@ -28,6 +28,9 @@ from torch import nn
 
 from phisim.errors import FileFormatError, ParameterError, ShapeError
 
+from .custom import CustomProblem
+from .problems import PROBLEMS, get_problem
+
 __all__ = ["MODEL_FORMAT", "model_path", "problem_spec", "save_model", "read_model_file", "load_model",
            "predict", "predict_file"]
 
@@ -65,14 +68,12 @@ def problem_spec(problem) -> dict:
     dataclass fields that differ from their defaults and are plain values.
     """
     spec = getattr(problem, "spec", None)
-    from .custom import CustomProblem
 
     if isinstance(problem, CustomProblem) and not (isinstance(spec, dict) and spec.get("factory")):
         return {"factory": None, "settings": {}}  # built from functions in Python: not rebuildable by name
     if isinstance(spec, dict) and spec.get("factory"):
         settings = {k: _jsonable(v) for k, v in spec.get("settings", {}).items()}
         return {"factory": spec["factory"], "settings": {k: v for k, v in settings.items() if v is not _SKIP}}
-    from .problems import PROBLEMS
 
     cls = type(problem)
     factory = next((n for n, c in PROBLEMS.items() if c is cls), None)
@@ -179,7 +180,6 @@ def load_model(path: str | os.PathLike, *, network: nn.Module | None = None, dev
     """
     state = read_model_file(path)
     if network is None:
-        from .problems import get_problem
 
         if not state["factory"]:
             raise ParameterError(f"model file {path} comes from a problem built in Python (make_problem without "

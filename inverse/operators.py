@@ -27,6 +27,7 @@ from phisim.errors import NonFiniteError, ParameterError, ShapeError
 from phisim.solvers.diffusion import fourier_heat, fourier_k2
 from phisim.solvers.linalg import Solve, cg, remove_mean
 from phisim.solvers.poisson import normalize_kinds, spectral_poisson_solve, stencil_laplacian
+from phisim.spectral.fft import r2rn
 
 __all__ = [
     "PhysicsOperator",
@@ -516,7 +517,6 @@ def ghost_dirichlet_laplacian(u: torch.Tensor, dx=1.0) -> torch.Tensor:
 
 def ghost_dirichlet_solve(x: torch.Tensor, dx=1.0) -> torch.Tensor:
     """Exact inverse of :func:`ghost_dirichlet_laplacian` by DST type I on every axis (``(B, *res)``)."""
-    from phisim.spectral.fft import r2rn
 
     res = tuple(x.shape[1:])
     rank = len(res)

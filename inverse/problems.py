@@ -24,10 +24,16 @@ import torch
 from torch import nn
 
 from phisim.errors import ParameterError
+from phisim.grid import Grid
+from phisim.simulate.noise import random_rectangles, spectral_noise
+from phisim.solvers.linalg import Solve
 
+from .custom import load_problem
+from .fluid_inverse import FluidProblem
 from .local_solvers import InverseGradientSolver, LBFGSBSolver, NewtonSolver
 from .nets import MLP, UNet
-from .operators import PhysicsOperator, Sine
+from .offline import dataset_problem
+from .operators import Heat, PhysicsOperator, Poisson, Sine
 from .problem import HELDOUT_SEED, HELDOUT_SIZE, Batch, Method, Problem
 
 __all__ = ["HELDOUT_SEED", "HELDOUT_SIZE", "Method", "Batch", "Problem", "SineProblem", "PoissonProblem",
@@ -129,7 +135,6 @@ class _UNetGridProblem(Problem):
     @property
     def grid(self):
         """The problem's grid (dx = 1)."""
-        from phisim.grid import Grid
 
         return Grid(self.resolution)
 
@@ -187,9 +192,7 @@ class PoissonProblem(_UNetGridProblem):
             raise ParameterError(f"boundary must be 'face' or 'ghost', got {self.boundary!r}")
 
     def _make_operator(self) -> PhysicsOperator:
-        from phisim.solvers.linalg import Solve
 
-        from .operators import Poisson
 
         pre = "spectral" if self.solver == "spectral" else None
         return Poisson(dx=1.0, kinds="dirichlet", solve=Solve(rtol=self.rtol), preconditioner=pre,
@@ -201,7 +204,6 @@ class PoissonProblem(_UNetGridProblem):
         With ``data_solver='spectral'`` (default) ``y*`` is the exact discrete solution (DST, float64,
         round-off accurate); ``'cg'`` solves it with the training operator's CG instead (to ``rtol``).
         """
-        from phisim.simulate.noise import spectral_noise
 
         x = spectral_noise(self.grid, batch_size, power=2.0, scale=10.0, cutoff=0.1, generator=generator,
                            normalize=self.normalize, dtype=torch.float64).values.to(device=device, dtype=self.dtype)
@@ -232,13 +234,11 @@ class HeatProblem(_UNetGridProblem):
     sgd_lr: float = 1e-5  # 1e-3 and 1e-4 diverge within a few iterations (batch-sum loss); 1e-5 trains
 
     def _make_operator(self) -> PhysicsOperator:
-        from .operators import Heat
 
         return Heat(nu_t=self.t_nu)
 
     def sample(self, batch_size: int, generator: torch.Generator, device=None) -> Batch:
         """``x*`` hot rectangles, ``y* = P(x*)`` in float64."""
-        from phisim.simulate.noise import random_rectangles
 
         x = random_rectangles(self.grid, batch_size, generator=generator, dtype=torch.float64).values.to(device)
         op = self.operator()
@@ -261,7 +261,6 @@ PROBLEMS: dict[str, Callable[..., Problem]] = {
 
 def _fluid_problem(**settings) -> Problem:
     """E5 (:class:`inverse.fluid_inverse.FluidProblem`), imported on first use (it imports this module)."""
-    from .fluid_inverse import FluidProblem
 
     return FluidProblem(**settings)
 
@@ -271,7 +270,6 @@ PROBLEMS["fluid"] = _fluid_problem
 
 def _well_problem(**settings) -> Problem:
     """Offline supervised training from a Well-layout dataset (:func:`inverse.offline.dataset_problem`)."""
-    from .offline import dataset_problem
 
     return dataset_problem(**settings)
 
@@ -290,7 +288,6 @@ def get_problem(name: str, **settings) -> Problem:
         ParameterError: For an unknown name or setting (the closest registered name is suggested).
     """
     if ":" in str(name):
-        from .custom import load_problem
 
         return load_problem(name, **settings)
     if name not in PROBLEMS:

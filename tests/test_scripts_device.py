@@ -99,7 +99,7 @@ def test_a_device_this_machine_lacks_is_a_clear_error(script, bad, tmp_path):
 
 # ---------------------------------------------------------------------------------------------------------
 # tiny runs of the scripts no other test runs (the others: tests/inverse/test_examples_*.py,
-# tests/inverse/test_custom.py, tests/phisim/test_examples_bodies.py)
+# tests/inverse/test_custom.py, tests/phisim/fluid/test_examples_bodies.py)
 # ---------------------------------------------------------------------------------------------------------
 
 

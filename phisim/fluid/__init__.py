@@ -13,6 +13,8 @@ Modules:
 * :mod:`~phisim.fluid.step` -- the parts of a split step (buoyancy, energy, CFL) and :class:`FluidState`;
 * :mod:`~phisim.fluid.stepper` -- :class:`FluidStepper` (settings checked and operators built once; the way to
   step a flow), and the same steps as pure functions, :func:`step` and :func:`navier_stokes_step`;
+* :mod:`~phisim.fluid.transport` -- :class:`AdvectionDiffusionStepper` (a scalar in a given flow) and
+  :class:`BurgersStepper`;
 * :mod:`~phisim.fluid.integrators` -- second-/third-order time integrators (:func:`navier_stokes_rk_step`:
   ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
 """
@@ -32,6 +34,7 @@ from phisim.fluid.projection import (
 )
 from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, normalize_energy
 from phisim.fluid.stepper import FluidStepper, navier_stokes_step, step
+from phisim.fluid.transport import AdvectionDiffusionStepper, BurgersStepper
 from phisim.fluid.viscosity import VISCOSITY_SCHEMES, diffuse_velocity
 
 __all__ = [
@@ -43,5 +46,5 @@ __all__ = [
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
-    "FluidStepper",
+    "FluidStepper", "AdvectionDiffusionStepper", "BurgersStepper",
 ]

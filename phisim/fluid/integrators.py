@@ -21,7 +21,7 @@ explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equatio
 * ``f(t)`` is a body force (a StaggeredGrid, or a callable of time for time-dependent forcing).
 * obstacles: faces touching solid cells are set to zero before every projection (resting no-slip bodies).
 
-Orders in time (velocity; measured in ``tests/phisim/test_integrators.py``):
+Orders in time (velocity; measured in ``tests/phisim/fluid/test_integrators.py``):
 
 ==================  ==================================================  ===========  ========================
 integrator          stages                                              order        stability

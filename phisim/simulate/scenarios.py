@@ -41,6 +41,7 @@ from phisim.errors import ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid import (
     Body,
+    BurgersStepper,
     FluidState,
     FluidStepper,
     Obstacle,
@@ -52,9 +53,8 @@ from phisim.fluid import (
     solid_layout,
 )
 from phisim.grid import Grid
-from phisim.ops.advection import advect
 from phisim.simulate.noise import random_rectangles, spectral_noise
-from phisim.solvers.diffusion import diffuse
+from phisim.solvers.heat import HeatStepper
 
 __all__ = ["Param", "Simulation", "Scenario", "SCENARIOS", "COMMON_PARAMETERS"]
 
@@ -298,11 +298,7 @@ def _build_heat(cfg, p, batch, g, dtype, device) -> Simulation:
         boundary = Boundary.create("periodic", dim)
     t0 = random_rectangles(grid, batch, max_half_size=max(1.0, min(res) / 6), boundary=boundary, generator=g,
                            dtype=dtype, device=device)
-    dt = cfg["dt"]
-
-    def advance(s):
-        return diffuse(s, dt, viscosity=p["diffusivity"])
-
+    advance = HeatStepper(grid, boundary, diffusivity=p["diffusivity"], dt=cfg["dt"], dtype=dtype, device=device)
     return Simulation(grid, boundary, {"temperature": "scalar"}, t0, advance, lambda s: {"temperature": s})
 
 
@@ -316,11 +312,7 @@ def _build_burgers(cfg, p, batch, g, dtype, device) -> Simulation:
     grid = Grid(res, bounds=[2 * math.pi] * dim)
     noise = spectral_noise(grid, batch, scale=p["scale"], channels=dim, generator=g, dtype=dtype, device=device)
     u0 = CenteredGrid(p["amplitude"] * noise.values, grid, "periodic")
-    dt = cfg["dt"]
-
-    def advance(u):
-        u = advect(u, u, dt, scheme="maccormack")
-        return diffuse(u, dt, viscosity=p["viscosity"])
+    advance = BurgersStepper(grid, viscosity=p["viscosity"], dt=cfg["dt"], dtype=dtype)
 
     return Simulation(grid, Boundary.create("periodic", dim), {"velocity": "vector"}, u0, advance,
                       lambda u: {"velocity": u})

@@ -13,6 +13,7 @@ from phisim.solvers.diffusion import (
     fourier_k2,
     heat_decay_factors,
 )
+from phisim.solvers.heat import HEAT_METHODS, HeatStepper
 from phisim.solvers.linalg import Solve, SolveInfo, cg, remove_mean
 from phisim.solvers.masked import MaskedPoisson
 from phisim.solvers.poisson import (
@@ -34,6 +35,7 @@ from phisim.solvers.poisson import (
 
 __all__ = [
     "Solve", "SolveInfo", "cg", "remove_mean",
+    "HeatStepper", "HEAT_METHODS",
     "MaskedPoisson",
     "AXIS_KINDS", "normalize_kinds", "laplacian_eigenvalues", "stencil_laplacian", "boundary_source",
     "spectral_poisson_solve", "spectral_apply", "masked_poisson_solve", "masked_laplacian", "solve_poisson",

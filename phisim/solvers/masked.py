@@ -116,8 +116,8 @@ class MaskedPoisson:
             Dirichlet side or a closed box with one fluid region, 2-D or 3-D, CPU, at most
             :data:`~phisim.solvers.direct.MAX_RANK` cut faces) and pays (``k² <= MAX_RANK_SQUARED_PER_CELL``
             cells for ``k`` cut faces). ``False``: always PCG. ``True``: wherever it applies, paying or not, and an
-            error where it does not apply. The choice is made here, once, so every solve of an operator takes the same path.
-            Building it costs one box solve per cut face at the first solve: worth it for an operator solved
+            error where it does not apply. The choice is made here, once, so every solve of an operator takes the
+            same path. Building it costs one box solve per cut face at the first solve: worth it for an operator solved
             many times (a static body), not for one used once (a moving body's layout at one instant).
 
     Raises:

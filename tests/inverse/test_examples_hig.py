@@ -2,26 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import h5py
 import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_hig_toy_tiny(tmp_path):
-    toy = _load("hig_toy")
+def test_hig_toy_tiny(tmp_path, load_example):
+    toy = load_example("hig_toy")
     finals = toy.main(["--iterations", "40", "--records", "10", "--batch-size", "64", "--out", str(tmp_path),
                        "--device", "cpu"])
     assert set(finals) == {1.0, 0.01}
@@ -42,15 +30,15 @@ def test_hig_toy_tiny(tmp_path):
             np.testing.assert_allclose(f["extras/sample_target"][()], [np.sin(1.8), np.cos(2.7)], rtol=1e-12)
 
 
-def test_hig_toy_target_and_net():
-    toy = _load("hig_toy")
+def test_hig_toy_target_and_net(load_example):
+    toy = load_example("hig_toy")
     x = torch.tensor([[0.0], [0.5]], dtype=torch.float64)
     np.testing.assert_allclose(toy.target(x).numpy(), [[0.0, 1.0], [np.sin(3.0), np.cos(4.5)]], rtol=1e-14)
     assert sum(p.numel() for p in toy.make_net(0, torch.float32).parameters()) == 7 + 7 + 14 + 2
 
 
-def test_oscillator_physics_is_exact_rk4_of_the_linear_system():
-    osc = _load("hig_oscillators")
+def test_oscillator_physics_is_exact_rk4_of_the_linear_system(load_example):
+    osc = load_example("hig_oscillators")
     # free motion (u = 0) of the linear system s' = A s: RK4 multiplies by the degree-4 Taylor polynomial
     lap = osc.laplacian(2)
     torch.testing.assert_close(lap, torch.tensor([[-1.0, 1.0], [1.0, -1.0]], dtype=torch.float64))
@@ -72,8 +60,8 @@ def test_oscillator_physics_is_exact_rk4_of_the_linear_system():
     torch.testing.assert_close(d, resp)
 
 
-def test_hig_oscillators_tiny(tmp_path):
-    osc = _load("hig_oscillators")
+def test_hig_oscillators_tiny(tmp_path, load_example):
+    osc = load_example("hig_oscillators")
     finals = osc.main(["--epochs", "3", "--n-train", "256", "--out", str(tmp_path), "--device", "cpu"])
     assert set(finals) == {"hig", "adam", "gn"}
     assert (tmp_path / "hig_oscillators.png").stat().st_size > 5_000
@@ -92,14 +80,14 @@ def test_hig_oscillators_tiny(tmp_path):
 
 
 @pytest.mark.parametrize("bad", [["--iterations", "0"], ["--batch-size", "0"]])
-def test_hig_toy_rejects_bad_options(bad, tmp_path):
-    toy = _load("hig_toy")
+def test_hig_toy_rejects_bad_options(bad, tmp_path, load_example):
+    toy = load_example("hig_toy")
     with pytest.raises(SystemExit):
         toy.main(bad + ["--out", str(tmp_path)])
 
 
-def test_cached_step_operators_equal_the_rk4_stages():
-    osc = _load("hig_oscillators")
+def test_cached_step_operators_equal_the_rk4_stages(load_example):
+    osc = load_example("hig_oscillators")
     gen = torch.Generator().manual_seed(3)
     u = torch.randn(5, osc.N_STEPS, generator=gen, dtype=torch.float64)
     s0 = torch.rand(5, 4, generator=gen, dtype=torch.float64)
@@ -117,9 +105,9 @@ def test_cached_step_operators_equal_the_rk4_stages():
 # so cross-machine round-off moves the ratios by far less than the 10% allowed.
 
 
-def test_headline_hig_ahead_of_adam_and_gauss_newton_on_the_toy():
+def test_headline_hig_ahead_of_adam_and_gauss_newton_on_the_toy(load_example):
     """lambda = 0.01, 200 steps of batch 64: final validation losses Adam 0.458, GN 0.216, HIG 0.113."""
-    toy = _load("hig_toy")
+    toy = load_example("hig_toy")
     args = toy.parse_args(["--lambdas", "0.01", "--dtype", "float64", "--iterations", "200", "--batch-size", "64",
                            "--records", "4"])
     final = {m: float(toy.train(m, 0.01, args)["loss"][-1]) for m in ("adam", "gn", "hig")}
@@ -128,9 +116,9 @@ def test_headline_hig_ahead_of_adam_and_gauss_newton_on_the_toy():
     assert final["gn"] / final["hig"] == pytest.approx(0.21599331958009177 / 0.11313627615323509, rel=0.1)
 
 
-def test_headline_hig_ahead_on_the_oscillators():
+def test_headline_hig_ahead_on_the_oscillators(load_example):
     """256 states, 2 epochs: loss per sample Adam 0.603, Gauss-Newton 0.141, HIG 0.0278."""
-    osc = _load("hig_oscillators")
+    osc = load_example("hig_oscillators")
     args = osc.parse_args(["--epochs", "2", "--n-train", "256", "--dtype", "float64"])
     data = torch.rand(256, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     final = {m: float(osc.train(m, data, args)["loss"][-1]) for m in ("adam", "gn", "hig")}

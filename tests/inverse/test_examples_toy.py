@@ -2,23 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_optimizer_toy_full_size(tmp_path, capsys):
-    toy = _load("optimizer_toy")
+def test_optimizer_toy_full_size(tmp_path, capsys, load_example):
+    toy = load_example("optimizer_toy")
     res = toy.main(["--out", str(tmp_path), "--device", "cpu"])
     printed = capsys.readouterr().out
     assert (tmp_path / "optimizer_toy.png").stat().st_size > 10_000 and "device cpu" in printed

@@ -17,16 +17,9 @@ from phisim.io import read_training
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("reproduce", ROOT / "examples" / "reproduce.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
-def reproduce():
-    return _load()
+def reproduce(load_example):
+    return load_example("reproduce")
 
 
 def test_running_average(reproduce):

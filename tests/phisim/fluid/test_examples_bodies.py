@@ -2,30 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_karman_writes_a_well_file_gif_and_forces(tmp_path, dim):
-    karman = _load("karman")
+def test_karman_writes_a_well_file_gif_and_forces(tmp_path, dim, load_example):
+    karman = load_example("karman")
     ny = 12 if dim == 2 else 8
     out = karman.main(["--dim", str(dim), "--ny", str(ny), "--t-end", "0.1", "--interval", "0.05",
                        "--out", str(tmp_path)])
@@ -59,8 +49,8 @@ def test_karman_writes_a_well_file_gif_and_forces(tmp_path, dim):
         np.testing.assert_allclose(np.diff(t), 0.05, rtol=1e-6)
 
 
-def test_optimize_body_lowers_the_drag(tmp_path):
-    opt = _load("optimize_body")
+def test_optimize_body_lowers_the_drag(tmp_path, load_example):
+    opt = load_example("optimize_body")
     out = opt.main(["--iterations", "2", "--nx", "32", "--steps", "8", "--out", str(tmp_path), "--device", "cpu"])
     h = out["history"]
     assert out["device"] == "cpu" and json.loads(out["json"].read_text())["device"] == "cpu"
@@ -69,10 +59,10 @@ def test_optimize_body_lowers_the_drag(tmp_path):
 
 
 @pytest.mark.slow
-def test_dfg_2d1_steady_cylinder_on_two_grids():
+def test_dfg_2d1_steady_cylinder_on_two_grids(load_example):
     """DFG 2D-1 (Re 20): drag within 4 % and the pressure difference within 6 % of the reference on D/4.9 and
     D/10 grids, the drag error falling with refinement (docs/VALIDATION.md has the full study)."""
-    cb = _load("cylinder_benchmark")
+    cb = load_example("cylinder_benchmark")
     ref = cb.REFERENCE["2D-1"]
     errors = []
     for ny in (20, 41):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import h5py
@@ -11,19 +10,10 @@ import pytest
 
 from phisim.io import read_simulation
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("smoke_plume", ROOT / "examples" / "smoke_plume.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 @pytest.mark.parametrize("dim, resolution", [(2, 16), (3, 8)])
-def test_smoke_plume_tiny(tmp_path, dim, resolution):
-    mod = _load()
+def test_smoke_plume_tiny(tmp_path, dim, resolution, load_example):
+    mod = load_example("smoke_plume")
     res = mod.main(
         [
             "--dim",
@@ -64,11 +54,11 @@ def test_smoke_plume_tiny(tmp_path, dim, resolution):
     assert float(np.abs(v.values[1].numpy()[:, :, -1]).max()) == 0
 
 
-def test_smoke_plume_frames_are_equally_spaced_for_the_well_loader(tmp_path):
+def test_smoke_plume_frames_are_equally_spaced_for_the_well_loader(tmp_path, load_example):
     """Adaptive CFL sub-steps inside, frames at fixed times outside: every loader window is equally spaced."""
     from the_well.data import WellDataset
 
-    mod = _load()
+    mod = load_example("smoke_plume")
     res = mod.main(["--resolution", "12", "--steps", "5", "--interval", "2.0", "--cfl", "0.5",
                     "--out", str(tmp_path), "--no-progress"])
     assert res["substeps"] > res["steps"]  # the CFL step was shorter than the interval

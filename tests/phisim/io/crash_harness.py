@@ -1,6 +1,6 @@
 """Kill a tight append loop (SimulationWriter + TrainingLog) at random moments and check what survives.
 
-Used by ``tests/phisim/test_crash_safety.py`` and ``benchmarks/bench_reliability.py``. The writer runs in
+Used by ``tests/phisim/io/test_crash_safety.py`` and ``benchmarks/bench_reliability.py``. The writer runs in
 a forked child (no interpreter start per kill), reports every completed append through a pipe, and is
 killed with SIGKILL after a random delay; the parent then reads the file back.
 """

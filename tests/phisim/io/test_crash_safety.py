@@ -15,7 +15,7 @@ import torch
 from phisim.errors import FileFormatError, IncompleteFileWarning, PhisimError
 from phisim.io import SimulationWriter, TrainingLog, read_simulation, read_training, recover_file
 from phisim.io import journal as _journal
-from tests.phisim.crash_harness import GRID, check_file, frame_values, kill_once
+from tests.phisim.io.crash_harness import GRID, check_file, frame_values, kill_once
 
 pytestmark = pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
 

@@ -14,7 +14,7 @@ from phisim.errors import FileFormatError, IncompleteFileWarning, ParameterError
 from phisim.io import SimulationWriter, TrainingCurves, TrainingLog, read_simulation, read_training, recover_file
 from phisim.io.journal import journal_path
 from phisim.io.traininglog import repair_training_file, training_run
-from tests.phisim.crash_harness import GRID, frame_values
+from tests.phisim.io.crash_harness import GRID, frame_values
 
 
 def _log(path, method="adam", n=3, **kw):
