@@ -62,11 +62,6 @@ _OWN_AXIS = {  # (lower odd?, upper odd?) -> (forward kind, inverse kind, first 
 }
 
 
-#: Fewest samples (batch included) of a component for which a box solve with walls on both sides of its own
-#: axis runs as a periodic FFT plus a one-face correction instead of a DST-I (:meth:`_Component.solve_box`):
-#: below about 90² the extra calls cost more than the shorter transform saves (64², float32: 40 vs 36 µs per
-#: component; 96²: 61 vs 61; 128²: 86 vs 92; 256²: 0.27 vs 0.33 ms; development CPU, 1 thread).
-WALL_SOLVE_MIN_SAMPLES = 8192
 
 
 class _Component:
@@ -187,7 +182,7 @@ class _Component:
         full = torch.empty(like.shape, dtype=rhs.dtype, device=rhs.device)
         dim = 1 + self.i
         if (op is not None and op[0] in ("implicit", "crank_nicolson") and self.walls
-                and like.numel() >= WALL_SOLVE_MIN_SAMPLES):
+                and like.numel() >= _fft.get_fft_settings().wall_solve_min_samples):
             shape = list(like.shape)
             shape[dim] -= 1
             last = wall_transposes(shape, dim, rhs.element_size())

@@ -23,6 +23,10 @@ EFFORTS = ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT", "FFTW_EXHAUSTIVE")
 PLAN_CACHE_SIZE = 32
 #: Default of :attr:`FFTSettings.transpose_bytes` and :attr:`FFTSettings.wall_transpose_bytes` (384 KiB).
 TRANSPOSE_BYTES = 384 * 1024
+#: Default of :attr:`FFTSettings.wall_solve_min_samples`: below about 90² the periodic wall solve's extra calls
+#: cost more than the shorter transform saves (64², float32: 40 vs 36 µs per component; 96²: 61 vs 61; 128²: 86
+#: vs 92; 256²: 0.27 vs 0.33 ms; development CPU, 1 thread).
+WALL_SOLVE_MIN_SAMPLES = 8192
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,10 @@ class FFTSettings:
         wall_transpose_bytes: float64 arrays of at least this many bytes take the periodic FFT of
             :func:`phisim.spectral.pocket.wall_solve` along a strided axis in a transposed copy. Default
             384 KiB; 0 always transposes (where the axis allows it).
+        wall_solve_min_samples: Fewest samples (batch included) of a MAC component for which a box viscosity
+            solve with walls on both sides of its own axis runs as a periodic FFT plus a one-face correction
+            (:func:`phisim.spectral.fft.wall_solve`) instead of a DST-I; the same answer to round-off. Default
+            8192 (about 90²); 0 always takes the periodic route.
     """
 
     engine: str = "auto"
@@ -62,6 +70,7 @@ class FFTSettings:
     plan_cache_size: int = PLAN_CACHE_SIZE
     transpose_bytes: int = TRANSPOSE_BYTES
     wall_transpose_bytes: int = TRANSPOSE_BYTES
+    wall_solve_min_samples: int = WALL_SOLVE_MIN_SAMPLES
 
     def __post_init__(self) -> None:
         if self.engine not in ENGINES:
@@ -73,7 +82,7 @@ class FFTSettings:
         if (not isinstance(self.plan_cache_size, int) or isinstance(self.plan_cache_size, bool)
                 or self.plan_cache_size < 1):
             raise ParameterError(f"plan_cache_size must be a positive int, got {self.plan_cache_size!r}")
-        for name in ("transpose_bytes", "wall_transpose_bytes"):
+        for name in ("transpose_bytes", "wall_transpose_bytes", "wall_solve_min_samples"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ParameterError(f"{name} must be an int >= 0, got {v!r}")
@@ -114,7 +123,8 @@ def set_fft_settings(settings: FFTSettings | None = None, **changes) -> FFTSetti
     Args:
         settings: A complete settings object, or None to modify the current one.
         **changes: Fields of :class:`FFTSettings` to change (``engine``, ``threads``, ``planner_effort``,
-            ``plan_cache_size``, ``transpose_bytes``, ``wall_transpose_bytes``).
+            ``plan_cache_size``, ``transpose_bytes``, ``wall_transpose_bytes``,
+            ``wall_solve_min_samples``).
 
     Returns:
         The previous settings (pass them back to restore).

@@ -153,11 +153,17 @@ def test_3d_box_against_dense_reference_and_batch_one():
 # ---- walls on both sides: periodic FFT plus a one-face correction instead of the DST-I -----------------------
 
 
-def _count_wall_solves(monkeypatch):
-    """Force the wall path at any size; return the list that records its calls."""
-    from phisim.solvers import mac_diffusion as _mac_diffusion
+@pytest.fixture(autouse=True)
+def _restore_fft_settings():
+    """Tests that choose the wall route through the FFT settings get the previous settings back."""
+    previous = fft.get_fft_settings()
+    yield
+    fft.set_fft_settings(previous)
 
-    monkeypatch.setattr(_mac_diffusion, "WALL_SOLVE_MIN_SAMPLES", 0)
+
+def _count_wall_solves(monkeypatch):
+    """Force the wall path at any size (``wall_solve_min_samples=0``); return the list that records its calls."""
+    fft.set_fft_settings(wall_solve_min_samples=0)
     calls = []
     real = fft.wall_solve
 
@@ -202,14 +208,12 @@ def test_wall_solve_agrees_with_the_dst1_solve_at_any_viscosity(dtype, alpha, mo
     # The correction subtracts G/G(0) times face 0 of the periodic answer; m = 1/(1 - cλ) <= 1 and G peaks at
     # its source, so nothing is amplified: float64 agrees with the DST-I route to 1e-13 even at ν dt/dx² = 1e6,
     # float32 to its own round-off.
-    from phisim.solvers import mac_diffusion as _mac_diffusion
-
     grid = Grid((40, 36), bounds=[(0, 1.0), (0, 0.9)])
     v = _random_velocity(grid, "wall", batch=1)
     v = v.with_values(tuple(c.to(dtype) for c in v.values))
     h = grid.dx[0] ** 2 * alpha
-    monkeypatch.setattr(_mac_diffusion, "WALL_SOLVE_MIN_SAMPLES", 10**9)
-    ref = diffuse_staggered(v, h, viscosity=1.0)
+    with fft.fft_settings(wall_solve_min_samples=10**9):  # the DST-I route
+        ref = diffuse_staggered(v, h, viscosity=1.0)
     calls = _count_wall_solves(monkeypatch)
     out = diffuse_staggered(v, h, viscosity=1.0)
     assert calls == [True, True]
