@@ -48,7 +48,6 @@ from phisim.fluid import (
     Sphere,
     cfl_dt,
     make_incompressible,
-    navier_stokes_step,
     obstacle_mask,
     solid_layout,
 )
@@ -220,14 +219,10 @@ def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
     lid = NoSlipWall(velocity=(p["lid_velocity"], 0.0))
     boundary = Boundary.create({"x": NoSlipWall(), "y": (NoSlipWall(), lid)}, 2)
     v0 = _divergence_free_noise(grid, boundary, batch, p["initial_noise"] * p["lid_velocity"], g, dtype, device)
-    dt = cfg["dt"]
-
-    def advance(s):
-        v, pressure = navier_stokes_step(s[0], dt, viscosity=p["viscosity"], integrator="imex2",
-                                         pressure_guess=s[1])
-        return v, pressure
-
-    return Simulation(grid, boundary, {"velocity": "staggered"}, (v0, None), advance, lambda s: {"velocity": s[0]})
+    advance = FluidStepper(grid, boundary, viscosity=p["viscosity"], integrator="imex2", dt=cfg["dt"], dtype=dtype,
+                           device=device)
+    return Simulation(grid, boundary, {"velocity": "staggered"}, FluidState(v0), advance,
+                      lambda s: {"velocity": s.velocity})
 
 
 # ---- periodic flows -------------------------------------------------------------------------------------
@@ -235,12 +230,10 @@ def _build_cavity(cfg, p, batch, g, dtype, device) -> Simulation:
 
 def _periodic_flow(grid, v0, p, dt, integrator: str = "split") -> Simulation:
 
-    def advance(s):
-        v, _ = navier_stokes_step(s, dt, viscosity=p["viscosity"], advection="maccormack", integrator=integrator)
-        return v
-
-    return Simulation(grid, Boundary.create("periodic", grid.rank), {"velocity": "staggered"}, v0, advance,
-                      lambda s: {"velocity": s})
+    advance = FluidStepper(grid, "periodic", viscosity=p["viscosity"], advection="maccormack", integrator=integrator,
+                           dt=dt, dtype=v0.dtype, device=v0.device)
+    return Simulation(grid, advance.boundary, {"velocity": "staggered"}, FluidState(v0), advance,
+                      lambda s: {"velocity": s.velocity})
 
 
 def _build_taylor_green(cfg, p, batch, g, dtype, device) -> Simulation:

@@ -39,9 +39,9 @@ def _run(sim, steps):
 
 def test_taylor_green_energy_decays_at_the_analytic_rate():
     cfg, p, sim = _build("taylor_green", resolution=32, viscosity=0.05, dt=0.05)
-    v0 = sim.state
+    v0 = sim.state.velocity
     e0 = sum((c**2).sum(dim=tuple(range(1, c.ndim))) for c in v0.values)
-    v = _run(sim, 20)
+    v = _run(sim, 20).velocity
     e = sum((c**2).sum(dim=tuple(range(1, c.ndim))) for c in v.values)
     expected = math.exp(-4 * 0.05 * 1.0 * 1.0)  # |u|^2 ~ exp(-2 nu |k|^2 t), |k|^2 = 2, t = 1
     # the scenario steps with imex2: what is left is the stencil's spatial error, 4 ν t dx²/12 = 6.4e-4
@@ -69,7 +69,7 @@ def test_cavity_and_smoke_are_divergence_free_and_respect_the_obstacle():
     from phisim.fluid import relative_divergence
 
     _, p, cav = _build("cavity", resolution=16, lid_velocity=1.0)
-    v, _ = _run(cav, 20)
+    v = _run(cav, 20).velocity
     assert float(relative_divergence(v).max()) < 1e-4
     u_top = v.at_centers().values[:, 0, :, -1].mean()  # the lid drags the top row in +x
     assert float(u_top) > 0.05
