@@ -69,12 +69,12 @@ from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
-from phisim.fluid.projection import impose_solids, make_incompressible
-from phisim.fluid.step import kinetic_energy, normalize_energy, to_time
+from phisim.fluid.projection import impose_solids, make_incompressible, project_trusted
+from phisim.fluid.step import kinetic_energy, normalize_energy, rescale_energy, to_time
 from phisim.ops.differential import gradient, laplace
 from phisim.solvers.diffusion import diffuse_staggered
 
-__all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step"]
+__all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step", "rk_advance"]
 
 #: Time integrators of incompressible flow with their order in time for the velocity.
 INTEGRATORS = {"split": 1, "rk2": 2, "rk3": 3, "imex2": 2}
@@ -200,15 +200,36 @@ def navier_stokes_rk_step(
         raise ParameterError(f"integrator must be one of {(*_SHU_OSHER, 'imex2')}, got {integrator!r}")
     dt = check_dt(dt)
     nu = check_nonnegative(viscosity, "viscosity")
-    time = float(time)
-    if integrator == "imex2":
-        return _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure_guess, energy_normalization)
-    number = float(nu) * float(dt) * sum(4.0 / d**2 for d in velocity.grid.dx)
+    check_viscous_number(integrator, nu, dt, velocity.grid.dx)
+    return rk_advance(velocity, dt, nu, integrator, force, float(time), obstacles, solve, pressure_guess,
+                      energy_normalization)
+
+
+def check_viscous_number(integrator: str, nu: float, dt, dx) -> None:
+    """Raise ParameterError where the explicit viscosity of ``'rk2'``/``'rk3'`` is unstable (``dt`` a number)."""
+    if integrator not in _VISCOUS_LIMIT:
+        return
+    number = float(nu) * float(dt) * sum(4.0 / d**2 for d in dx)
     if number > _VISCOUS_LIMIT[integrator] * (1 + 1e-12):
         raise ParameterError(
             f"explicit viscosity in {integrator!r} is unstable: ν dt Σ 4/dx² = {number:.3g} > "
             f"{_VISCOUS_LIMIT[integrator]}; reduce dt or use integrator='imex2' (implicit viscosity)"
         )
+
+
+def rk_advance(velocity: StaggeredGrid, dt, nu: float, integrator: str, force, time: float, obstacles, solve,
+               pressure_guess, energy_normalization: bool, trusted: bool = False):
+    """:func:`navier_stokes_rk_step` on validated arguments (``dt`` a number). ``trusted``: the step of a
+    stepper, whose settings were validated when it was built: the projections read nothing back to the host."""
+    def project(w, layout, guess, t):
+        if trusted:
+            return project_trusted(w, layout, solve=solve, pressure_guess=guess)
+        return make_incompressible(w, layout, solve=solve, pressure_guess=guess, time=t)
+
+    rescale = rescale_energy if trusted else normalize_energy
+    if integrator == "imex2":
+        return _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure_guess, energy_normalization,
+                           project, rescale)
     e0 = kinetic_energy(velocity) if energy_normalization else None
     u0 = velocity
     stage = velocity
@@ -232,16 +253,16 @@ def navier_stokes_rk_step(
         w = to_time(w, t_out)
         layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
         w = impose_solids(w, layout)
-        stage, pressure = make_incompressible(w, layout, solve=solve, pressure_guess=guess, time=t_out)
+        stage, pressure = project(w, layout, guess, t_out)
         guess = pressure.values / b if b != 1.0 else pressure
         b_last = b
     pressure = pressure.with_values(pressure.values / b_last) if b_last != 1.0 else pressure
     if e0 is not None:
-        stage = normalize_energy(stage, e0)
+        stage = rescale(stage, e0)
     return stage, pressure
 
 
-def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization):
+def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization, project, rescale):
     """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
     grid = velocity.grid
     t_new = time + float(dt)
@@ -276,8 +297,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         if float(nu) != 0:
             y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve,
                                   capacitance=layout.solvers if layout is not None and layout.direct else None)
-        return make_incompressible(y, layout, solve=solve, time=t_new,
-                                   pressure_guess=None if grad_q is None else torch.zeros_like(grad_q[0].values))
+        return project(y, layout, None if grad_q is None else torch.zeros_like(grad_q[0].values), t_new)
 
     u1, _ = stage(explicit0)
     explicit1 = -convection(u1)
@@ -288,5 +308,5 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     u2, phi = stage(0.5 * (explicit0 + explicit1))
     p = phi if grad_q is None else phi.with_values(phi.values + grad_q[0].values)
     if e0 is not None:
-        u2 = normalize_energy(u2, e0)
+        u2 = rescale(u2, e0)
     return u2, p

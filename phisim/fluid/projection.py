@@ -51,13 +51,13 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, SolidLayout, as_solids, solid_layout
 from phisim.ops.differential import divergence
 from phisim.ops.stencil import face_divergence, face_gradient, normalize_kinds
-from phisim.solvers.box import box_solve
+from phisim.solvers.box import apply_multiplier, is_singular, solve_multiplier
 from phisim.solvers.linalg import Solve, SolveInfo
 from phisim.solvers.masked import MaskedPoisson
 from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "project_box", "make_incompressible",
-           "relative_divergence", "impose_solids", "net_boundary_flux"]
+           "project_trusted", "check_balance", "relative_divergence", "impose_solids", "net_boundary_flux"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -113,8 +113,13 @@ def net_boundary_flux(velocity: StaggeredGrid) -> torch.Tensor:
     return total
 
 
-def _check_balance(v: StaggeredGrid) -> None:
-    """A domain without an open side must have zero net inflow."""
+def check_balance(v: StaggeredGrid) -> None:
+    """A domain without an open side must have zero net inflow (one host read; a stepper checks it once, when
+    it is built).
+
+    Raises:
+        ParameterError: If the prescribed boundary fluxes of ``v`` (boundary faces as stored) do not balance.
+    """
     if _box_constants(v.boundary)[2]:
         return  # an open side, or every prescribed normal velocity is 0 (walls): nothing to balance
     net = net_boundary_flux(v).detach()
@@ -361,30 +366,76 @@ def _box_constants(boundary: Boundary):
     return boundary._memo("projection", make)
 
 
+#: The box solve's multipliers per (resolution, dx, kinds, dtype, device): a plain dict, so that a traced step
+#: finds the tensor (built at the stepper's construction, or at the first eager call) instead of tracing its
+#: construction.
+_BOX_INVERSE: dict = {}
+
+
+def _box_inverse(res, dx, kinds, dtype, device) -> torch.Tensor:
+    key = (res, tuple(dx), kinds, dtype, device)
+    inv = _BOX_INVERSE.get(key)
+    if inv is None:
+        if len(_BOX_INVERSE) >= 64:
+            _BOX_INVERSE.clear()
+        inv = _BOX_INVERSE[key] = solve_multiplier(res, tuple(dx), kinds, device, dtype)
+    return inv
+
+
 def project_box(v: StaggeredGrid, check: bool = True):
     """The projection without solids by the direct spectral solve of ``v`` with its boundary faces set.
 
-    ``check`` raises NonFiniteError for a non-finite divergence (as the spectral solve does); the other checks
-    of :func:`make_incompressible` are the caller's.
+    ``check`` raises NonFiniteError for a non-finite divergence (as the spectral solve does) and
+    ParameterError for boundary fluxes that cannot balance (both read a value back to the host); the other
+    checks of :func:`make_incompressible` are the caller's. ``check=False`` is the trusted path of a stepper:
+    no host read and no branch on tensor values.
     """
     grid, boundary = v.grid, v.boundary
     p_boundary, kinds, _ = _box_constants(boundary)
-    _check_balance(v)
+    if check:
+        check_balance(v)
     dx = grid.dx
     div = face_divergence(v.values, dx)  # the MAC divergence
     if check and not math.isfinite(float(div.detach().sum())) and not all_finite(div):  # one reduction unless suspect
         raise NonFiniteError("spectral_poisson_solve: rhs contains NaN or Inf")
-    p = box_solve(div, dx, kinds)
+    if is_singular(kinds):
+        div = div - div.mean(dim=tuple(range(1, div.ndim)), keepdim=True)
+    p = apply_multiplier(div, kinds, _box_inverse(tuple(div.shape[1:]), dx, kinds, div.dtype, div.device), None,
+                         prescaled=True)
     pressure = CenteredGrid._trusted(p, grid, p_boundary)
     comps = tuple(c - g for c, g in zip(v.values, face_gradient(p, dx, kinds)))  # zero pressure values
     out = StaggeredGrid._trusted(comps, grid, boundary).with_boundary_faces()
     return out, pressure
 
 
-def _project(v, layout, solve, pressure_guess) -> ProjectionResult:
+def project_trusted(velocity: StaggeredGrid, layout: SolidLayout | None, *, solve: Solve | None = None,
+                    pressure_guess=None) -> tuple[StaggeredGrid, CenteredGrid]:
+    """:func:`make_incompressible` of a validated velocity with its solids already rasterised (the step of a
+    stepper): no balance, finiteness or coverage check, so nothing is read back to the host on the way.
+
+    Without solids this is the spectral solve (traceable as one graph); with solids the masked solve of
+    ``layout`` (its failure is not checked when ``solve`` allows failures).
+
+    Args:
+        velocity: MAC velocity (its boundary faces are set here).
+        layout: The rasterised solids, or None.
+        solve, pressure_guess: As for :func:`make_incompressible`.
+
+    Returns:
+        ``(velocity, pressure)`` as :func:`make_incompressible`.
+    """
+    v = velocity.with_boundary_faces()
+    if layout is None:
+        return project_box(v, check=False)
+    out = _project(v, layout, solve, pressure_guess, trusted=True)
+    return out.velocity, out.pressure
+
+
+def _project(v, layout, solve, pressure_guess, trusted: bool = False) -> ProjectionResult:
     """The CG projection (solids, or ``method='cg'``) of ``v`` with its boundary faces set."""
     grid, boundary = v.grid, v.boundary
-    _check_balance(v)
+    if not trusted:
+        check_balance(v)
     p_boundary = boundary.for_pressure()
     kinds = _pressure_kinds(boundary)
     info = None
@@ -392,7 +443,7 @@ def _project(v, layout, solve, pressure_guess) -> ProjectionResult:
         ones = tuple(torch.ones((1, *grid.face_shape(i)), dtype=v.dtype, device=v.device) for i in range(grid.rank))
         layout = SolidLayout(ones, None, None, torch.ones((1, *grid.resolution), dtype=v.dtype), ())
     cell = layout.cell_fraction.detach()
-    if bool((cell.flatten(1).max(1).values <= 0).any()) and layout.bodies:
+    if not trusted and layout.bodies and bool((cell.flatten(1).max(1).values <= 0).any()):
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
     flux = _blend(v.values, layout)
     op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx)

@@ -26,12 +26,13 @@ from phisim.checks import all_finite, check_dt, check_finite, check_finite_numbe
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
-from phisim.fluid.projection import check_velocity, impose_solids, make_incompressible, project_box
+from phisim.fluid.projection import check_velocity, impose_solids, make_incompressible, project_box, project_trusted
 from phisim.fluid.viscosity import diffuse_velocity
 from phisim.grid import Grid
 from phisim.padding import const
 
-__all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "FluidState", "to_time", "finish_step",
+__all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "rescale_energy", "cfl_dt", "FluidState", "to_time",
+           "finish_step",
            "scalar_values", "buoyancy_args", "apply_buoyancy"]
 
 
@@ -138,6 +139,13 @@ def normalize_energy(velocity: StaggeredGrid, energy: torch.Tensor) -> Staggered
     target = torch.as_tensor(energy, dtype=e.dtype, device=e.device)
     if not all_finite(target) or bool((target.detach() < 0).any()):
         raise ParameterError(f"normalize_energy: the target energy must be finite and >= 0, got {energy!r}")
+    return rescale_energy(velocity, target)
+
+
+def rescale_energy(velocity: StaggeredGrid, energy: torch.Tensor) -> StaggeredGrid:
+    """:func:`normalize_energy` of a validated target ``(B,)`` tensor (a step's starting energy): no host read."""
+    e = sum(c.flatten(1).pow(2).mean(1) for c in velocity.values)
+    target = energy.to(dtype=e.dtype)
     tiny = torch.finfo(e.dtype).tiny
     factor = torch.where(e > tiny, torch.sqrt(target / e.clamp_min(tiny)), torch.ones_like(e))
     return velocity.with_values(tuple(c * factor.reshape(-1, *([1] * (c.ndim - 1))) for c in velocity.values))
@@ -182,10 +190,11 @@ def to_time(v: StaggeredGrid, t: float) -> StaggeredGrid:
 
 
 def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess, t_new=0.0,
-                 faces_set: bool = False):
+                 faces_set: bool = False, trusted: bool = False):
     """The part of a step after advection and forcing: solids, viscosity, projection, energy.
 
     ``faces_set``: ``v`` already has its boundary faces imposed (then not imposed again without solids).
+    ``trusted``: the settings were validated when a stepper was built; no check reads a value back to the host.
     """
     layout = None if obstacles is None else solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
     if layout is not None or not faces_set:
@@ -194,11 +203,13 @@ def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressu
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None)
     if layout is None:  # no re-validation; boundary faces already set unless viscosity changed them
-        v, p = project_box(v if float(viscosity) == 0 else v.with_boundary_faces(), check=True)
+        v, p = project_box(v if float(viscosity) == 0 else v.with_boundary_faces(), check=not trusted)
+    elif trusted:
+        v, p = project_trusted(v, layout, solve=solve, pressure_guess=pressure_guess)
     else:
         v, p = make_incompressible(v, layout, solve=solve, pressure_guess=pressure_guess, time=t_new)
     if e0 is not None:
-        v = normalize_energy(v, e0)
+        v = rescale_energy(v, e0) if trusted else normalize_energy(v, e0)
     return v, p
 
 

@@ -25,16 +25,15 @@ from dataclasses import replace
 import torch
 
 from phisim.boundary import Boundary
-from phisim.checks import check_dt, check_finite_number, check_nonnegative
+from phisim.checks import check_dt, check_finite, check_finite_number, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
-from phisim.fluid.integrators import INTEGRATORS, navier_stokes_rk_step
-from phisim.fluid.projection import check_velocity
+from phisim.fluid.integrators import INTEGRATORS, check_viscous_number, navier_stokes_rk_step, rk_advance
+from phisim.fluid.projection import check_balance, check_velocity, project_box
 from phisim.fluid.step import (
     FluidState,
     apply_buoyancy,
-    buoyancy,
     buoyancy_args,
     finish_step,
     kinetic_energy,
@@ -46,7 +45,7 @@ from phisim.grid import Grid
 from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect, advect_trusted, validate_advection
 from phisim.solvers.linalg import Solve
 
-__all__ = ["FluidStepper", "step", "navier_stokes_step"]
+__all__ = ["FluidStepper", "step", "navier_stokes_step", "advance"]
 
 
 class FluidStepper:
@@ -76,6 +75,16 @@ class FluidStepper:
         direct: ``'auto'`` (default): static solids get the direct solves that pay off when reused (pressure:
             :class:`~phisim.solvers.masked.MaskedPoisson` ``direct='auto'``; viscosity of ``'imex2'``: capacitance
             solves); ``False``: iterative solves only.
+        check: Per-step finiteness check: ``None`` or 0 (default) never checks on the step's path; ``N > 0``
+            checks the new state every ``N`` calls (one host read; raises
+            :class:`~phisim.errors.NonFiniteError`).
+        compile: ``True``: the step runs through ``torch.compile`` (see :func:`phisim.compile`; without a working
+            C++ compiler a one-line warning and eager steps).
+
+    The step of a call (:meth:`advance`) reads nothing back to the host and branches on no tensor value: the
+    settings, the balance of the prescribed boundary fluxes and the solids' coverage are checked here, once,
+    so that it traces as one graph (``torch.compile(stepper.advance, fullgraph=True)``; inside a traced step
+    the transforms are ``torch.fft``). The pure function :func:`step` keeps its per-call checks.
 
     Raises:
         ParameterError: For an unknown scheme or integrator, a negative viscosity or dt, a non-finite
@@ -97,7 +106,8 @@ class FluidStepper:
                  viscosity_scheme: str = "explicit", integrator: str = "split", buoyancy: float = 0.0,
                  buoyancy_direction: Sequence[float] | None = None, marker_source=None,
                  energy_normalization: bool = False, pressure: Solve | None = None, dt=None,
-                 dtype: torch.dtype = torch.float32, device=None, direct: bool | str = "auto"):
+                 dtype: torch.dtype = torch.float32, device=None, direct: bool | str = "auto", check: int | None = None,
+                 compile: bool = False):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim.Grid, got {type(grid).__name__}")
         if dtype not in (torch.float32, torch.float64):
@@ -138,6 +148,24 @@ class FluidStepper:
         if direct not in ("auto", False):
             raise ParameterError(f"direct must be 'auto' or False, got {direct!r}")
         self.obstacles = None if layout is None else (layout.persistent(direct) if static else tuple(solids))
+        if check is not None and (isinstance(check, bool) or not isinstance(check, int) or check < 0):
+            raise ParameterError(f"check must be None or an int >= 0 (check every N steps), got {check!r}")
+        #: Check the new state for NaN/Inf every ``check`` calls (0: never).
+        self.check = int(check or 0)
+        self._calls = 0
+        if integrator != "split" and self.dt is not None:
+            check_viscous_number(integrator, self.viscosity, self.dt, grid.dx)
+        # the checks the step's path does not repeat: fluxes that can balance, fluid left beside the solids
+        faces = to_time(template, 0.0).with_boundary_faces()
+        check_balance(faces)
+        if layout is None:  # builds the spectral solve's multipliers, which a traced step then finds
+            project_box(faces, check=False)
+        if layout is not None and layout.bodies and bool((layout.cell_fraction.flatten(1).max(1).values <= 0).any()):
+            raise ParameterError("obstacles cover every cell; there is no fluid to project")
+        self._advance = self.advance
+        if compile:
+            from phisim.compile import compile_function
+            self._advance = compile_function(self.advance)
 
     def __call__(self, state: FluidState, dt=None) -> FluidState:
         """Advance ``state`` by ``dt`` (default: the stepper's ``dt``).
@@ -155,18 +183,53 @@ class FluidStepper:
         if v.dtype != self.dtype or v.device.type != self.device.type:
             raise ParameterError(f"this stepper was built for {self.dtype} on {self.device}; the state is "
                                  f"{v.dtype} on {v.device}")
+        if state.marker is not None:
+            scalar_values(state.marker, self.grid)
+        elif self.buoyancy != 0:
+            raise ParameterError("buoyancy needs a marker in the state")
         dt = self.dt if dt is None else dt
         if dt is None:
             raise ParameterError("no dt: pass one to the call or to the FluidStepper")
-        return step(state, dt, viscosity=self.viscosity, buoyancy_strength=self.buoyancy,
-                    buoyancy_direction=self.buoyancy_direction, advection=self.advection,
-                    viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
-                    obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
-                    integrator=self.integrator, marker_advection=self.marker_advection)
+        if isinstance(dt, torch.Tensor):  # gradients w.r.t. dt: the validating pure step (reads dt for the time)
+            new = step(state, dt, viscosity=self.viscosity, buoyancy_strength=self.buoyancy,
+                       buoyancy_direction=self.buoyancy_direction, advection=self.advection,
+                       viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
+                       obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
+                       integrator=self.integrator, marker_advection=self.marker_advection)
+        else:
+            dt = check_dt(dt)
+            if dt != self.dt and self.integrator != "split":
+                check_viscous_number(self.integrator, self.viscosity, dt, self.grid.dx)
+            new = self._advance(state, dt)
+        if self.check:
+            self._calls += 1
+            if self._calls % self.check == 0:
+                check_state(new)
+        return new
+
+    def advance(self, state: FluidState, dt: float) -> FluidState:
+        """The step of a call on a validated state and ``dt`` (a number): no host read, no branch on tensor
+        values; this is what :func:`torch.compile` traces (as one graph)."""
+        return advance(state, dt, viscosity=self.viscosity, buoyancy_strength=self.buoyancy,
+                       buoyancy_direction=self.buoyancy_direction, advection=self.advection,
+                       viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
+                       obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
+                       integrator=self.integrator, marker_advection=self.marker_advection, trusted=True)
 
     def __repr__(self) -> str:
         return (f"FluidStepper({self.grid}, integrator={self.integrator!r}, advection={self.advection!r}, "
                 f"viscosity={self.viscosity}, viscosity_scheme={self.viscosity_scheme!r})")
+
+
+def check_state(state: FluidState) -> None:
+    """Raise :class:`~phisim.errors.NonFiniteError` if the state's velocity, marker or pressure holds NaN/Inf
+    (a host read: the optional per-N-steps check of a stepper)."""
+    for i, c in enumerate(state.velocity.values):
+        check_finite(c, f"velocity component {i}")
+    if state.marker is not None:
+        check_finite(state.marker.values, "marker")
+    if state.pressure is not None:
+        check_finite(state.pressure.values, "pressure")
 
 
 def navier_stokes_step(
@@ -298,43 +361,68 @@ def step(
     marker_advection = advection if marker_advection is None else marker_advection
     if marker_advection not in SCALAR_SCHEMES:
         raise ParameterError(f"unknown marker advection scheme {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
-    e0 = kinetic_energy(v0) if energy_normalization else None
+    if integrator not in INTEGRATORS:
+        raise ParameterError(f"unknown integrator {integrator!r}; choose one of {tuple(INTEGRATORS)}")
     marker = state.marker
     # validated once here (types, grids, dt, a finite velocity); the inner calls take the trusted paths
     if marker is not None:
         validate_advection(marker, v0, dt, marker_advection, "euler", "minmax")
     else:
         validate_advection(v0, v0, dt, advection, "euler", "minmax")
+    if marker is None and buoyancy_strength != 0:
+        raise ParameterError("buoyancy_strength needs a marker in the state")
+    if marker is not None and buoyancy_strength != 0:
+        buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
+        scalar_values(marker, v0.grid)  # a scalar CenteredGrid on the velocity's grid
+    source = None
+    if marker is not None and marker_source is not None:
+        source, _ = scalar_values(marker_source, marker.grid)
+        source = source.to(dtype=marker.dtype, device=marker.device)
+    if integrator != "split":
+        check_viscous_number(integrator, check_nonnegative(viscosity, "viscosity"), dt, v0.grid.dx)
+    return advance(state, dt, viscosity=viscosity, buoyancy_strength=buoyancy_strength,
+                   buoyancy_direction=buoyancy_direction, advection=advection, viscosity_scheme=viscosity_scheme,
+                   marker_source=source, obstacles=obstacles, solve=solve,
+                   energy_normalization=energy_normalization, integrator=integrator,
+                   marker_advection=marker_advection, trusted=False)
+
+
+def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float, buoyancy_direction,
+            advection: str, viscosity_scheme: str, marker_source: torch.Tensor | None, obstacles, solve,
+            energy_normalization: bool, integrator: str, marker_advection: str, trusted: bool) -> FluidState:
+    """:func:`step` on validated arguments (``marker_source`` a tensor of the marker's dtype and device, or None).
+
+    ``trusted=True`` is the step of a :class:`FluidStepper`: nothing is read back to the host and nothing
+    branches on tensor values (the balance of the boundary fluxes, the solids' coverage and the settings
+    were checked when it was built), so that the step traces as one graph.
+    """
+    v0 = state.velocity
+    marker = state.marker
+    t_new = state.time + float(dt)
     if marker is not None:
         marker = advect_trusted(marker, v0, dt, scheme=marker_advection)
         if marker_source is not None:
-            src, _ = scalar_values(marker_source, marker.grid)
-            marker = marker + dt * src.to(dtype=marker.dtype, device=marker.device)
-        layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary,
-                                                             state.time + float(dt), marker.dtype, marker.device)
+            marker = marker + dt * marker_source
+        layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary, t_new,
+                                                             marker.dtype, marker.device)
         if layout is not None:  # no marker in cells entirely inside a solid
             marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
-    elif buoyancy_strength != 0:
-        raise ParameterError("buoyancy_strength needs a marker in the state")
     lift = marker is not None and buoyancy_strength != 0
-    if lift:
-        strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
-        scalar_values(state.marker, v0.grid)  # a scalar CenteredGrid on the velocity's grid
-    t_new = state.time + float(dt)
     if integrator != "split":
         force = None
-        if marker is not None and buoyancy_strength != 0:
-            force = buoyancy(StaggeredGrid.zeros(v0.grid, v0.boundary, v0.batch_size, dtype=v0.dtype,
-                                                 device=v0.device), marker, 1.0, strength=buoyancy_strength,
-                             direction=buoyancy_direction)
-        v, p = navier_stokes_rk_step(v0, dt, viscosity=viscosity, integrator=integrator, force=force,
-                                     time=state.time, obstacles=obstacles, solve=solve,
-                                     pressure_guess=state.pressure, energy_normalization=energy_normalization)
+        if lift:
+            force = apply_buoyancy(StaggeredGrid.zeros(v0.grid, v0.boundary, v0.batch_size, dtype=v0.dtype,
+                                                       device=v0.device), marker.values, marker.boundary, 1.0,
+                                   *buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank))
+        v, p = rk_advance(v0, dt, float(viscosity), integrator, force, float(state.time), obstacles, solve,
+                          state.pressure, energy_normalization, trusted=trusted)
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
+    e0 = kinetic_energy(v0) if energy_normalization else None
     v = advect_trusted(v0, v0, dt, scheme=advection)
     v = to_time(v, t_new)
     if lift:  # sets the boundary faces
+        strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
         v = apply_buoyancy(v, marker.values, marker.boundary, dt, strength, direction)
     v, p = finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new,
-                        faces_set=lift)
-    return replace(state, velocity=v, marker=marker, pressure=p, time=state.time + float(dt))
+                       faces_set=lift, trusted=trusted)
+    return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)

@@ -28,6 +28,8 @@ Engines:
 * ``'auto'`` (default): ``'torch'`` for tensors on an accelerator; on the CPU ``'pyfftw'`` when
   it is installed (it measured fastest here, see ``docs/BENCHMARKS.md`` / the module notes in
   ``benchmarks/bench_spectral.py``), else ``'torch'`` with a one-time warning.
+* Under ``torch.compile`` (while dynamo traces, :func:`torch.compiler.is_compiling`) every engine resolves to
+  ``'torch'``: pyfftw calls cannot be traced, so a compiled step runs ``torch.fft`` and eager calls keep pyfftw.
 
 Planner effort and reproducibility: the default ``FFTSettings.planner_effort='FFTW_ESTIMATE'`` is
 bit-reproducible: the same seed and settings give the same bits in fresh processes, with any number of
@@ -131,7 +133,7 @@ def resolve_engine(x: torch.Tensor, engine: str | None = None) -> str:
     engine = get_fft_settings().engine if engine is None else engine
     if engine not in _ENGINES:
         raise ParameterError(f"FFT engine must be one of {_ENGINES}, got {engine!r}")
-    if engine == "torch":
+    if engine == "torch" or torch.compiler.is_compiling():  # pyfftw cannot be traced: torch.fft in a graph
         return "torch"
     if engine == "pyfftw":
         if x.device.type != "cpu":
