@@ -45,7 +45,7 @@ from phisim.checks import check_device
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
 from phisim.io import TrainingLog, recover_file
 from phisim.io.h5util import check_output_path
-from phisim.io.interrupts import interruptible, uninterrupted
+from phisim.io.interrupts import check_interrupt, interruptible, uninterrupted
 from phisim.io.journal import write_failure
 from phisim.io.traininglog import training_run
 
@@ -538,6 +538,7 @@ def _train(problem, method, *, iterations, batch_size, seed, device, out, checkp
     model.train()
     try:
         for it in range(start, iterations):
+            check_interrupt()  # a SIGTERM swallowed by a callback (weakref, __del__) still stops the run here
             batch = problem.sample(batch_size, batch_generator(seed, it), device=device)
             if input_shape is None:
                 input_shape = tuple(batch.inputs.shape[1:])

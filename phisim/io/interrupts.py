@@ -5,7 +5,11 @@ Two context managers, both no-ops outside the main thread (Python runs signal ha
 * :func:`interruptible` makes SIGTERM behave like Ctrl-C: it raises :class:`Interrupted` (a
   ``KeyboardInterrupt``) in the main thread, so ``finally`` blocks and ``with`` statements close files
   cleanly instead of the process dying on the spot. Only a signal left at its default action is taken
-  over, and the previous handlers come back on exit.
+  over, and the previous handlers come back on exit. The signal is also recorded, and
+  :func:`check_interrupt`, called by long loops once per step, raises it again if it was swallowed (an
+  exception raised inside a weakref callback or ``__del__`` is only printed). With ``raise_now=False`` the
+  signal is only recorded, and the loops' :func:`check_interrupt` stop the run at the next step (quiet
+  worker processes).
 * :func:`uninterrupted` defers SIGINT and SIGTERM to the end of a short block that must not be cut in two
   (one frame or one record written to HDF5, a file renamed into place); the signal is then delivered to
   the handler that was in force, so nothing is lost and nothing is torn.
@@ -21,13 +25,14 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "interruptible", "uninterrupted", "SIGNALS"]
+__all__ = ["Interrupted", "interruptible", "uninterrupted", "check_interrupt", "SIGNALS"]
 
 #: The signals handled here.
 SIGNALS = tuple(s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None)) if s is not None)
 
 _pending: list[int] = []
 _depth = 0
+_requested: list[int] = []  # signals received by interruptible's handlers (cleared when the block ends)
 
 
 class Interrupted(KeyboardInterrupt):
@@ -43,7 +48,20 @@ class Interrupted(KeyboardInterrupt):
 
 
 def _raise(signum, frame):
+    _record(signum, frame)
     raise Interrupted(signum)
+
+
+def _record(signum, frame):
+    if signum not in _requested:
+        _requested.append(signum)
+
+
+def check_interrupt() -> None:
+    """Raise :class:`Interrupted` if a signal arrived inside :func:`interruptible` (call it once per step of a
+    long loop: it is cheap)."""
+    if _requested:
+        raise Interrupted(_requested[0])
 
 
 def _defer(signum, frame):
@@ -56,10 +74,14 @@ def _main_thread() -> bool:
 
 
 @contextmanager
-def interruptible() -> Iterator[None]:
+def interruptible(raise_now: bool = True) -> Iterator[None]:
     """Within the block, SIGTERM (and SIGINT, if it has no handler) raise :class:`Interrupted`.
 
     Handlers a program installed itself, and ignored signals, are left alone.
+
+    Args:
+        raise_now: Raise in the handler (at once, wherever the main thread is). False: only record the
+            signal; :func:`check_interrupt` raises it at the next step of the loop that calls it.
     """
     if not _main_thread():
         yield
@@ -69,12 +91,14 @@ def interruptible() -> Iterator[None]:
         old = signal.getsignal(s)
         if old is signal.SIG_DFL:
             saved[s] = old
-            signal.signal(s, _raise)
+            signal.signal(s, _raise if raise_now else _record)
     try:
         yield
     finally:
         for s, old in saved.items():
             signal.signal(s, old)
+        if saved:
+            _requested.clear()
 
 
 @contextmanager

@@ -30,9 +30,9 @@ import inspect
 import json
 import math
 import multiprocessing as mp
+import multiprocessing.connection
 import os
 import pickle
-import queue
 import shutil
 import signal
 import sys
@@ -48,7 +48,7 @@ import torch
 
 from phisim.errors import FileFormatError, ParameterError
 from phisim.io import SimulationWriter, write_statistics
-from phisim.io.interrupts import Interrupted, interruptible, uninterrupted
+from phisim.io.interrupts import Interrupted, check_interrupt, interruptible, uninterrupted
 from phisim.io.journal import journal_path
 from phisim.simulate.scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
 
@@ -303,6 +303,7 @@ def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.Path
             w.append(0.0, **frame(state))
             with torch.no_grad():
                 for k in range(1, cfg["steps"] + 1):
+                    check_interrupt()  # a SIGTERM recorded by a worker (or swallowed by a callback) stops here
                     state = sim.step(state)
                     if k % cfg["save_every"] == 0:
                         w.append((k // cfg["save_every"]) * interval, **frame(state))
@@ -316,27 +317,27 @@ def simulate_chunk(cfg: Mapping[str, Any], chunk: ChunkPlan, root: str | os.Path
 
 # ---- worker processes ------------------------------------------------------------------------------------
 
-#: Seconds the main process waits for interrupted workers to clean up before it kills them.
+#: Seconds the main process waits for stopped workers to clean up before it kills them.
 STOP_GRACE = 0.8
 
 
-def _worker(cfg: dict, root: str, threads: int, tasks, results) -> None:
-    """Worker-process entry: simulate the chunks taken from ``tasks`` until ``None``; report to ``results``.
+def _worker(cfg: dict, root: str, threads: int, conn) -> None:
+    """Worker-process entry: simulate the chunks received on ``conn`` until ``None`` (or the main process
+    closes it); report each as done (or failed) on ``conn``.
 
-    The terminal's SIGINT is ignored (the main process decides); SIGTERM raises :class:`Interrupted`, which
-    removes the unfinished file and ends the process.
+    The terminal's SIGINT is ignored (the main process decides); SIGTERM stops the chunk at its next step
+    (:func:`~phisim.io.interrupts.check_interrupt` in :func:`simulate_chunk`), which removes the unfinished file.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked while the process started
     torch.set_num_threads(max(1, threads))
-    with interruptible():
+    with interruptible(raise_now=False):
         try:
-            _work(cfg, root, tasks, results)
-            results.close()
-            results.join_thread()  # every report is in the pipe
-        except Interrupted:  # stopped by the main process; simulate_chunk removed its unfinished file
-            results.cancel_join_thread()
+            _work(cfg, root, conn)
+        except (Interrupted, EOFError, OSError):  # stopped, or the main process is gone
+            pass
+    conn.close()
     # Every file is closed or removed: end without the interpreter's teardown of torch (a second or more on a
     # busy machine), so the main process need not wait for it.
     sys.stdout.flush()
@@ -344,9 +345,9 @@ def _worker(cfg: dict, root: str, threads: int, tasks, results) -> None:
     os._exit(0)
 
 
-def _work(cfg: dict, root: str, tasks, results) -> None:
+def _work(cfg: dict, root: str, conn) -> None:
     while True:
-        chunk = tasks.get()
+        chunk = conn.recv()
         if chunk is None:
             return
         try:
@@ -358,26 +359,25 @@ def _work(cfg: dict, root: str, tasks, results) -> None:
                 pickle.dumps(exc)
             except Exception:  # noqa: BLE001 - an exception that cannot travel: its text does
                 exc = RuntimeError(f"{type(exc).__name__}: {exc}")
-            results.put(("error", chunk.index, exc, traceback.format_exc()))
+            conn.send(("error", chunk.index, exc, traceback.format_exc()))
             return
-        results.put(("done", chunk.index, chunk.trajectories, None))
+        conn.send(("done", chunk.index, chunk.trajectories, None))
 
 
 def _run_workers(cfg: dict, todo: Sequence[ChunkPlan], root: Path, workers: int, bar) -> None:
-    """Simulate ``todo`` in ``workers`` spawned processes; on any exception (an interrupt included) stop them
-    within :data:`STOP_GRACE` seconds (SIGTERM, then SIGKILL) and remove their unfinished files."""
+    """Simulate ``todo`` in ``workers`` spawned processes, each fed one chunk at a time through a pipe; on any
+    exception (an interrupt included) stop them within :data:`STOP_GRACE` seconds (SIGTERM and closed pipes,
+    then SIGKILL) and remove their unfinished files."""
     ctx = mp.get_context("spawn")
-    tasks, results = ctx.Queue(), ctx.Queue()
-    for c in todo:
-        tasks.put(c)
     n = min(workers, len(todo))
-    for _ in range(n):
-        tasks.put(None)
     threads = max(1, (os.cpu_count() or 1) // workers)
-    procs = [ctx.Process(target=_worker, args=(cfg, str(root), threads, tasks, results), daemon=True)
-             for _ in range(n)]
-    blocked = hasattr(signal, "pthread_sigmask")
+    pipes = [ctx.Pipe() for _ in range(n)]
+    procs = [ctx.Process(target=_worker, args=(cfg, str(root), threads, child), daemon=True)
+             for _, child in pipes]
+    conns = [parent for parent, _ in pipes]
+    waiting = list(todo)
     try:
+        blocked = hasattr(signal, "pthread_sigmask")
         if blocked:  # workers start with SIGINT blocked (a Ctrl-C meant for the main process is not theirs)
             old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
@@ -385,41 +385,56 @@ def _run_workers(cfg: dict, todo: Sequence[ChunkPlan], root: Path, workers: int,
                 p.start()
         finally:
             if blocked:
-                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending SIGINT arrives here
+                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+            for _, child in pipes:
+                child.close()
+        active = list(conns)  # the workers working on a chunk
+        for conn in conns:
+            _feed(conn, waiting, active)
         remaining = len(todo)
         while remaining:
-            try:
-                kind, index, value, tb = results.get(timeout=0.5)
-            except queue.Empty:
-                if not any(p.is_alive() for p in procs):
-                    raise RuntimeError("the simulation worker processes ended before their files were written "
-                                       f"(exit codes {[p.exitcode for p in procs]})") from None
-                continue
-            if kind == "error":
-                if isinstance(value, BaseException):
-                    raise value
-                raise RuntimeError(f"file {index}: {value}\n{tb}")
-            remaining -= 1
-            if bar is not None:
-                bar.update(value)
-        deadline = time.monotonic() + 5.0  # all done: the workers take their end marks and exit
+            ready = multiprocessing.connection.wait(active, timeout=0.5)
+            for conn in ready:
+                try:
+                    kind, index, value, tb = conn.recv()
+                except EOFError:
+                    codes = [p.exitcode for p in procs]
+                    raise RuntimeError(f"a simulation worker process ended unexpectedly (exit codes {codes})"
+                                       ) from None
+                if kind == "error":
+                    if isinstance(value, BaseException):
+                        raise value
+                    raise RuntimeError(f"file {index}: {value}\n{tb}")
+                remaining -= 1
+                if bar is not None:
+                    bar.update(value)
+                _feed(conn, waiting, active)
+        deadline = time.monotonic() + 5.0  # all done: the workers took their end marks and exit
         for p in procs:
             p.join(max(0.0, deadline - time.monotonic()))
     finally:
-        _stop(procs)
+        _stop(procs, conns)
         for c in todo:
             if not (root / c.path).exists():
                 _remove_part(root, c)
-        for q in (tasks, results):
-            q.close()
-            q.cancel_join_thread()
 
 
-def _stop(procs: list) -> None:
-    """Stop worker processes: SIGTERM to the running ones, SIGKILL to those still alive after the grace."""
+def _feed(conn, waiting: list, active: list) -> None:
+    """Send a worker its next chunk, or its end mark (it then leaves ``active``)."""
+    if waiting:
+        conn.send(waiting.pop(0))
+    else:
+        conn.send(None)
+        active.remove(conn)
+
+
+def _stop(procs: list, conns: list) -> None:
+    """Stop worker processes: SIGTERM and closed pipes, then SIGKILL for those still alive after the grace."""
     for p in procs:
         if p.is_alive():
             p.terminate()
+    for conn in conns:
+        conn.close()
     deadline = time.monotonic() + STOP_GRACE
     for p in procs:
         if p.pid is not None:
