@@ -67,6 +67,7 @@ SCRIPTS = {
     "benchmarks/bench_hig.py": ["--batch-sizes", "2", "--widths", "4", "--out", "{out}/h.md"],
     "benchmarks/run.py": ["--suite", "operators", "--quick", "--out", "{out}"],
     "benchmarks/bench_viscosity.py": ["--sizes", "8", "--dtype", "float64"],
+    "benchmarks/bench_jaxcfd.py": ["--sides", "phisim", "--sizes", "8"],
     "benchmarks/bench_simulate.py": ["--step-cost", "--sizes", "8", "12", "--sizes3d", "--rounds", "1", "--calls",
                                      "2", "--out", "{out}/s.json"],
 }
@@ -81,7 +82,7 @@ def test_every_script_is_listed():
     found = {f"examples/{p.name}" for p in (ROOT / "examples").glob("*.py")}
     found |= {f"benchmarks/{p.name}" for p in (ROOT / "benchmarks").glob("*.py")}
     helpers = {"examples/demo.py", "examples/seed_table.py", "benchmarks/cases_phisim.py", "benchmarks/inputs.py",
-               "benchmarks/peer_phiflow.py", "benchmarks/timing.py"}
+               "benchmarks/peer_phiflow.py", "benchmarks/timing.py", "benchmarks/peer_jaxcfd.py"}
     assert found - helpers == set(SCRIPTS)
     for script in SCRIPTS:
         assert "--device" in (ROOT / script).read_text(), script
@@ -326,3 +327,10 @@ def test_e5_diagnose_on_cuda_matches_cpu(tmp_path):
 def test_bench_viscosity_tiny_cpu(tmp_path):
     text = load("benchmarks/bench_viscosity.py").main(argv("benchmarks/bench_viscosity.py", tmp_path / "out", "cpu"))
     assert "| 8² |" in text and "float64" in text and "Device:" not in text  # the CPU table carries no device line
+
+
+def test_bench_jaxcfd_phisim_side_tiny_cpu(tmp_path, capsys):
+    mod = load("benchmarks/bench_jaxcfd.py")
+    assert mod.main(argv("benchmarks/bench_jaxcfd.py", tmp_path, "cpu")) == []
+    out = capsys.readouterr().out
+    assert "one step, 8², float32: phisim" in out and " ms" in out

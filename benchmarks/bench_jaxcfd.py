@@ -1,0 +1,217 @@
+"""phisim's periodic fluid step against jax-cfd 0.2.1 (XLA-compiled), the same scheme on both sides.
+
+    bash benchmarks/setup_jaxpeers.sh                       # once: jax, jax-cfd, exponax in benchmarks/.venv-jax
+    python benchmarks/bench_jaxcfd.py [--quick] [--rounds 3] [--write] [--sides phisim] [--sizes 64 128]
+
+Scheme (``../shared/PEERS.md``): on the periodic square ``[0, 2π)²``, semi-Lagrangian self-advection, explicit
+viscosity, the exact FFT pressure projection; phisim: ``FluidStepper(grid, "periodic", advection=
+"semi_lagrangian", viscosity_scheme="explicit")`` (eager, pyfftw); jax-cfd: ``semi_implicit_navier_stokes`` with
+semi-Lagrangian convection and ``pressure.solve_fast_diag`` under ``jax.jit`` (``jax.vmap`` for batches,
+``funcutils.repeated`` for rollouts, ``jax.grad`` through rollouts). The two apply viscosity to the advected and
+to the old velocity respectively; the energies after 100 float64 steps at 64² are printed as the like-for-like
+check. One thread per side (``torch.set_num_threads(1)``; XLA single-threaded Eigen and intra-op), interleaved
+rounds; the table gives the best time of each side and the ratio phisim / jax-cfd (< 1: phisim faster).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+from peer_jaxcfd import TWO_PI, initial_velocity  # noqa: E402
+
+from phisim import Grid, StaggeredGrid  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
+from phisim.fluid import FluidState, FluidStepper  # noqa: E402
+
+PEER_PYTHON = HERE / ".venv-jax" / "bin" / "python"
+XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def make_cases(quick: bool, sizes: list[int] | None = None) -> list[dict]:
+    """The benchmark cases (float32 unless named); ``sizes`` replaces every case list by one-step cases."""
+    base = {"dtype": "float32", "viscosity": 1e-3, "dt": 0.01, "batch": 1, "mode": "step", "steps": 1}
+    if sizes:
+        return [dict(base, n=n) for n in sizes]
+    sizes = [64, 128] if quick else [64, 128, 256, 512]
+    cases = [dict(base, n=n) for n in sizes]
+    cases += [dict(base, n=n, dtype="float64") for n in ([64] if quick else [64, 128, 256])]
+    cases += [dict(base, n=n, batch=b) for n, b in ([(32, 128), (64, 32)] if quick else
+                                                     [(32, 128), (64, 32), (128, 8)])]
+    cases += [dict(base, n=n, mode="rollout", steps=100) for n in ([64] if quick else [64, 128, 256])]
+    cases += [dict(base, n=n, mode="grad", steps=10) for n in ([64] if quick else [64, 128, 256])]
+    return cases
+
+
+def build_phisim(case: dict, device=None):
+    """A function running ``case`` on the phisim side (on ``device``)."""
+    dtype = torch.float64 if case["dtype"] == "float64" else torch.float32
+    n, batch = case["n"], case["batch"]
+    grid = Grid((n, n), bounds=[(0.0, TWO_PI), (0.0, TWO_PI)])
+    dx = TWO_PI / n
+    comps = []
+    for c in range(2):
+        shape = grid.face_shape(c)
+        xs = (np.arange(shape[0]) + (0.0 if c == 0 else 0.5)) * dx
+        ys = (np.arange(shape[1]) + (0.5 if c == 0 else 0.0)) * dx
+        x, y = np.meshgrid(xs, ys, indexing="ij")
+        comps.append(torch.as_tensor(np.stack([initial_velocity(x, y, c, b * TWO_PI / batch) for b in range(batch)]),
+                                     dtype=dtype, device=device))
+    stepper = FluidStepper(grid, "periodic", viscosity=case["viscosity"], advection="semi_lagrangian",
+                           viscosity_scheme="explicit", dt=case["dt"], dtype=dtype, device=device)
+    v0 = StaggeredGrid(tuple(comps), grid, stepper.boundary).with_boundary_faces()
+
+    def run(v):
+        s = FluidState(v)
+        for _ in range(case["steps"]):
+            s = stepper(s)
+        return s.velocity
+
+    if case["mode"] == "grad":
+        def fn():
+            v = v0.with_values(tuple(c.detach().requires_grad_(True) for c in v0.values))
+            out = run(v)
+            e = sum(c[:, :n, :n].pow(2).mean() for c in out.values)
+            e.backward()
+            return v.values[0].grad
+    else:
+        def fn():
+            with torch.no_grad():
+                return run(v0)
+
+    def energy():
+        with torch.no_grad():
+            out = run(v0)
+        return sum(c[:, :n, :n].double().pow(2).mean(dim=(1, 2)) for c in out.values).tolist()
+
+    return fn, energy
+
+
+class Peer:
+    """The jax-cfd child process."""
+
+    def __init__(self):
+        env = dict(os.environ, XLA_FLAGS=XLA_ONE_THREAD, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
+        self.proc = subprocess.Popen([str(PEER_PYTHON), str(HERE / "peer_jaxcfd.py")], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, env=env, bufsize=1)
+
+    def ask(self, req: dict) -> dict:
+        self.proc.stdin.write(json.dumps(req) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the jax-cfd peer stopped; run bash benchmarks/setup_jaxpeers.sh first")
+        return json.loads(line)
+
+    def close(self):
+        try:
+            self.ask({"cmd": "quit"}) if self.proc.poll() is None else None
+        except (BrokenPipeError, RuntimeError):
+            pass
+        self.proc.wait(timeout=10)
+
+
+def reps_for(case: dict) -> int:
+    """Repeats per round: more for cheap cases."""
+    work = case["n"] ** 2 * case["batch"] * case["steps"] * (3 if case["mode"] == "grad" else 1)
+    return max(2, min(20, int(2e6 / work)))
+
+
+def label(case: dict) -> str:
+    size = f"{case['n']}²" + (f" x {case['batch']}" if case["batch"] > 1 else "")
+    what = {"step": "one step", "rollout": f"{case['steps']}-step rollout",
+            "grad": f"forward + backward, {case['steps']} steps"}[case["mode"]]
+    return f"{what}, {size}, {case['dtype']}"
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Run the cases and print (optionally write) the table."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="small sizes only")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--write", action="store_true", help="write benchmarks/results/jaxcfd.json and .md")
+    ap.add_argument("--sides", nargs="+", default=["phisim", "jaxcfd"], choices=["phisim", "jaxcfd"],
+                    help="which sides to run (default both; phisim alone needs no jax environment)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=None, help="one-step cases of these sizes only")
+    ap.add_argument("--device", default="cpu", help="torch device of the phisim side: cpu, cuda or cuda:N")
+    args = ap.parse_args(argv)
+    device = check_device(args.device)
+    torch.set_num_threads(1)
+    with_peer = "jaxcfd" in args.sides
+    if with_peer and not PEER_PYTHON.exists():
+        raise SystemExit("no jax-cfd environment: run bash benchmarks/setup_jaxpeers.sh first")
+    cases = make_cases(args.quick, args.sizes)
+    built = {json.dumps(c, sort_keys=True): build_phisim(c, device) for c in cases}
+    if not with_peer:
+        for c in cases:
+            fn, _ = built[json.dumps(c, sort_keys=True)]
+            fn()
+            t = time.perf_counter()
+            fn()
+            print(f"{label(c)}: phisim {1e3 * (time.perf_counter() - t):.3f} ms")
+        return []
+    peer = Peer()
+    info = peer.ask({"cmd": "info"})
+    rows = {json.dumps(c, sort_keys=True): {"case": c, "phisim": [], "peer": [], "compile_s": None}
+            for c in cases}
+    load = os.getloadavg()[0]
+    try:
+        for _ in range(args.rounds):
+            for c in cases:
+                key = json.dumps(c, sort_keys=True)
+                fn, _ = built[key]
+                reps = reps_for(c)
+                fn()  # warm
+                for _ in range(reps):
+                    t = time.perf_counter()
+                    fn()
+                    rows[key]["phisim"].append(time.perf_counter() - t)
+                out = peer.ask({"cmd": "time", "case": c, "reps": reps})
+                rows[key]["peer"] += out["times"]
+                if out.get("compile_s") is not None:
+                    rows[key]["compile_s"] = out["compile_s"]
+        check = dict(cases[0], n=64, dtype="float64", mode="rollout", steps=100, batch=1)
+        e_peer = peer.ask({"cmd": "energy", "case": check})["energy"]
+        e_ours = build_phisim(check, device)[1]()
+    finally:
+        peer.close()
+    result = []
+    lines = ["| case | phisim ms | jax-cfd ms | phisim / jax-cfd | jax-cfd compile s |", "|---|---|---|---|---|"]
+    for r in rows.values():
+        a, b = min(r["phisim"]), min(r["peer"])
+        result.append({"case": r["case"], "phisim_s": a, "jaxcfd_s": b, "ratio": a / b,
+                       "phisim_median_s": statistics.median(r["phisim"]),
+                       "jaxcfd_median_s": statistics.median(r["peer"]), "jaxcfd_compile_s": r["compile_s"]})
+        lines.append(f"| {label(r['case'])} | {1e3 * a:.3f} | {1e3 * b:.3f} | **{a / b:.2f}** | "
+                     f"{r['compile_s']:.2f} |" if r["compile_s"] is not None else
+                     f"| {label(r['case'])} | {1e3 * a:.3f} | {1e3 * b:.3f} | **{a / b:.2f}** | |")
+    rel = abs(e_ours[0] - e_peer[0]) / e_peer[0]
+    header = [f"jax {info['jax']}, jax-cfd {info['jax_cfd']}, torch {torch.__version__}; one thread per side; "
+              f"{args.rounds} interleaved rounds, best of each side; load average at start {load:.2f}.",
+              f"Like-for-like check: kinetic energy after 100 float64 steps at 64²: phisim {e_ours[0]:.8f}, "
+              f"jax-cfd {e_peer[0]:.8f} (relative difference {rel:.1e}).", ""]
+    text = "\n".join(header + lines)
+    print(text)
+    if args.write:
+        (HERE / "results").mkdir(exist_ok=True)
+        (HERE / "results" / "jaxcfd.json").write_text(json.dumps({"info": info, "rows": result, "load": load,
+                                                                   "energy": [e_ours, e_peer]}, indent=1))
+        (HERE / "results" / "jaxcfd.md").write_text(text + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()
