@@ -711,7 +711,8 @@ def pad(
         The padded array, each padded axis ``2 * width`` longer.
 
     Raises:
-        ShapeError: If the array does not fit the boundary's rank or is too small for ``width``.
+        ShapeError: If the array does not fit the boundary's rank, is too small for ``width`` or has an empty
+            batch (batch size 0).
     """
     rank = boundary.rank
     expected = rank + (2 if vector else 1)
@@ -720,6 +721,8 @@ def pad(
             f"expected a {'vector' if vector else 'scalar'} array with {expected} dims (batch"
             f"{', component' if vector else ''}, {rank} spatial), got shape {tuple(values.shape)}"
         )
+    if values.shape[0] == 0:
+        raise ShapeError("pad: values have an empty batch (batch size 0); pass at least one sample")
     axes = tuple(range(rank)) if axes is None else tuple(axes)
     if width and (not vector or values.shape[1] == rank) and _fast_padding(values.shape[1:]):
         plan = _fast_plan(values, boundary, dx, width, axes, None if not vector else rank,
@@ -776,6 +779,9 @@ def pad_staggered_component(
     rank = boundary.rank
     if values.ndim != rank + 1:
         raise ShapeError(f"staggered component must have shape (B, *face_shape), got {tuple(values.shape)}")
+    if values.shape[0] == 0:
+        raise ShapeError("pad_staggered_component: values have an empty batch (batch size 0); pass at least one "
+                         "sample")
     axes = tuple(range(rank)) if axes is None else tuple(axes)
     if width and _fast_padding(values.shape[1:]):
         plan = _fast_plan(values, boundary, dx, width, axes, None, tuple(values.shape[1:]), component)

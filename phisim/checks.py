@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from phisim.errors import NonFiniteError, ParameterError
+from phisim.errors import NonFiniteError, ParameterError, ShapeError
 
 __all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
-           "check_finite_number"]
+           "check_finite_number", "check_number", "check_int", "check_seed", "check_bool", "check_choice",
+           "check_callable", "callable_name", "batch_size_of", "check_batch_compatible", "check_nonempty_batch",
+           "check_callable_output"]
 
 
 def check_dt(dt, name: str = "dt") -> float:
@@ -139,3 +142,235 @@ def check_finite_number(value, name: str) -> float:
     if not math.isfinite(f):
         raise ParameterError(f"{name} must be finite, got {f}")
     return value if isinstance(value, torch.Tensor) else f
+
+
+# ---- one mechanism for arguments: numbers, integers, flags, choices, batches and callables' outputs --------
+#
+# Every public constructor and keyword setting validates its arguments with these helpers, so a string,
+# ``None``, a list, NaN or an out-of-range integer where a number is expected always ends in a ParameterError
+# that names the argument, a batch mismatch in a ShapeError naming both sizes, and a user callable that
+# returns the wrong thing in a ShapeError/NonFiniteError naming the callable.
+
+#: Largest integer a torch/numpy int64 holds: the default upper limit of :func:`check_int`.
+INT64_MAX = 2**63 - 1
+#: Seeds ``torch.Generator.manual_seed`` accepts: ``[-2**63, 2**64 - 1]``.
+SEED_RANGE = (-(2**63), 2**64 - 1)
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _range_text(minimum, maximum, min_open: bool, max_open: bool) -> str:
+    parts = []
+    if minimum is not None:
+        parts.append(f"{'>' if min_open else '>='} {minimum}")
+    if maximum is not None:
+        parts.append(f"{'<' if max_open else '<='} {maximum}")
+    return " and ".join(parts)
+
+
+def check_number(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
+                 min_open: bool = False, max_open: bool = False, allow_none: bool = False,
+                 finite: bool = True) -> float | None:
+    """Validate one real number (a Python/numpy number or a one-element tensor) and return it as a float.
+
+    Args:
+        value: The argument.
+        name: Its name, for the message.
+        minimum, maximum: Optional limits; ``min_open``/``max_open`` make them exclusive.
+        allow_none: Whether ``None`` is accepted (and returned).
+        finite: Whether NaN and Inf are refused (NaN is refused by any limit anyway).
+
+    Raises:
+        ParameterError: For a string, ``None``, a list, a bool, a complex number, NaN/Inf or a value out of range;
+            the message names ``name``.
+    """
+    if value is None and allow_none:
+        return None
+    if value is None or isinstance(value, (bool, np.bool_, str, bytes, complex)):
+        raise ParameterError(f"{name} must be a real number, got {_short(value)}")
+    if isinstance(value, torch.Tensor):
+        if value.numel() != 1 or value.is_complex():
+            raise ParameterError(f"{name} must be a single real number, got a tensor of shape {tuple(value.shape)}")
+        value = value.detach().cpu().item()
+    elif isinstance(value, np.ndarray):
+        if value.size != 1 or value.dtype.kind not in "iuf":
+            raise ParameterError(f"{name} must be a single real number, got an array of shape {value.shape}")
+        value = value.item()
+    if not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ParameterError(f"{name} must be a real number, got {_short(value)} ({type(value).__name__})")
+    try:
+        v = float(value)
+    except OverflowError as exc:
+        raise ParameterError(f"{name} = {_short(value)} is too large for a float") from exc
+    if math.isnan(v) or (finite and math.isinf(v)):
+        raise ParameterError(f"{name} must be a finite number, got {v}")
+    low = minimum is not None and (v <= minimum if min_open else v < minimum)
+    high = maximum is not None and (v >= maximum if max_open else v > maximum)
+    if low or high:
+        raise ParameterError(f"{name} must be {_range_text(minimum, maximum, min_open, max_open)}, got {v:g}")
+    return v
+
+
+def check_int(value, name: str, *, minimum: int | None = None, maximum: int | None = INT64_MAX,
+              allow_none: bool = False) -> int | None:
+    """Validate an integer (a Python or numpy int, or a one-element integer tensor) and return it as an int.
+
+    Floats are refused even when integral (``2.0``): a count, size or seed is an int.
+
+    Args:
+        value: The argument.
+        name: Its name, for the message.
+        minimum, maximum: Inclusive limits (default upper limit: the largest int64).
+        allow_none: Whether ``None`` is accepted (and returned).
+
+    Raises:
+        ParameterError: For a string, ``None``, a float, a list, a bool or an out-of-range integer; the message
+            names ``name``.
+    """
+    if value is None and allow_none:
+        return None
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not (value.is_floating_point()
+                                                                       or value.is_complex()
+                                                                       or value.dtype == torch.bool):
+        value = int(value.item())
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ParameterError(f"{name} must be an integer, got {_short(value)} ({type(value).__name__})")
+    v = int(value)
+    if (minimum is not None and v < minimum) or (maximum is not None and v > maximum):
+        raise ParameterError(f"{name} must be an integer {_range_text(minimum, maximum, False, False)}, got {v}")
+    return v
+
+
+def check_seed(seed, name: str = "seed", *, allow_none: bool = True) -> int | None:
+    """Validate a random seed: an int that ``torch.Generator.manual_seed`` accepts (``-2**63 .. 2**64 - 1``).
+
+    Raises:
+        ParameterError: Naming ``name``.
+    """
+    return check_int(seed, name, minimum=SEED_RANGE[0], maximum=SEED_RANGE[1], allow_none=allow_none)
+
+
+def check_bool(value, name: str) -> bool:
+    """Validate a flag: ``True`` or ``False`` (numpy bools too), not ``1``, ``'yes'`` or ``None``.
+
+    Raises:
+        ParameterError: Naming ``name``.
+    """
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParameterError(f"{name} must be True or False, got {_short(value)}")
+    return bool(value)
+
+
+def check_choice(value, name: str, choices):
+    """Validate that ``value`` is one of ``choices`` (compared by type and equality, so ``['a']``, tensors and
+    other unhashable values are refused cleanly).
+
+    Raises:
+        ParameterError: Naming ``name`` and listing the choices.
+    """
+    for c in choices:
+        if value is c or (type(value) is type(c) and value == c):
+            return value
+    raise ParameterError(f"{name} must be one of {tuple(choices)}, got {_short(value)}")
+
+
+def callable_name(fn) -> str:
+    """A readable name of a user callable: its qualified ``__name__``, else its ``repr``."""
+    name = getattr(fn, "__qualname__", None) or getattr(fn, "__name__", None)
+    if name is None:
+        name = getattr(type(fn), "__qualname__", None) if not isinstance(fn, type) else None
+        name = f"{name} instance" if name else None
+    return name if name else _short(fn)
+
+
+def check_callable(value, name: str):
+    """Validate that ``value`` is callable.
+
+    Raises:
+        ParameterError: Naming ``name``.
+    """
+    if not callable(value):
+        raise ParameterError(f"{name} must be callable, got {_short(value)} ({type(value).__name__})")
+    return value
+
+
+def batch_size_of(x) -> int:
+    """The batch size of a field (``.batch_size``), a tensor/array (``shape[0]``) or an int."""
+    if isinstance(x, (int, np.integer)) and not isinstance(x, bool):
+        return int(x)
+    b = getattr(x, "batch_size", None)
+    if isinstance(b, int):
+        return b
+    shape = getattr(x, "shape", None)
+    if shape is None or len(shape) == 0:
+        raise ShapeError(f"expected something with a leading batch axis, got {_short(x)}")
+    return int(shape[0])
+
+
+def check_batch_compatible(a, b, names: tuple[str, str] = ("a", "b"), what: str = "combine") -> int:
+    """The common batch size of two operands: equal sizes, or one of them 1 (broadcast to the other).
+
+    Args:
+        a, b: Batch sizes, tensors (``shape[0]``) or fields (``batch_size``).
+        names: What the two operands are, for the message.
+        what: The operation, for the message (``'add'``, ``'solve'``...).
+
+    Returns:
+        The broadcast batch size.
+
+    Raises:
+        ShapeError: Naming both operands and both sizes.
+    """
+    ba, bb = batch_size_of(a), batch_size_of(b)
+    if ba == bb or bb == 1:
+        return ba
+    if ba == 1:
+        return bb
+    raise ShapeError(
+        f"cannot {what}: {names[0]} has batch size {ba} but {names[1]} has batch size {bb}; batch sizes must be "
+        "equal, or one of them 1 (broadcast: it is then shared by every sample)"
+    )
+
+
+def check_nonempty_batch(x, name: str) -> None:
+    """Refuse an empty batch (batch size 0), which no phisim operation processes.
+
+    Raises:
+        ShapeError: Naming ``name``.
+    """
+    if batch_size_of(x) == 0:
+        raise ShapeError(f"{name} has an empty batch (batch size 0); pass at least one sample")
+
+
+def check_callable_output(out, expected_shape, fn, name: str, *, finite: bool = True):
+    """Check what a user callable returned: a tensor of exactly ``expected_shape`` and, with ``finite``, no NaN/Inf.
+
+    Nothing is broadcast: a flat tensor, a batch of 1 where ``B`` was expected or a missing axis is an error.
+
+    Args:
+        out: The returned value.
+        expected_shape: The shape it must have.
+        fn: The callable (named in the message by :func:`callable_name`).
+        name: Its role (``'preconditioner'``, ``'local inverse'``...).
+        finite: Also check for NaN/Inf (one reduction; a device sync on accelerators).
+
+    Returns:
+        ``out``.
+
+    Raises:
+        ShapeError: Not a tensor, or another shape; naming the callable and both shapes.
+        NonFiniteError: NaN/Inf in the output.
+    """
+    expected = tuple(expected_shape)
+    if not isinstance(out, torch.Tensor):
+        raise ShapeError(f"{name} {callable_name(fn)} returned {type(out).__name__}, expected a tensor of shape "
+                         f"{expected}")
+    if tuple(out.shape) != expected:
+        raise ShapeError(f"{name} {callable_name(fn)} returned shape {tuple(out.shape)}, expected {expected}")
+    if finite and not all_finite(out.detach()):
+        bad = int((~torch.isfinite(out.detach())).sum())
+        raise NonFiniteError(f"{name} {callable_name(fn)} returned {bad} NaN/Inf value(s) (shape {expected})")
+    return out

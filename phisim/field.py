@@ -7,7 +7,10 @@ Layout (batch first, always):
   ``resolution[i] + 1`` along axis ``i`` (the faces normal to axis ``i``, both boundary faces included).
 
 Operations return new fields. Combining fields on different grids, sample locations or boundaries raises
-:class:`~phisim.errors.GridMismatchError` instead of broadcasting.
+:class:`~phisim.errors.GridMismatchError` instead of broadcasting. Batch sizes of two operands (two fields, or a
+field and a tensor with a batch axis) must be equal or one of them 1, which is then shared by every sample of the
+other; anything else raises :class:`~phisim.errors.ShapeError` naming both sizes. Fields never hold an empty
+batch (batch size 0). Sample points must be finite (:class:`~phisim.errors.NonFiniteError`).
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from phisim.boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
-from phisim.errors import GridMismatchError, ParameterError, ShapeError
+from phisim.checks import all_finite, check_batch_compatible, check_int, check_nonempty_batch
+from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError
 from phisim.grid import Grid
 
 __all__ = ["CenteredGrid", "StaggeredGrid", "Field", "sample_padded"]
@@ -48,9 +52,20 @@ def _as_float_tensor(values, dtype=None, device=None) -> torch.Tensor:
     return t
 
 
-def _check_count(n, name: str) -> None:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ParameterError(f"{name} must be an int >= 1, got {n!r}")
+def _check_count(n, name: str) -> int:
+    return check_int(n, name, minimum=1)
+
+
+def _finite_points(index: torch.Tensor, name: str) -> torch.Tensor | None:
+    """Sample coordinates must be finite. On the CPU a NaN/Inf coordinate raises :class:`NonFiniteError`; on an
+    accelerator (where the check would cost a device sync per call) the mask of finite points ``(B, N)`` is
+    returned instead, and the caller makes the values sampled there NaN rather than a plausible finite number."""
+    if index.device.type == "cpu" and not torch.compiler.is_compiling():
+        if not all_finite(index.detach()):
+            bad = int((~torch.isfinite(index.detach())).any(-1).sum())
+            raise NonFiniteError(f"{name} contains {bad} NaN/Inf coordinate(s); sample points must be finite")
+        return None
+    return torch.isfinite(index.detach()).all(-1)
 
 
 # ---- interpolation ------------------------------------------------------------------------------------
@@ -66,11 +81,25 @@ def sample_padded(array: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
     Returns:
         ``(B, C, N)`` interpolated values, differentiable w.r.t. both inputs.
+
+    Raises:
+        ShapeError: Wrong coordinate count, an empty batch, or batch sizes of ``array`` and ``index`` that differ.
+        NonFiniteError: NaN/Inf indices (on the CPU; on accelerators the values sampled there are NaN).
     """
     d = array.ndim - 2
+    if index.ndim != 3 or index.shape[-1] != d:
+        raise ShapeError(f"index must have shape (B, N, {d}) for a {d}-D array, got {tuple(index.shape)}")
+    check_nonempty_batch(array, "array")
+    if index.shape[0] != array.shape[0]:
+        raise ShapeError(f"index has batch size {index.shape[0]} but array has {array.shape[0]}")
+    finite = _finite_points(index, "index")
+    out = _sample_padded(array, index if finite is None else torch.where(finite[..., None], index, 0.0))
+    return out if finite is None else torch.where(finite[:, None, :], out, torch.nan)
+
+
+def _sample_padded(array: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    d = array.ndim - 2
     shape = array.shape[2:]
-    if index.shape[-1] != d:
-        raise ShapeError(f"index has {index.shape[-1]} coordinates for a {d}-D array")
     if d == 1:
         n = shape[0]
         t = index[..., 0].clamp(0, n - 1)
@@ -121,6 +150,16 @@ def _prepare_points(points, batch_size: int, rank: int, dtype, device, per_sampl
     return p.reshape(1, -1, rank).expand(batch_size, -1, -1), p.shape[:-1]
 
 
+def _sample_at(arr: torch.Tensor, flat: torch.Tensor, grid, boundary, face_axis) -> torch.Tensor:
+    """:func:`sample_padded` of ``arr`` (padded by one layer) at physical points ``flat`` ``(B, N, d)``; NaN/Inf
+    points raise (CPU) or give NaN (accelerators) instead of a clamped, finite value."""
+    finite = _finite_points(flat, "points")
+    if finite is not None:
+        flat = torch.where(finite[..., None], flat, 0.0)
+    out = _sample_padded(arr, _points_to_index(flat, grid, boundary, face_axis, 1))
+    return out if finite is None else torch.where(finite[:, None, :], out, torch.nan)
+
+
 # ---- fields -------------------------------------------------------------------------------------------
 
 
@@ -149,13 +188,21 @@ class Field:
             )
 
     def _binary(self, other, op, what: str, reverse: bool = False):
+        # Batch rule of all field arithmetic: the two batch sizes are equal, or one of them is 1 (that operand is
+        # shared by every sample of the other); anything else is a ShapeError naming both sizes. A tensor operand
+        # with as many axes as the field's values carries a batch axis first; fewer axes broadcast as in torch.
         if isinstance(other, Field):
             self._check_compatible(other, what)
+            check_batch_compatible(self, other, ("the left field", "the right field") if not reverse
+                                   else ("the right field", "the left field"), what + " fields")
             return self._zip(other, (lambda a, b: op(b, a)) if reverse else op)
         if isinstance(other, np.ndarray):
             other = _as_float_tensor(other)
         if isinstance(other, (str, bytes)) or other is None:
             raise ParameterError(f"cannot {what} a {type(self).__name__} and {other!r}")
+        if isinstance(other, torch.Tensor) and other.ndim == self._values_ndim():
+            check_batch_compatible(self, other, ("the field", "the tensor operand"),
+                                   f"{what} a {type(self).__name__} and a tensor")
         try:
             return self._map((lambda a: op(other, a)) if reverse else (lambda a: op(a, other)))
         except (RuntimeError, TypeError) as exc:
@@ -216,7 +263,8 @@ class CenteredGrid(Field):
         boundary: A ``Boundary`` or anything :meth:`Boundary.create` accepts (``'periodic'``, ...).
 
     Raises:
-        ShapeError: If the spatial shape differs from ``grid.resolution`` or the batch axis is missing.
+        ShapeError: If the spatial shape differs from ``grid.resolution``, the batch axis is missing or the
+            batch is empty (batch size 0 is refused here, so no operation downstream meets one).
         BoundaryError: For an unknown boundary specification.
     """
 
@@ -235,6 +283,7 @@ class CenteredGrid(Field):
                 f"(B, C, {', '.join(map(str, grid.resolution))}) for {grid}, got {tuple(v.shape)}; "
                 "add a batch axis with values[None] if needed"
             )
+        check_nonempty_batch(v, "CenteredGrid values")
         object.__setattr__(self, "values", v)
         object.__setattr__(self, "grid", grid)
         object.__setattr__(self, "boundary", Boundary.create(boundary, rank).on(grid))
@@ -293,6 +342,9 @@ class CenteredGrid(Field):
     def is_vector(self) -> bool:
         """Whether the field has a channel axis."""
         return self.values.ndim == self.grid.rank + 2
+
+    def _values_ndim(self) -> int:
+        return self.values.ndim
 
     @property
     def batch_size(self) -> int:
@@ -361,12 +413,16 @@ class CenteredGrid(Field):
 
         Returns:
             ``(B, *P)`` for scalar fields, ``(B, C, *P)`` for vector fields.
+
+        Raises:
+            ShapeError: ``points`` do not end in one coordinate per axis (or lack the batch axis).
+            NonFiniteError: A point is NaN/Inf (on the CPU; on accelerators, where the check would cost a device
+                sync, the values sampled there are NaN instead).
         """
         flat, lead = _prepare_points(points, self.batch_size, self.rank, self.dtype, self.device, per_sample)
-        idx = _points_to_index(flat.to(self.dtype), self.grid, self.boundary, None, 1)
         arr = self.padded(1)
         arr = arr.unsqueeze(1) if not self.is_vector else arr
-        out = sample_padded(arr, idx)
+        out = _sample_at(arr, flat.to(self.dtype), self.grid, self.boundary, None)
         out = out.reshape(out.shape[0], out.shape[1], *lead)
         return out if self.is_vector else out[:, 0]
 
@@ -402,7 +458,7 @@ class StaggeredGrid(Field):
         boundary: The velocity boundary (walls, open sides, periodic, ...).
 
     Raises:
-        ShapeError: For a wrong number of components or wrong component shapes.
+        ShapeError: For a wrong number of components, wrong component shapes or an empty batch.
     """
 
     values: tuple[torch.Tensor, ...]
@@ -425,6 +481,7 @@ class StaggeredGrid(Field):
                 )
             if c.dtype != comps[0].dtype or c.device != comps[0].device:
                 raise ShapeError("all StaggeredGrid components must share dtype and device")
+        check_nonempty_batch(comps[0], "StaggeredGrid values")
         object.__setattr__(self, "values", comps)
         object.__setattr__(self, "grid", grid)
         object.__setattr__(self, "boundary", Boundary.create(boundary, grid.rank).on(grid))
@@ -483,6 +540,9 @@ class StaggeredGrid(Field):
     def rank(self) -> int:
         """Number of spatial axes (and of components)."""
         return self.grid.rank
+
+    def _values_ndim(self) -> int:
+        return self.grid.rank + 1
 
     @property
     def batch_size(self) -> int:
@@ -547,13 +607,16 @@ class StaggeredGrid(Field):
 
         Returns:
             ``(B, d, *P)``.
+
+        Raises:
+            ShapeError: ``points`` do not end in one coordinate per axis (or lack the batch axis).
+            NonFiniteError: A point is NaN/Inf (on the CPU; NaN values on accelerators).
         """
         flat, lead = _prepare_points(points, self.batch_size, self.rank, self.dtype, self.device, per_sample)
         flat = flat.to(self.dtype)
         out = []
         for i in range(self.rank):
-            idx = _points_to_index(flat, self.grid, self.boundary, i, 1)
-            out.append(sample_padded(self.padded_component(i, 1).unsqueeze(1), idx)[:, 0])
+            out.append(_sample_at(self.padded_component(i, 1).unsqueeze(1), flat, self.grid, self.boundary, i)[:, 0])
         res = torch.stack(out, dim=1)
         return res.reshape(res.shape[0], self.rank, *lead)
 

@@ -52,7 +52,7 @@ import torch.nn.functional as F
 
 from phisim import boundary as bmod
 from phisim.boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
-from phisim.checks import check_dt, check_finite
+from phisim.checks import check_batch_compatible, check_dt, check_finite, check_nonempty_batch
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, Field, StaggeredGrid
 from phisim.grid import Grid
@@ -395,6 +395,8 @@ def validate_advection(field, velocity, dt, scheme, trace, clamp):
         raise GridMismatchError(f"can only advect a CenteredGrid or StaggeredGrid, got {type(field).__name__}")
     dt = check_dt(dt)
     _check_velocity(velocity, field.grid)
+    check_nonempty_batch(field, "the advected field")
+    check_batch_compatible(field, velocity, ("the advected field", "the velocity"), "advect")
     if velocity.device.type == "cpu":  # on accelerators this check would force a device sync per step
         comps = velocity.values if isinstance(velocity, StaggeredGrid) else (velocity.values,)
         # one cheap reduction per component and one read-back: NaN/Inf make the sum non-finite; an
