@@ -11,11 +11,10 @@ and E5's Gaussian vortex and uniform velocity.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from phisim.boundary import Boundary
+from phisim.checks import check_bool, check_int, check_number, check_seed
 from phisim.errors import ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import Grid
@@ -33,10 +32,9 @@ def _rng(seed: int | None, generator: torch.Generator | None) -> torch.Generator
         if not isinstance(generator, torch.Generator):
             raise ParameterError(f"generator must be a torch.Generator, got {type(generator).__name__}")
         return generator
+    seed = check_seed(seed)
     if seed is None:
         return None
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ParameterError(f"seed must be an int, got {seed!r}")
     g = torch.Generator()
     g.manual_seed(seed)
     return g
@@ -47,9 +45,32 @@ def _gen_device(gen: torch.Generator | None):
 
 
 def _check_batch(batch_size) -> int:
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-        raise ParameterError(f"batch_size must be an int >= 1, got {batch_size!r}")
-    return batch_size
+    return check_int(batch_size, "batch_size", minimum=1)
+
+
+def _check_range(value, name: str, *, integer: bool = False, minimum=None) -> tuple:
+    """A ``(lo, hi)`` pair of numbers (ints with ``integer``) with ``lo <= hi``."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ParameterError(f"{name} must be a pair (lo, hi), got {value!r}")
+    if integer:
+        lo, hi = (check_int(v, f"{name}[{i}]", minimum=minimum) for i, v in enumerate(value))
+    else:
+        lo, hi = (check_number(v, f"{name}[{i}]", minimum=minimum) for i, v in enumerate(value))
+    if hi < lo:
+        raise ParameterError(f"{name} must be a range (lo, hi) with hi >= lo, got {tuple(value)}")
+    return lo, hi
+
+
+def _as_real_tensor(x, name: str, dtype=None, device=None) -> torch.Tensor:
+    if isinstance(x, (str, bytes)) or x is None:
+        raise ParameterError(f"{name} must be a number, a sequence of numbers or a tensor, got {x!r}")
+    try:
+        t = torch.as_tensor(x, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ParameterError(f"{name} must be a number, a sequence of numbers or a tensor, got {x!r}") from exc
+    if t.is_complex() or t.dtype == torch.bool:
+        raise ParameterError(f"{name} must be real, got dtype {t.dtype}")
+    return t
 
 
 def _check_grid(grid) -> Grid:
@@ -97,14 +118,11 @@ def spectral_noise(grid: Grid, batch_size: int = 1, *, power: float = 2.0, scale
     """
     grid = _check_grid(grid)
     batch_size = _check_batch(batch_size)
-    if not (math.isfinite(scale) and scale > 0):
-        raise ParameterError(f"scale must be finite and > 0, got {scale}")
-    if not (math.isfinite(cutoff) and cutoff >= 0):
-        raise ParameterError(f"cutoff must be finite and >= 0, got {cutoff}")
-    if not math.isfinite(power):
-        raise ParameterError(f"power must be finite, got {power}")
-    if channels is not None and (isinstance(channels, bool) or not isinstance(channels, int) or channels < 1):
-        raise ParameterError(f"channels must be None or an int >= 1, got {channels!r}")
+    scale = check_number(scale, "scale", minimum=0, min_open=True)
+    cutoff = check_number(cutoff, "cutoff", minimum=0)
+    power = check_number(power, "power")
+    channels = check_int(channels, "channels", minimum=1, allow_none=True)
+    normalize = check_bool(normalize, "normalize")
     gen = _rng(seed, generator)
     gdev = _gen_device(gen)
     k2 = torch.zeros(grid.resolution, dtype=torch.float64, device=gdev)
@@ -139,7 +157,7 @@ def spectral_noise(grid: Grid, batch_size: int = 1, *, power: float = 2.0, scale
 
 def _as_batched(x, batch: int | None, width: int, name: str, dtype, device) -> torch.Tensor:
     """Bring boxes/centres to ``(B, K, width)`` (``width=0`` for per-box scalars ``(B, K)``)."""
-    t = torch.as_tensor(x, dtype=dtype, device=device)
+    t = _as_real_tensor(x, name, dtype, device)
     if width:
         if t.ndim == 0 or t.shape[-1] != width:
             raise ShapeError(f"{name} must end in an axis of size {width}, got shape {tuple(t.shape)}")
@@ -247,16 +265,12 @@ def random_rectangles(grid: Grid, batch_size: int = 1, *, count: tuple[int, int]
     """
     grid = _check_grid(grid)
     batch_size = _check_batch(batch_size)
-    c0, c1 = (int(c) for c in count)
-    if not 0 <= c0 <= c1 or c1 < 1:
+    c0, c1 = _check_range(count, "count", integer=True, minimum=0)
+    if c1 < 1:
         raise ParameterError(f"count must be an inclusive range 0 <= lo <= hi, hi >= 1, got {count}")
-    if not (math.isfinite(max_half_size) and max_half_size >= 0):
-        raise ParameterError(f"max_half_size must be finite and >= 0, got {max_half_size}")
-    if not 0 <= margin < 0.5:
-        raise ParameterError(f"margin must lie in [0, 0.5), got {margin}")
-    s0, s1 = (float(s) for s in strength)
-    if not (math.isfinite(s0) and math.isfinite(s1)) or s1 < s0:
-        raise ParameterError(f"strength must be a finite range (lo, hi) with hi >= lo, got {strength}")
+    max_half_size = check_number(max_half_size, "max_half_size", minimum=0)
+    margin = check_number(margin, "margin", minimum=0, maximum=0.5, max_open=True)
+    s0, s1 = _check_range(strength, "strength")
     gen = _rng(seed, generator)
     gdev = _gen_device(gen)
     B, K, d = batch_size, c1, grid.rank
@@ -336,10 +350,9 @@ def gaussian_vortex(grid: Grid, centre, strength, sigma: float, *, staggered: bo
     grid = _check_grid(grid)
     if grid.rank not in (2, 3):
         raise ParameterError(f"vortices need a 2-D or 3-D grid, got {grid}")
-    if not (math.isfinite(sigma) and sigma > 0):
-        raise ParameterError(f"sigma must be finite and > 0, got {sigma}")
-    if axis not in (0, 1, 2):
-        raise ParameterError(f"axis must be 0, 1 or 2, got {axis}")
+    sigma = check_number(sigma, "sigma", minimum=0, min_open=True)
+    axis = check_int(axis, "axis", minimum=0, maximum=2)
+    staggered, wrap = check_bool(staggered, "staggered"), check_bool(wrap, "wrap")
     dtype = dtype or torch.get_default_dtype()
     c = _as_batched(centre, None, grid.rank, "centre", dtype, device)
     s = _as_batched(strength, None, 0, "strength", dtype, device)
@@ -387,12 +400,15 @@ def uniform_velocity(grid: Grid, velocity, *, staggered: bool = True, boundary="
         ShapeError: If ``velocity`` does not have one component per axis.
     """
     grid = _check_grid(grid)
-    v = torch.as_tensor(velocity, device=device)
+    staggered = check_bool(staggered, "staggered")
+    v = _as_real_tensor(velocity, "velocity", device=device)
     v = v.to(dtype or (v.dtype if v.is_floating_point() else torch.get_default_dtype()))
     if v.ndim == 1:
         v = v[None]
     if v.ndim != 2 or v.shape[-1] != grid.rank:
         raise ShapeError(f"velocity must have shape ({grid.rank},) or (B, {grid.rank}), got {tuple(v.shape)}")
+    if v.device.type == "cpu" and not bool(torch.isfinite(v.detach()).all()):
+        raise ParameterError("velocity contains NaN/Inf")
     B = v.shape[0]
     if batch_size is not None:
         batch_size = _check_batch(batch_size)
