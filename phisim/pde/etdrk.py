@@ -16,6 +16,7 @@ precomputed coefficients).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 from typing import Union
@@ -91,8 +92,6 @@ def phi_functions(z: torch.Tensor, order: int = 3, points: int = 64, radius: flo
 
 def _mirror_walls(grid: SpectralGrid) -> SpectralGrid:
     """A shallow copy of ``grid`` whose wall-axis wavenumbers have the opposite sign (for the evenness test)."""
-    import copy
-
     g = copy.copy(grid)
     g.wavenumbers = tuple(-k if a in grid.wall_axes else k for a, k in enumerate(grid.wavenumbers))
     return g
