@@ -43,7 +43,8 @@ from .local_solvers import InverseGradientSolver, LBFGSBSolver, NewtonSolver
 from .operators import PhysicsOperator
 from .problem import Batch, Method, Problem
 
-__all__ = ["CallableOperator", "CustomProblem", "make_problem", "load_problem", "is_factory_spec"]
+__all__ = ["CallableOperator", "CustomProblem", "make_problem", "load_problem", "is_factory_spec",
+           "canonical_factory"]
 
 
 class CallableOperator(PhysicsOperator):
@@ -276,8 +277,12 @@ def is_factory_spec(name: str) -> bool:
     return isinstance(name, str) and ":" in name and not name.startswith(":") and not name.endswith(":")
 
 
+def _is_file_module(module: str) -> bool:
+    return module.endswith(".py") or "/" in module or "\\" in module
+
+
 def _import_module(module: str):
-    if module.endswith(".py") or "/" in module or "\\" in module:
+    if _is_file_module(module):
         path = Path(module).expanduser().resolve()
         if not path.is_file():
             raise ParameterError(f"problem factory file {module!r} does not exist")
@@ -301,6 +306,34 @@ def _import_module(module: str):
         raise ParameterError(f"cannot import problem module {module!r}: {exc}") from exc
 
 
+def canonical_factory(spec: str) -> tuple[str, str | None]:
+    """The factory name a model file stores, and the source file it came from.
+
+    ``file.py:function`` becomes ``/absolute/path/file.py:function`` (resolved against the working directory
+    now, so it names the same file from any other folder later); ``module:function`` stays as it is, and its
+    module's file is returned as well (the fallback when the module is not importable from elsewhere, e.g. a
+    module found only because the working directory was on the path).
+
+    Args:
+        spec: ``'package.module:function'`` or ``'file.py:function'``.
+
+    Returns:
+        ``(factory, source_file)``; ``source_file`` is an absolute path or None (a module without a file).
+
+    Raises:
+        ParameterError: Not a factory name.
+    """
+    if not is_factory_spec(spec):
+        raise ParameterError(f"a problem factory is named 'module:function' or 'file.py:function', got {spec!r}")
+    module, _, func = spec.rpartition(":")
+    if _is_file_module(module):
+        path = Path(module).expanduser().resolve()
+        return f"{path}:{func}", str(path)
+    mod = sys.modules.get(module)
+    file = getattr(mod, "__file__", None) if mod is not None else None
+    return spec, (str(Path(file).resolve()) if file else None)
+
+
 def load_problem(spec: str, **settings) -> Problem:
     """Build a problem from a factory named ``module:function`` or ``path/to/file.py:function``.
 
@@ -312,7 +345,9 @@ def load_problem(spec: str, **settings) -> Problem:
         **settings: Keyword arguments of the factory.
 
     Returns:
-        The problem, with ``problem.spec = {'factory': spec, 'settings': settings}`` recorded for model files.
+        The problem, with ``problem.spec = {'factory': ..., 'settings': settings, 'source': ...}`` recorded for
+        model files: the factory as :func:`canonical_factory` names it (a file's absolute path, so a model
+        file rebuilds its network from any working directory) and the file it came from.
 
     Raises:
         ParameterError: Unknown module or function (the closest names are suggested), bad settings, or a
@@ -337,5 +372,6 @@ def load_problem(spec: str, **settings) -> Problem:
     if not isinstance(problem, Problem):
         raise ParameterError(f"problem factory {spec} returned {type(problem).__name__}, expected an "
                              "inverse.Problem (build one with inverse.make_problem)")
-    problem.spec = {"factory": spec, "settings": dict(settings)}
+    factory_name, source = canonical_factory(spec)
+    problem.spec = {"factory": factory_name, "settings": dict(settings), "source": source}
     return problem

@@ -5,7 +5,9 @@ At the end of every run with an output file, :func:`inverse.train.train` writes 
 
 * ``format`` (``'phisim-model/1'``), ``problem`` (name), ``factory`` and ``settings``: how to rebuild the
   network (``get_problem(factory, **settings).make_network()``; a factory ``module:function`` or
-  ``file.py:function`` for problems of your own, see :mod:`inverse.custom`);
+  ``/absolute/path/file.py:function`` for problems of your own, see :mod:`inverse.custom`), and
+  ``factory_file``: the absolute path of the file that defines a factory of your own (empty for registered
+  problems);
 * ``network_class`` (``module.QualName``), ``parameters`` (count) and ``state_dict`` (the trained weights,
   BatchNorm running statistics included);
 * ``input_shape`` (one sample's network input), ``dtype``, ``method``, ``seed``, ``iterations``.
@@ -28,11 +30,11 @@ from torch import nn
 
 from phisim.errors import FileFormatError, ParameterError, ShapeError
 
-from .custom import CustomProblem
+from .custom import CustomProblem, is_factory_spec
 from .problems import PROBLEMS, get_problem
 
-__all__ = ["MODEL_FORMAT", "model_path", "problem_spec", "save_model", "read_model_file", "load_model",
-           "predict", "predict_file"]
+__all__ = ["MODEL_FORMAT", "model_path", "problem_spec", "save_model", "read_model_file", "rebuild_problem",
+           "load_model", "predict", "predict_file"]
 
 #: Format tag of model files.
 MODEL_FORMAT = "phisim-model/1"
@@ -61,19 +63,22 @@ _SKIP = object()
 
 
 def problem_spec(problem) -> dict:
-    """How to rebuild ``problem``: ``{'factory': name or 'module:function', 'settings': {...}}``.
+    """How to rebuild ``problem``: ``{'factory': name or 'module:function', 'settings': {...}, 'source': ...}``.
 
     Problems made by :func:`inverse.problems.get_problem` or :func:`inverse.custom.load_problem` carry
-    their spec; for others it is derived from the class (registered name or ``module:Class``) and the
-    dataclass fields that differ from their defaults and are plain values.
+    their spec (a factory file by its absolute path, ``source`` the file that defines the factory); for
+    others it is derived from the class (registered name or ``module:Class``) and the dataclass fields that
+    differ from their defaults and are plain values. A problem built with :func:`inverse.make_problem`
+    directly has no factory (``None``): its model file needs ``load_model(path, network=...)``.
     """
     spec = getattr(problem, "spec", None)
 
     if isinstance(problem, CustomProblem) and not (isinstance(spec, dict) and spec.get("factory")):
-        return {"factory": None, "settings": {}}  # built from functions in Python: not rebuildable by name
+        return {"factory": None, "settings": {}, "source": None}  # built in Python: not rebuildable by name
     if isinstance(spec, dict) and spec.get("factory"):
         settings = {k: _jsonable(v) for k, v in spec.get("settings", {}).items()}
-        return {"factory": spec["factory"], "settings": {k: v for k, v in settings.items() if v is not _SKIP}}
+        return {"factory": spec["factory"], "settings": {k: v for k, v in settings.items() if v is not _SKIP},
+                "source": spec.get("source")}
 
     cls = type(problem)
     factory = next((n for n, c in PROBLEMS.items() if c is cls), None)
@@ -94,7 +99,7 @@ def problem_spec(problem) -> dict:
             j = _jsonable(value)
             if j is not _SKIP:
                 settings[f.name] = j
-    return {"factory": factory, "settings": settings}
+    return {"factory": factory, "settings": settings, "source": None}
 
 
 def save_model(path: str | os.PathLike, network: nn.Module, problem, *, method: str = "", seed: int = 0,
@@ -119,6 +124,7 @@ def save_model(path: str | os.PathLike, network: nn.Module, problem, *, method: 
         "format": MODEL_FORMAT,
         "problem": str(getattr(problem, "name", "")),
         "factory": spec["factory"] or "",
+        "factory_file": spec.get("source") or "",
         "settings_json": json.dumps(spec["settings"]),
         "network_class": f"{type(network).__module__}.{type(network).__qualname__}",
         "parameters": int(sum(p.numel() for p in network.parameters())),
@@ -160,6 +166,61 @@ def read_model_file(path: str | os.PathLike) -> dict:
     return state
 
 
+def _factory_candidates(factory: str, factory_file: str, model_file: Path) -> list[str]:
+    """Factory names to try, best first: as stored, then the defining file, then a relative file anchored.
+
+    A ``file.py:function`` stored relative (model files of earlier versions) is looked up in the working
+    directory and then beside the model file and in each folder above it (a model written to ``out/`` under
+    the folder the training ran in finds ``examples/...`` there).
+    """
+    if not is_factory_spec(factory):
+        return [factory]
+    module, _, func = factory.rpartition(":")
+    out = [factory]
+    if factory_file:
+        out.append(f"{factory_file}:{func}")
+    is_file = module.endswith(".py") or "/" in module or "\\" in module
+    if is_file and not Path(module).expanduser().is_absolute():
+        out += [f"{folder / module}:{func}" for folder in Path(model_file).resolve().parents]
+    return list(dict.fromkeys(out))
+
+
+def rebuild_problem(state: dict, path: str | os.PathLike, settings: dict | None = None):
+    """The problem a model file was trained on, rebuilt from its stored factory and settings.
+
+    The factory resolves from any working directory: registered names and importable ``module:function``
+    as they are; a factory file by its absolute path (as stored since factory files are resolved at
+    training time), else by the module's own file (``factory_file``), else (older files with a relative
+    path) relative to the working directory or to the model file's folder and the folders above it.
+
+    Args:
+        state: The model file's content (:func:`read_model_file`).
+        path: The model file (for messages and anchored look-ups).
+        settings: The factory's settings (default: the stored ones).
+
+    Returns:
+        The problem.
+
+    Raises:
+        ParameterError: No candidate resolves (the message names the stored factory and ``network=``).
+    """
+    if settings is None:
+        settings = {k: tuple(v) if isinstance(v, list) else v for k, v in state["settings"].items()}
+    candidates = _factory_candidates(state["factory"], state.get("factory_file", ""), Path(path))
+    first_error = None
+    for name in candidates:
+        try:
+            return get_problem(name, **settings)
+        except ParameterError as exc:
+            missing = "does not exist" in str(exc) or "cannot import" in str(exc)
+            if not missing or len(candidates) == 1:
+                raise
+            first_error = first_error or exc
+    raise ParameterError(f"model file {path}: its problem factory {state['factory']!r} cannot be found from "
+                         f"{Path.cwd()} ({first_error}); run from a folder where it resolves, or pass the network: "
+                         "load_model(path, network=...)") from first_error
+
+
 def load_model(path: str | os.PathLike, *, network: nn.Module | None = None, device: str | torch.device = "cpu"
                ) -> nn.Module:
     """Rebuild a trained network from its model file, in eval mode on ``device``.
@@ -180,14 +241,13 @@ def load_model(path: str | os.PathLike, *, network: nn.Module | None = None, dev
     """
     state = read_model_file(path)
     if network is None:
-
         if not state["factory"]:
             raise ParameterError(f"model file {path} comes from a problem built in Python (make_problem without "
                                  "a factory); pass the network to load the weights into: load_model(path, "
-                                 "network=...)")
-
+                                 "network=problem.make_network()), or train a problem made by its factory "
+                                 "(get_problem('file.py:function') or 'module:function') to store it")
         settings = {k: tuple(v) if isinstance(v, list) else v for k, v in state["settings"].items()}
-        network = get_problem(state["factory"], **settings).make_network()
+        network = rebuild_problem(state, path, settings).make_network()
     expected = state["network_class"].rsplit(".", 1)[-1]
     if type(network).__qualname__.rsplit(".", 1)[-1] != expected:
         raise FileFormatError(f"model file {path} holds a {expected}, not a {type(network).__name__}")
