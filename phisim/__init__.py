@@ -43,6 +43,7 @@ from phisim.checks import (
     check_nonnegative,
     check_positive,
 )
+from phisim.compiled import compile  # noqa: A004 - phisim.compile mirrors torch.compile
 from phisim.errors import (
     BoundaryError,
     FileFormatError,
@@ -82,6 +83,7 @@ from phisim.io import (
 )
 from phisim.ops.advection import advect, conservative, maccormack, semi_lagrangian
 from phisim.ops.differential import curl, divergence, gradient, laplace, velocity_from_stream_function
+from phisim.rollout import Trajectory, rollout
 from phisim.simulate.noise import gaussian_vortex, random_rectangles, rectangles, spectral_noise, uniform_velocity
 from phisim.solvers.diffusion import (
     diffuse,
@@ -116,6 +118,7 @@ __all__ = [
     "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
     "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
     "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "navier_stokes_rk_step", "FluidState", "step",
+    "compile", "rollout", "Trajectory",
 ]
 
 

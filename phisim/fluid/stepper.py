@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import torch
 
-from phisim.boundary import Boundary
+from phisim.boundary import Boundary, Inflow
 from phisim.checks import check_dt, check_finite, check_finite_number, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
@@ -162,9 +162,20 @@ class FluidStepper:
             project_box(faces, check=False)
         if layout is not None and layout.bodies and bool((layout.cell_fraction.flatten(1).max(1).values <= 0).any()):
             raise ParameterError("obstacles cover every cell; there is no fluid to project")
+        #: Whether the step depends on the time (moving bodies, time-dependent inflows).
+        self.time_dependent = not static or any(isinstance(c, Inflow) and c.varying
+                                                for pair in self.boundary.sides for c in pair)
+        #: Whether the step reads the state's pressure (the warm start of CG solves, imex2's incremental pressure).
+        self.uses_pressure = self.obstacles is not None or integrator == "imex2"
+        if self.dt is not None:  # one step at rest builds the caches a traced step then finds (no second graph)
+            marker = None
+            if self.buoyancy != 0 or self.marker_source is not None:
+                marker = CenteredGrid.zeros(grid, self.boundary.for_scalar(), 1, dtype=dtype, device=self.device)
+            with torch.no_grad():
+                self.advance(FluidState(faces, marker), self.dt)
         self._advance = self.advance
         if compile:
-            from phisim.compile import compile_function
+            from phisim.compiled import compile_function
             self._advance = compile_function(self.advance)
 
     def __call__(self, state: FluidState, dt=None) -> FluidState:
@@ -200,7 +211,16 @@ class FluidStepper:
             dt = check_dt(dt)
             if dt != self.dt and self.integrator != "split":
                 check_viscous_number(self.integrator, self.viscosity, dt, self.grid.dx)
-            new = self._advance(state, dt)
+            # the step sees only what it uses: a traced step then does not depend on the time or on whether a
+            # pressure exists (no new graph per step); the time is advanced here
+            inner = state
+            if not self.time_dependent and state.time != 0.0:
+                inner = replace(inner, time=0.0)
+            if not self.uses_pressure and state.pressure is not None:
+                inner = replace(inner, pressure=None)
+            new = self._advance(inner, dt)
+            if inner.time != state.time:
+                new = replace(new, time=state.time + float(dt))
         if self.check:
             self._calls += 1
             if self._calls % self.check == 0:

@@ -4,18 +4,27 @@ Both validate their settings once, in the constructor, and advance a :class:`~ph
 call: advection (:func:`~phisim.ops.advection.advect`) followed by diffusion (:func:`~phisim.solvers.diffusion.
 diffuse`, exact spectral by default), first order in time (operator splitting), second order in space with
 MacCormack advection.
+
+A call validates its field (Python-level checks) and runs :meth:`advance`, which reads nothing back to the host
+(the velocity's finiteness is not checked per step), so that it traces as one graph (``torch.compile(...,
+fullgraph=True)``, see :func:`phisim.compile`); the ``'conservative'`` scheme chooses its number of sub-steps from
+the velocity (a host read) and does not trace as one graph.
 """
 
 from __future__ import annotations
 
 import torch
 
-from phisim.checks import check_dt, check_nonnegative
+from phisim.checks import check_dt, check_finite, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import Grid
-from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect
-from phisim.solvers.diffusion import DIFFUSION_METHODS, diffuse
+from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect_trusted
+from phisim.ops.differential import laplace
+from phisim.ops.stencil import normalize_kinds
+from phisim.solvers.box import apply_multiplier, eigenvalues_cached, transform_scale
+from phisim.solvers.diffusion import DIFFUSION_METHODS, diffuse, explicit_stability_limit
+from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["AdvectionDiffusionStepper", "BurgersStepper"]
 
@@ -29,7 +38,51 @@ def _check_common(grid, dt, diffusivity, name, advection, schemes, diffusion, dt
         raise ParameterError(f"unknown diffusion method {diffusion!r}; choose one of {DIFFUSION_METHODS}")
     if dtype not in (torch.float32, torch.float64):
         raise ParameterError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
-    return check_dt(dt), check_nonnegative(diffusivity, name)
+    dt, nu = check_dt(dt), check_nonnegative(diffusivity, name)
+    if diffusion == "explicit" and nu != 0 and dt > explicit_stability_limit(grid.dx, nu) * (1 + 1e-12):
+        raise ParameterError(f"explicit diffusion is unstable: dt = {dt:g} exceeds the limit "
+                             f"1/(2 ν Σ 1/dx²) = {explicit_stability_limit(grid.dx, nu):g}; use diffusion='implicit' "
+                             "or 'spectral'")
+    return dt, nu
+
+
+def _box_plan(u: CenteredGrid, nu_dt: float, method: str):
+    """Per channel of ``u`` its solver kinds and the one-step multiplier of ``method`` (``exp(ν dt λ)``, or
+    ``1 / (1 - ν dt λ)``, with the transforms' scale), kept on ``u``'s boundary; ``()`` for a boundary with
+    non-zero values (then :func:`~phisim.solvers.diffusion.diffuse` steps it)."""
+    grid, boundary = u.grid, u.boundary
+    channels = u.values.shape[1] if u.is_vector else None
+    device = u.values.device
+
+    def make():
+        plan = []
+        for c in (range(channels) if channels is not None else (None,)):
+            kinds, values = field_kinds_and_values(boundary, c if channels == grid.rank else None)
+            if any(v is not None and not (isinstance(v, (int, float)) and v == 0) for pair in values for v in pair):
+                return ()
+            kinds = normalize_kinds(kinds, grid.rank)
+            lam = eigenvalues_cached(grid.resolution, tuple(grid.dx), kinds, torch.float64, device, True)
+            mult = torch.exp(nu_dt * lam) if method == "spectral" else 1.0 / (1.0 - nu_dt * lam)
+            plan.append((kinds, (mult * transform_scale(grid.resolution, kinds)).to(u.dtype)))
+        return tuple(plan)
+
+    key = ("transport_diffusion", grid.resolution, tuple(grid.dx), nu_dt, method, u.dtype, device, channels)
+    return boundary._memo(key, make)
+
+
+def _diffuse_step(u: CenteredGrid, dt: float, nu: float, method: str) -> CenteredGrid:
+    """One diffusion step of ``u`` without host reads: explicit ``u + ν dt ∇²u`` (boundary values included), or the
+    exact box solve of ``'spectral'``/``'implicit'`` (zero boundary values; otherwise ``diffuse``)."""
+    if method == "explicit":
+        return u.with_values(u.values + (nu * dt) * laplace(u).values)
+    plan = _box_plan(u, nu * dt, method)
+    if not plan:
+        return diffuse(u, dt, viscosity=nu, method=method)
+    if not u.is_vector:
+        kinds, mult = plan[0]
+        return u.with_values(apply_multiplier(u.values, kinds, mult, None, prescaled=True))
+    return u.with_values(torch.stack([apply_multiplier(u.values[:, c], kinds, mult, None, prescaled=True)
+                                      for c, (kinds, mult) in enumerate(plan)], dim=1))
 
 
 def _check_field(u, grid, dtype, what: str, vector: bool):
@@ -53,7 +106,9 @@ class AdvectionDiffusionStepper:
         dt: Time step ``>= 0``.
         advection: One of :data:`phisim.ops.advection.SCALAR_SCHEMES` (default ``'maccormack'``;
             ``'conservative'`` keeps the total to round-off).
-        diffusion: ``'spectral'`` (default, exact in time), ``'implicit'`` or ``'explicit'``.
+        diffusion: ``'spectral'`` (default, exact in time), ``'implicit'`` (backward Euler) or ``'explicit'``
+            (forward Euler; a ``dt`` beyond its stability limit raises ParameterError). With zero boundary values
+            the spectral and implicit steps are exact box solves (multipliers kept per boundary).
         dtype: Of the fields this stepper advances.
 
     Raises:
@@ -67,6 +122,9 @@ class AdvectionDiffusionStepper:
                                                   diffusion, dtype)
         self.grid, self.advection, self.diffusion, self.dtype = grid, advection, diffusion, dtype
         self.velocity = self._check_velocity(velocity)
+        for v in (self.velocity.values if isinstance(self.velocity, StaggeredGrid) else (self.velocity.values,)):
+            check_finite(v, "velocity")  # once: the held velocity is not checked per step
+        self._advance = self.advance
 
     def _check_velocity(self, velocity):
         if not isinstance(velocity, (CenteredGrid, StaggeredGrid)):
@@ -82,11 +140,18 @@ class AdvectionDiffusionStepper:
             ParameterError, GridMismatchError: For a field or velocity that does not fit the stepper.
         """
         _check_field(c, self.grid, self.dtype, "AdvectionDiffusionStepper", vector=False)
-        u = self.velocity if velocity is None else self._check_velocity(velocity)
-        c = advect(c, u, self.dt, scheme=self.advection)
+        if self.diffusivity != 0 and self.diffusion != "explicit":
+            _box_plan(c, self.diffusivity * self.dt, self.diffusion)  # built here, found by a traced step
+        if velocity is None:
+            return self._advance(c, self.velocity)
+        return self._advance(c, self._check_velocity(velocity))
+
+    def advance(self, c: CenteredGrid, velocity) -> CenteredGrid:
+        """The step on a validated field and velocity: no host read (what :func:`torch.compile` traces)."""
+        c = advect_trusted(c, velocity, self.dt, scheme=self.advection)
         if self.diffusivity == 0:
             return c
-        return diffuse(c, self.dt, viscosity=self.diffusivity, method=self.diffusion)
+        return _diffuse_step(c, self.dt, self.diffusivity, self.diffusion)
 
 
 class BurgersStepper:
@@ -98,7 +163,9 @@ class BurgersStepper:
         viscosity: ``ν >= 0``.
         dt: Time step ``>= 0``.
         advection: ``'maccormack'`` (default) or ``'semi_lagrangian'``.
-        diffusion: ``'spectral'`` (default, exact in time), ``'implicit'`` or ``'explicit'``.
+        diffusion: ``'spectral'`` (default, exact in time), ``'implicit'`` (backward Euler) or ``'explicit'``
+            (forward Euler; a ``dt`` beyond its stability limit raises ParameterError). With zero boundary values
+            the spectral and implicit steps are exact box solves (multipliers kept per boundary).
         dtype: Of the fields this stepper advances.
 
     Raises:
@@ -112,6 +179,7 @@ class BurgersStepper:
         self.dt, self.viscosity = _check_common(grid, dt, viscosity, "viscosity", advection, SCHEMES, diffusion,
                                                 dtype)
         self.grid, self.advection, self.diffusion, self.dtype = grid, advection, diffusion, dtype
+        self._advance = self.advance
 
     def __call__(self, u: CenteredGrid) -> CenteredGrid:
         """Advance ``u`` (a centred vector field ``(B, d, *res)``) by one step.
@@ -120,7 +188,13 @@ class BurgersStepper:
             ParameterError, GridMismatchError: For a field that does not fit the stepper.
         """
         _check_field(u, self.grid, self.dtype, "BurgersStepper", vector=True)
-        u = advect(u, u, self.dt, scheme=self.advection)
+        if self.viscosity != 0 and self.diffusion != "explicit":
+            _box_plan(u, self.viscosity * self.dt, self.diffusion)  # built here, found by a traced step
+        return self._advance(u)
+
+    def advance(self, u: CenteredGrid) -> CenteredGrid:
+        """The step on a validated field: no host read (what :func:`torch.compile` traces)."""
+        u = advect_trusted(u, u, self.dt, scheme=self.advection)
         if self.viscosity == 0:
             return u
-        return diffuse(u, self.dt, viscosity=self.viscosity, method=self.diffusion)
+        return _diffuse_step(u, self.dt, self.viscosity, self.diffusion)

@@ -215,7 +215,8 @@ class _Location:
             hi = torch.maximum(hi.narrow(dim, 0, n), hi.narrow(dim, 1, n))
             lo = torch.minimum(lo.narrow(dim, 0, n), lo.narrow(dim, 1, n))
         _, _, _, upper, stride, one, zero = self._const(stacked.dtype, stacked.device)
-        k = torch.clamp((stacked.detach() + one).floor_(), min=zero, max=upper).long()  # one = _WIDTH
+        # one = _WIDTH; a NaN index (a NaN velocity, unchecked on a stepper's path) reads corner 0, not out of bounds
+        k = torch.clamp((stacked.detach() + one).floor_().nan_to_num_(0.0), min=zero, max=upper).long()
         flat = (k * stride).sum(1)
         B, C = padded.shape[0], padded.shape[1]
         flat = flat.reshape(flat.shape[0], 1, -1).expand(B, C, -1)
@@ -244,7 +245,7 @@ class _Location:
         stride = 1
         for a in reversed(range(len(index))):
             size = hi.shape[2 + a]
-            k = (index[a].detach() + _WIDTH).floor().clamp_(0, size - 1).long()
+            k = (index[a].detach() + _WIDTH).floor().nan_to_num_(0.0).clamp_(0, size - 1).long()
             flat = k * stride if flat is None else flat + k * stride
             stride *= size
         B, C = padded.shape[0], padded.shape[1]
@@ -254,17 +255,10 @@ class _Location:
         return lo, hi
 
 
-@functools.lru_cache(maxsize=64)
-def _cached_location(grid: Grid, boundary: Boundary, face_axis: int | None) -> _Location:
-    return _Location(grid, boundary, face_axis)
-
-
 def _location(grid: Grid, boundary: Boundary, face_axis: int | None) -> _Location:
-    """The (cached) sample location; boundaries holding unhashable values (lists) are not cached."""
-    try:
-        return _cached_location(grid, boundary, face_axis)
-    except TypeError:
-        return _Location(grid, boundary, face_axis)
+    """The sample location, kept on the boundary object: an eager call builds it (with its padding plans and
+    index tensors) and a step traced by ``torch.compile`` finds it there instead of tracing its construction."""
+    return boundary._memo(("advection_location", grid, face_axis), lambda: _Location(grid, boundary, face_axis))
 
 
 # ---- velocity at sample points -----------------------------------------------------------------------

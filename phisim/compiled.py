@@ -1,0 +1,77 @@
+"""Compiled steps: :func:`compile` (``phisim.compile``) runs a stepper's step through ``torch.compile`` (inductor).
+
+A stepper's step (``stepper.advance``: :class:`~phisim.fluid.FluidStepper`, :class:`~phisim.solvers.heat.HeatStepper`,
+:class:`~phisim.fluid.BurgersStepper`, :class:`~phisim.fluid.AdvectionDiffusionStepper`) reads nothing back to the
+host and branches on no tensor value, so it traces as one graph (``fullgraph=True``); inside the graph the
+transforms are ``torch.fft``. The validation of each call (types, grids, dtypes: Python-level checks) stays
+outside the compiled function.
+
+* CPU: inductor needs a working C++ compiler. :func:`inductor_available` compiles a one-line function once per
+  process to find out; without one, :func:`compile` says so in one warning and the stepper runs eager.
+* CUDA: ``mode='reduce-overhead'`` (CUDA graphs) unless another mode is asked for.
+
+Shapes and dtypes are static (``dynamic=False``): a new resolution or batch size compiles anew, new values of the
+state do not.
+
+Example:
+    >>> import phisim
+    >>> from phisim.fluid import FluidStepper
+    >>> stepper = phisim.compile(FluidStepper(grid, "periodic", viscosity=1e-3, dt=0.01))  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import builtins
+import functools
+import warnings
+
+import torch
+
+from phisim.errors import ParameterError
+
+__all__ = ["compile", "compile_function", "inductor_available"]
+
+
+@functools.cache
+def inductor_available(device_type: str = "cpu") -> bool:
+    """Whether ``torch.compile``'s inductor backend works for tensors on ``device_type`` (checked once per process
+    by compiling and running a one-line function; on the CPU this needs a working C++ compiler)."""
+    try:
+        fn = torch.compile(lambda x: x * 2.0 + 1.0, backend="inductor", fullgraph=True, dynamic=False)
+        return bool(fn(torch.ones(4, device=device_type)).sum() == 12.0)
+    except Exception:  # noqa: BLE001 - any failure of the toolchain means: run eager
+        return False
+
+
+def compile_function(fn, *, device_type: str = "cpu", mode: str | None = None):
+    """``torch.compile(fn, fullgraph=True, dynamic=False)`` with inductor, or ``fn`` itself (and a one-line warning)
+    where inductor does not work here. On CUDA the default mode is ``'reduce-overhead'`` (CUDA graphs)."""
+    if not inductor_available(device_type):
+        warnings.warn("phisim.compile: torch.compile (inductor) does not work here (no working C++ compiler for "
+                      f"{device_type}); the step runs eager", RuntimeWarning, stacklevel=3)
+        return fn
+    if mode is None and device_type == "cuda":
+        mode = "reduce-overhead"
+    return torch.compile(fn, fullgraph=True, dynamic=False, mode=mode)
+
+
+def compile(stepper, *, mode: str | None = None):  # noqa: A001 - phisim.compile mirrors torch.compile
+    """Run ``stepper``'s step through ``torch.compile`` (inductor) from now on; returns the stepper.
+
+    Args:
+        stepper: A stepper with an ``advance`` method (the fluid, heat, Burgers and advection-diffusion steppers).
+        mode: ``torch.compile``'s mode (default: None on the CPU, ``'reduce-overhead'`` on CUDA).
+
+    Returns:
+        The same stepper; its calls validate as before and then run the compiled step.
+
+    Raises:
+        ParameterError: For an object without a traceable step.
+    """
+    advance = getattr(stepper, "advance", None)
+    if not builtins.callable(advance):
+        raise ParameterError(f"phisim.compile needs a stepper with an advance() step, got {type(stepper).__name__}")
+    device = getattr(stepper, "device", None)
+    device_type = torch.device(device).type if device is not None else "cpu"
+    stepper._advance = compile_function(advance, device_type=device_type, mode=mode)
+    return stepper
