@@ -278,12 +278,9 @@ def check_choice(value, name: str, choices):
 
 
 def callable_name(fn) -> str:
-    """A readable name of a user callable: its qualified ``__name__``, else its ``repr``."""
-    name = getattr(fn, "__qualname__", None) or getattr(fn, "__name__", None)
-    if name is None:
-        name = getattr(type(fn), "__qualname__", None) if not isinstance(fn, type) else None
-        name = f"{name} instance" if name else None
-    return name if name else _short(fn)
+    """A readable name of a user callable: its ``__name__`` (``'<lambda>'`` for a lambda), else its ``repr``."""
+    name = getattr(fn, "__name__", None)
+    return repr(name) if isinstance(name, str) and name else _short(fn)
 
 
 def check_callable(value, name: str):

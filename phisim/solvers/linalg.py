@@ -67,6 +67,15 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from phisim.checks import (
+    callable_name,
+    check_batch_compatible,
+    check_bool,
+    check_callable,
+    check_callable_output,
+    check_int,
+    check_number,
+)
 from phisim.errors import NonFiniteError, ParameterError, ShapeError, SolveError
 
 __all__ = ["Solve", "SolveInfo", "cg", "remove_mean"]
@@ -149,29 +158,24 @@ class Solve:
     check_every: int | None = None
 
     def __post_init__(self) -> None:
-        def bad(name: str, why: str) -> ParameterError:
-            return ParameterError(f"Solve.{name}={getattr(self, name)!r} is invalid: {why}")
+        # every field through the checks.py helpers: a string, None, a list, NaN, a bool or an out-of-range integer
+        # is a ParameterError naming Solve.<field>; the checked values (floats, ints) are stored
+        def put(name, value):
+            object.__setattr__(self, name, value)
 
         for name in ("rtol", "atol"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
-                raise bad(name, "must be a finite number >= 0")
+            put(name, check_number(getattr(self, name), f"Solve.{name}", minimum=0))
         if self.rtol == 0 and self.atol == 0:
             raise ParameterError("Solve(rtol=0, atol=0) can never be met; give rtol > 0 or atol > 0")
-        if not 0 < self.refine_rtol < 1:
-            raise bad("refine_rtol", "must lie in (0, 1)")
+        put("refine_rtol", check_number(self.refine_rtol, "Solve.refine_rtol", minimum=0, maximum=1,
+                                        min_open=True, max_open=True))
         for name, allow_none in (("max_iter", True), ("max_refine", False),
                                  ("stagnation_window", False), ("check_every", True)):
-            v = getattr(self, name)
-            if v is None and allow_none:
-                continue
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise bad(name, "must be an integer >= 1" + (" or None" if allow_none else ""))
-        if self.refine not in (None, True, False):
-            raise bad("refine", "must be None, True or False")
+            put(name, check_int(getattr(self, name), f"Solve.{name}", minimum=1, allow_none=allow_none))
+        if self.refine is not None:
+            put("refine", check_bool(self.refine, "Solve.refine (None, True or False)"))
         for name in ("raise_on_failure", "widen_tolerance"):
-            if not isinstance(getattr(self, name), bool):
-                raise bad(name, "must be True or False")
+            put(name, check_bool(getattr(self, name), f"Solve.{name}"))
 
     def resolved_max_iter(self, n: int) -> int:
         """The iteration limit for ``n`` unknowns per sample.
@@ -304,10 +308,37 @@ def _bcast(s: Tensor, like: Tensor) -> Tensor:
 def _apply(op: Operator, x: Tensor, params: Sequence[Tensor]) -> Tensor:
     y = op(x, *params)
     if not isinstance(y, Tensor) or y.shape != x.shape:
-        shape = getattr(y, "shape", type(y).__name__)
-        raise ShapeError(f"cg: the operator must map a tensor of shape {tuple(x.shape)} to the same shape, "
-                         f"got {shape}")
+        check_callable_output(y, x.shape, op, "cg: the operator (which must keep the shape)", finite=False)
     return y
+
+
+class _CheckedCallable:
+    """A user preconditioner or projection whose every output is checked for the input's exact shape (nothing is
+    broadcast: a flat tensor or a batch of 1 is a :class:`ShapeError` naming the callable), and whose first output
+    of a solve for NaN/Inf (:class:`NonFiniteError`; one reduction per solve)."""
+
+    def __init__(self, fn: Callable[[Tensor], Tensor], role: str):
+        self.fn = fn
+        self.role = role
+        self.first = True
+
+    def __call__(self, r: Tensor) -> Tensor:
+        out = self.fn(r)
+        if not isinstance(out, Tensor) or out.shape != r.shape:
+            check_callable_output(out, r.shape, self.fn, self.role, finite=False)
+        if self.first and not (torch.jit.is_tracing() or torch.compiler.is_compiling()):
+            self.first = False
+            check_callable_output(out, r.shape, self.fn, self.role, finite=True)
+        return out
+
+    def __repr__(self) -> str:
+        return callable_name(self.fn)
+
+
+def _checked(fn, role: str):
+    if fn is None or isinstance(fn, _CheckedCallable):
+        return fn
+    return _CheckedCallable(check_callable(fn, role), role)
 
 
 def _accepts_float64(op: Operator, x64: Tensor, params: Sequence[Tensor]) -> Tensor | None:
@@ -763,10 +794,12 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
             shape, acts on each sample independently and is symmetric positive (semi-)definite.
             With refinement it is also called with float64 input.
         rhs: Right-hand sides, shape ``(B, ...)`` (batch first), floating point.
-        x0: Optional start iterate of ``rhs``'s shape (warm start); its gradient is zero.
+        x0: Optional start iterate of ``rhs``'s shape (warm start), or of batch size 1 (one start shared by
+            every sample); its gradient is zero.
         solve: Settings (tolerances, limits, refinement); see :class:`Solve`.
         preconditioner: Optional ``M^-1``: a symmetric positive definite function on ``(B, ...)``
-            tensors approximating ``A^-1``, per sample.
+            tensors approximating ``A^-1``, per sample. It must return its input's exact shape (nothing is
+            broadcast) and finite values (checked on its first call of a solve).
         return_info: Also return a :class:`SolveInfo`.
         operator_params: Tensors the operator depends on (a coefficient field, a mask); gradients
             w.r.t. them are ``-d<lambda, A(theta) x>/d theta``. A tensor that requires grad must be
@@ -784,7 +817,9 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
         NonFiniteError: NaN/Inf in ``rhs`` or ``x0``, or produced by the operator.
         ParameterError: Invalid inputs (non-tensor operator_params, grad-requiring tensors captured
             by the operator, ``refine=True`` with an operator that rejects float64).
-        ShapeError: ``rhs`` has no batch axis, ``x0`` has another shape, or the operator changes shape.
+        ShapeError: ``rhs`` has no batch axis, ``x0`` has another shape (or a batch size other than ``B`` or 1),
+            or the operator, the preconditioner or the projection changes shape (naming the callable).
+        NonFiniteError: Also when the preconditioner or the projection returns NaN/Inf (naming it).
     """
     if not isinstance(rhs, Tensor) or not rhs.is_floating_point():
         raise ParameterError(f"cg: rhs must be a floating-point torch.Tensor, got {type(rhs).__name__}"
@@ -796,6 +831,10 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
     if not _all_finite(rhs):
         raise NonFiniteError("cg: rhs contains NaN or Inf")
     if x0 is not None:
+        if isinstance(x0, Tensor) and x0.ndim == rhs.ndim and x0.shape[1:] == rhs.shape[1:]:
+            check_batch_compatible(rhs, x0, ("rhs", "x0"), "solve")
+            if x0.shape[0] == 1 and rhs.shape[0] != 1:
+                x0 = x0.expand(rhs.shape)
         if not isinstance(x0, Tensor) or x0.shape != rhs.shape:
             raise ShapeError(f"cg: x0 must have rhs's shape {tuple(rhs.shape)}, got "
                              f"{tuple(getattr(x0, 'shape', ()))}")
@@ -813,7 +852,9 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
             raise ParameterError("cg: the operator depends on tensors that require grad but are not passed "
                                  "as operator_params; pass them as cg(..., operator_params=(k,)) with "
                                  "operator(x, k), else their gradients would be silently missing")
-    setup = _Setup(operator, params, solve, preconditioner, project)
+    check_callable(operator, "cg: operator")
+    setup = _Setup(operator, params, solve, _checked(preconditioner, "cg: preconditioner"),
+                   _checked(project, "cg: projection"))
     box: list[SolveInfo] = []
     x = _CG.apply(setup, box, rhs, x0, *params)
     if return_info:

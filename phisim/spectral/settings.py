@@ -11,8 +11,9 @@ import contextlib
 import os
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
+from phisim.checks import check_choice, check_int
 from phisim.errors import ParameterError
 
 __all__ = ["FFTSettings", "get_fft_settings", "set_fft_settings", "fft_settings", "EFFORTS", "ENGINES"]
@@ -73,19 +74,16 @@ class FFTSettings:
     wall_solve_min_samples: int = WALL_SOLVE_MIN_SAMPLES
 
     def __post_init__(self) -> None:
-        if self.engine not in ENGINES:
-            raise ParameterError(f"FFT engine must be one of {ENGINES}, got {self.engine!r}")
-        if not isinstance(self.threads, int) or isinstance(self.threads, bool) or self.threads < 1:
-            raise ParameterError(f"threads must be a positive int, got {self.threads!r}")
-        if self.planner_effort not in EFFORTS:
-            raise ParameterError(f"planner_effort must be one of {EFFORTS}, got {self.planner_effort!r}")
-        if (not isinstance(self.plan_cache_size, int) or isinstance(self.plan_cache_size, bool)
-                or self.plan_cache_size < 1):
-            raise ParameterError(f"plan_cache_size must be a positive int, got {self.plan_cache_size!r}")
+        # the checks.py helpers: a list, None, a string or NaN where an int/choice is expected, or an int beyond
+        # int64, is a ParameterError naming the field
+        check_choice(self.engine, "FFT engine", ENGINES)
+        check_int(self.threads, "threads", minimum=1)
+        check_choice(self.planner_effort, "planner_effort", EFFORTS)
+        check_int(self.plan_cache_size, "plan_cache_size", minimum=1)
         for name in ("transpose_bytes", "wall_transpose_bytes", "wall_solve_min_samples"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                raise ParameterError(f"{name} must be an int >= 0, got {v!r}")
+            object.__setattr__(self, name, check_int(getattr(self, name), name, minimum=0))
+        object.__setattr__(self, "threads", int(self.threads))
+        object.__setattr__(self, "plan_cache_size", int(self.plan_cache_size))
 
     @property
     def deterministic(self) -> bool:
@@ -130,13 +128,16 @@ def set_fft_settings(settings: FFTSettings | None = None, **changes) -> FFTSetti
         The previous settings (pass them back to restore).
 
     Raises:
-        ParameterError: For an unknown engine, thread count, planner flag or a bad size.
+        ParameterError: For an unknown engine, thread count, planner flag, a bad size or an unknown setting.
     """
     global _SETTINGS
     previous = _SETTINGS
     base = settings if settings is not None else _SETTINGS
     if not isinstance(base, FFTSettings):
         raise ParameterError(f"set_fft_settings expects an FFTSettings, got {type(base).__name__}")
+    unknown = sorted(set(changes) - {f.name for f in fields(FFTSettings)})
+    if unknown:
+        raise ParameterError(f"unknown FFT setting(s) {unknown}; known: {[f.name for f in fields(FFTSettings)]}")
     _SETTINGS = replace(base, **changes) if changes else base
     return previous
 
