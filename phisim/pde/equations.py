@@ -16,6 +16,7 @@ The defaults give a well-resolved, non-trivial trajectory from a random initial 
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Sequence
 
@@ -599,12 +600,20 @@ def make_stepper(name: str, **kwargs) -> ETDRKStepper:
         The stepper.
 
     Raises:
-        ParameterError: Unknown name (the message lists the known ones).
+        ParameterError: Unknown name (the message lists the known ones) or a parameter the equation does not take
+            (e.g. ``order`` for the linear equations, which are integrated exactly).
     """
     key = str(name).strip().lower().replace("-", "_").replace(" ", "_")
     if key not in EQUATIONS:
         raise ParameterError(f"unknown equation {name!r}; known: {', '.join(sorted(EQUATIONS))}")
-    return EQUATIONS[key](**kwargs)
+    factory = EQUATIONS[key]
+    target = NavierStokesVorticity if factory in (KolmogorovFlow, DecayingTurbulence) else factory
+    accepted = set(inspect.signature(factory).parameters) | set(inspect.signature(target).parameters)
+    accepted.discard("kwargs")
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise ParameterError(f"{key} does not take {', '.join(unknown)}; its parameters: {', '.join(sorted(accepted))}")
+    return factory(**kwargs)
 
 
 def random_field(stepper: ETDRKStepper, batch: int = 1, *, amplitude: float = 1.0, max_wavenumber: float = 4.0,

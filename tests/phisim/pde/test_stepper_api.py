@@ -104,6 +104,8 @@ def test_state_checks_raise_clear_errors():
 
 @pytest.mark.parametrize("build, error", [
     (lambda: make_stepper("navier_stokes_3d"), ParameterError),
+    (lambda: make_stepper("diffusion", order=4), ParameterError),
+    (lambda: make_stepper("kolmogorov", viscosty=1e-3), ParameterError),
     (lambda: make_stepper("burgers", viscosity=0.0), ParameterError),
     (lambda: make_stepper("burgers", viscosity=-1.0), ParameterError),
     (lambda: make_stepper("burgers", viscosity=float("nan")), ParameterError),
