@@ -69,7 +69,7 @@ def phi_functions(z: torch.Tensor, order: int = 3, points: int = 64, radius: flo
     ``phi_0 = e^z``, ``phi_1 = (e^z - 1)/z``, ``phi_2 = (e^z - 1 - z)/z^2``, ``phi_3 = (e^z - 1 - z - z^2/2)/z^3``.
     Each value is the mean of the closed formula over ``points`` points ``z + radius e^{i theta_j}``,
     ``theta_j = 2 pi (j + 1/2) / points`` (a trapezoidal rule of Cauchy's integral, spectrally accurate since the
-    functions are entire), evaluated in complex128 and in chunks to bound the memory.
+    functions are entire), evaluated in complex128, once per distinct value and in chunks to bound the memory.
 
     Args:
         z: Tensor of (real or complex) arguments, any shape.
@@ -81,13 +81,20 @@ def phi_functions(z: torch.Tensor, order: int = 3, points: int = 64, radius: flo
         complex128 tensor of shape ``(order + 1, *z.shape)``.
     """
     zc = z.to(torch.complex128).reshape(-1)
+    # operators built from |k|^2 repeat the same value many times: evaluate each distinct z once
+    if bool((zc.imag == 0).all()):
+        distinct, inverse = torch.unique(zc.real, return_inverse=True)
+        zu = distinct.to(torch.complex128)
+    else:
+        distinct, inverse = torch.unique(torch.view_as_real(zc), dim=0, return_inverse=True)
+        zu = torch.view_as_complex(distinct.contiguous())
     theta = 2 * math.pi * (torch.arange(points, dtype=torch.float64) + 0.5) / points
     circle = (radius * torch.polar(torch.ones_like(theta), theta)).to(zc.device)
-    out = torch.empty((order + 1, zc.numel()), dtype=torch.complex128, device=zc.device)
-    for start in range(0, zc.numel(), _CHUNK):
-        r = zc[start:start + _CHUNK, None] + circle
+    out = torch.empty((order + 1, zu.numel()), dtype=torch.complex128, device=zc.device)
+    for start in range(0, zu.numel(), _CHUNK):
+        r = zu[start:start + _CHUNK, None] + circle
         out[:, start:start + _CHUNK] = _phi_direct(r, order).mean(dim=-1)
-    return out.reshape((order + 1,) + tuple(z.shape))
+    return out[:, inverse].reshape((order + 1,) + tuple(z.shape))
 
 
 def _mirror_walls(grid: SpectralGrid) -> SpectralGrid:
