@@ -187,7 +187,8 @@ class Burgers(ETDRKStepper):
 
     Args:
         ndim: Spatial dimensions.
-        viscosity: ``nu > 0``.
+        viscosity: ``nu > 0`` (the default 0.02 keeps unit-amplitude shocks resolved at N = 256 on ``2 pi``: the
+            spectrum at the dealiasing cut-off stays ~1e-4 of its peak).
         convection: ``b`` (1 for the standard equation).
         domain: Axis length(s) (default ``2 pi``).
         resolution: Points per axis.
@@ -197,7 +198,7 @@ class Burgers(ETDRKStepper):
         dtype, device, dealias: As for :class:`ETDRKStepper`.
     """
 
-    def __init__(self, ndim: int = 1, viscosity: float = 0.01, convection: float = 1.0, *,
+    def __init__(self, ndim: int = 1, viscosity: float = 0.02, convection: float = 1.0, *,
                  domain: float = 2 * math.pi, resolution: int = 256, dt: float = 0.01, order: int = 4,
                  boundaries: str = "periodic", dtype: torch.dtype = torch.float32,
                  device: torch.device | str = "cpu", dealias: float = 2.0 / 3.0):
