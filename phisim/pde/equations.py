@@ -168,7 +168,7 @@ class Wave(ETDRKStepper):
         wt = w * self.dt
         cos = torch.cos(wt)
         sinc = torch.where(w > 0, torch.sin(wt) / w.clamp_min(1e-300), torch.full_like(w, self.dt))
-        dtype = grid.dtype
+        dtype = grid.complex_dtype if grid.spectral_is_complex else grid.dtype
         self._cos = cos.to(dtype)
         self._sinc = sinc.to(dtype)
         self._msin = (-w * torch.sin(wt)).to(dtype)
@@ -319,13 +319,14 @@ class KuramotoSivashinsky(ETDRKStepper):
             frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) \
                 and 0 < dealias <= 1 else 2.0 / 3.0
             grad = torch.stack(torch.broadcast_tensors(*grads)) * grid.dealias_mask(frac)  # (d, *spec), masked
-            keep = torch.ones(grid.spectral_shape, dtype=grid.dtype, device=grid.device)
+            keep = torch.ones(grid.spectral_shape, dtype=grid.complex_dtype, device=grid.device)
             if remove_mean:
                 keep[(0,) * d] = 0.0
+            keep = -0.5 * keep
 
             def nonlinear(u_hat, g):
                 du = g.to_physical(grad * u_hat)  # (B, d, *res) since C == 1
-                return (-0.5 * keep) * g.to_spectral((du * du).sum(1, keepdim=True))
+                return keep * g.to_spectral((du * du).sum(1, keepdim=True))
 
         def linear(g):
             k2 = g.wavenumber_squared()
@@ -376,7 +377,7 @@ class CahnHilliard(ETDRKStepper):
         self.gamma = _param(gamma, "gamma", positive=True)
         self.mobility = _param(mobility, "mobility", positive=True)
         gm, m = self.gamma, self.mobility
-        lap = (m * grid.laplacian()).to(grid.dtype)
+        lap = (m * grid.laplacian()).to(grid.complex_dtype if grid.spectral_is_complex else grid.dtype)
 
         def nonlinear(u_hat, g):
             u = g.to_physical(u_hat)

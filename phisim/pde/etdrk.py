@@ -231,7 +231,9 @@ class ETDRKStepper:
         grid, dt, order = self.grid, self.dt, self.order
         cdtype = grid.complex_dtype if (grid.spectral_is_complex or lin.is_complex()) else grid.dtype
         mask = grid.dealias_mask(self.dealias) if self.dealias < 1 else None
-        self.dealias_mask = None if mask is None else mask.to(grid.dtype)
+        # in the spectrum's dtype: a complex-by-complex product is about twice as fast as a mixed one
+        spec_dtype = grid.complex_dtype if grid.spectral_is_complex else grid.dtype
+        self.dealias_mask = None if mask is None else mask.to(spec_dtype)
         z = dt * lin
 
         def cast(t: torch.Tensor, name: str, masked: bool = False) -> torch.Tensor:
