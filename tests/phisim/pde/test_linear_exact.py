@@ -90,3 +90,14 @@ def test_wave_mean_mode_moves_linearly():
     u0[:, 1] = 0.2
     u = s.repeat(u0, 4)
     assert torch.allclose(u[:, 0], torch.full_like(u[:, 0], 0.4), atol=1e-14)
+
+
+def test_diffusion_3d_mixed_walls_exact():
+    nu = 0.02
+    s = Diffusion(ndim=3, diffusivity=nu, domain=(1.0, 2.0, 1.5), resolution=(12, 10, 8),
+                  boundaries=("periodic", "dirichlet", "neumann"), dt=0.05, dtype=F64)
+    x, y, z = s.grid.coordinates()
+    kx, ky, kz = 2 * math.pi, math.pi * 3 / 2.0, math.pi * 2 / 1.5
+    u0 = torch.cos(kx * x) * torch.sin(ky * y) * torch.cos(kz * z)
+    u = s.repeat(u0[None, None], 10)
+    assert torch.allclose(u[0, 0], u0 * math.exp(-nu * (kx ** 2 + ky ** 2 + kz ** 2) * 0.5), atol=1e-13)
