@@ -63,14 +63,18 @@ def process_gone(pid: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
+def _env() -> dict:
+    """The environment of the commands: the repository importable, the same for every run compared."""
+    return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
 def run_and_interrupt(args: list[str], ready: Callable[[], bool], *, cwd: Path, sig: int = signal.SIGINT,
                       start_timeout: float = 120.0) -> Interrupted:
     """Run ``python args...``, send ``sig`` once ``ready()`` is true, and time how long the process takes to exit.
 
     Fails the test if the command ends before ``ready()`` or never becomes ready.
     """
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, *args], cwd=cwd, env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.monotonic()
@@ -92,6 +96,19 @@ def run_and_interrupt(args: list[str], ready: Callable[[], bool], *, cwd: Path, 
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def run_python(args: list[str], *, cwd: Path, timeout: float = 300.0) -> subprocess.CompletedProcess:
+    """Run ``python args...`` to its end in the environment of :func:`run_and_interrupt` (runs whose bits are
+    compared must not depend on the test process's torch settings, e.g. its thread count)."""
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=_env(), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.fixture
+def python() -> Callable[..., subprocess.CompletedProcess]:
+    """:func:`run_python`."""
+    return run_python
 
 
 @pytest.fixture

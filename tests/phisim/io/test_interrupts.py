@@ -38,7 +38,7 @@ def _leftovers(root: Path) -> list[Path]:
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)],
                          ids=["SIGINT", "SIGTERM"])
-def test_simulate_with_workers_stops_promptly_and_resumes_bit_for_bit(tmp_path, interrupt, wait_gone, sig, capsys):
+def test_simulate_with_workers_stops_promptly_and_resumes_bit_for_bit(tmp_path, interrupt, wait_gone, python, sig):
     root = tmp_path / "d"
     data = root / "data"
 
@@ -61,11 +61,11 @@ def test_simulate_with_workers_stops_promptly_and_resumes_bit_for_bit(tmp_path, 
             assert read_simulation(p).n_frames == FRAMES
     assert not (root / "stats.yaml").exists()
 
-    from inverse.cli import main
-
-    assert main([*SIM_ARGS, "--workers", "2", "--out", str(root)]) == 0, capsys.readouterr().err  # continues
+    rerun = python(["-m", "inverse.cli", *SIM_ARGS, "--workers", "2", "--out", str(root)], cwd=tmp_path)
+    assert rerun.returncode == 0 and '"skipped": ' + str(len(finished)) in rerun.stdout, rerun.stderr  # continues
     ref = tmp_path / "ref"
-    assert main([*SIM_ARGS, "--workers", "1", "--out", str(ref)]) == 0, capsys.readouterr().err  # uninterrupted
+    done = python(["-m", "inverse.cli", *SIM_ARGS, "--workers", "1", "--out", str(ref)], cwd=tmp_path)
+    assert done.returncode == 0, done.stderr  # uninterrupted
     got, want = _files(root), _files(ref)
     assert sorted(got) == sorted(want) and "stats.yaml" in got
     assert [k for k in want if got[k] != want[k]] == []
@@ -77,7 +77,7 @@ TRAIN_ARGS = ["train", "sine", "adam", "--iterations", "40", "--batch-size", "20
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)],
                          ids=["SIGINT", "SIGTERM"])
-def test_training_stops_promptly_is_marked_incomplete_and_resumes_bit_for_bit(tmp_path, interrupt, sig, capsys):
+def test_training_stops_promptly_is_marked_incomplete_and_resumes_bit_for_bit(tmp_path, interrupt, python, sig):
     out = tmp_path / "run.h5"
     ckpt = tmp_path / "run.h5.adam.ckpt"
 
@@ -98,9 +98,11 @@ def test_training_stops_promptly_is_marked_incomplete_and_resumes_bit_for_bit(tm
 
     assert f"run adam: INCOMPLETE: stopped after {log.records} of 40 iterations" in describe_file(out)
     assert main([*TRAIN_ARGS, "--out", str(out)]) == 2  # without --resume the run is refused
-    assert main([*TRAIN_ARGS, "--out", str(out), "--resume"]) == 0, capsys.readouterr().err
+    resumed = python(["-m", "inverse.cli", *TRAIN_ARGS, "--out", str(out), "--resume"], cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
     ref = tmp_path / "ref.h5"
-    assert main([*TRAIN_ARGS, "--out", str(ref)]) == 0, capsys.readouterr().err
+    done = python(["-m", "inverse.cli", *TRAIN_ARGS, "--out", str(ref)], cwd=tmp_path)  # uninterrupted
+    assert done.returncode == 0, done.stderr
     got, want = read_training(out)["adam"], read_training(ref)["adam"]
     assert got.complete and want.complete and got.records == 40
     for name in ("iteration", "loss", "metric", "objective", "eval_loss", "eval_metric"):
