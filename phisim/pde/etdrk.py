@@ -128,7 +128,8 @@ class ETDRKStepper:
         linear: The symbol of ``L``: a tensor broadcastable to ``(C, *grid.spectral_shape)`` or a function
             ``grid -> tensor`` (built from ``grid.wavenumbers``, ``grid.laplacian()``, ``grid.derivative(axis)``).
             Evaluated in float64/complex128. On wall axes it must be even in the wavenumber (a function of
-            ``k^2``), or it would not be diagonal in the sine/cosine basis.
+            ``k^2``), or it would not be diagonal in the sine/cosine basis; a function is checked by evaluating it
+            a second time with the wall wavenumbers negated (a tensor is taken as given).
         nonlinear: ``N`` on the spectrum, ``(u_hat, grid) -> N_hat``; it receives the dealiased spectrum
             ``(B, C, *spectral_shape)`` and returns a spectrum of the same shape (or broadcastable to it).
         nonlinear_physical: ``N`` in physical space, ``u -> N(u)`` on the dealiased field ``(B, C, *resolution)``.
