@@ -72,8 +72,17 @@ FLUID_CASES = [
 ]
 
 
-@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
-@pytest.mark.parametrize("case", FLUID_CASES, ids=[f"{c[0]}-{c[1]}d" for c in FLUID_CASES])
+def _fluid_params():
+    """Every case in both dtypes; in the default run each case in one dtype (alternating), the other one slow."""
+    out = []
+    for k, case in enumerate(FLUID_CASES):
+        for j, dtype in enumerate((F32, F64)):
+            marks = (pytest.mark.slow,) if (j + k) % 2 else ()
+            out.append(pytest.param(case, dtype, marks=marks, id=f"{case[0]}-{case[1]}d-{'f32' if j == 0 else 'f64'}"))
+    return out
+
+
+@pytest.mark.parametrize(("case", "dtype"), _fluid_params())
 def test_fluid_step_traces_as_one_graph(case, dtype):
     name, rank, boundary, settings, smoke = case
     grid = Grid((N,) * rank, bounds=[(0, 1)] * rank)
