@@ -176,7 +176,7 @@ class FluidStepper:
         self._advance = self.advance
         if compile:
             from phisim.compiled import compile_function
-            self._advance = compile_function(self.advance)
+            self._advance = compile_function(self.advance, device_type=self.device.type)
 
     def __call__(self, state: FluidState, dt=None) -> FluidState:
         """Advance ``state`` by ``dt`` (default: the stepper's ``dt``).

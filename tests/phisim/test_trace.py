@@ -221,3 +221,19 @@ def test_construction_checks_what_the_step_does_not():
         FluidStepper(grid, {"x": (Inflow((1.0, 0.0)), "wall"), "y": "wall"}, dt=0.02)
     with pytest.raises(ParameterError, match="unstable"):
         FluidStepper(grid, "wall", dt=1.0, viscosity=1.0, integrator="rk2")
+
+
+def test_compile_without_inductor_warns_and_runs_eager(monkeypatch):
+    import phisim
+    from phisim import compiled
+
+    monkeypatch.setattr(compiled, "inductor_available", lambda device_type="cpu": False)
+    grid = Grid((N, N), bounds=[(0, 1), (0, 1)])
+    with pytest.warns(RuntimeWarning, match="runs eager"):
+        heat = phisim.compile(HeatStepper(grid, "periodic", diffusivity=0.01, dt=0.1))
+    assert heat._advance == heat.advance
+    with pytest.warns(RuntimeWarning, match="runs eager"):
+        stepper = FluidStepper(grid, "periodic", dt=0.02, compile=True)
+    assert stepper._advance == stepper.advance
+    with pytest.raises(ParameterError):
+        phisim.compile(object())
