@@ -34,6 +34,16 @@ import torch
 from torch import nn
 from torch.func import functional_call, jacrev, vmap
 
+from phisim.checks import (
+    all_finite,
+    callable_name,
+    check_batch_compatible,
+    check_bool,
+    check_callable,
+    check_choice,
+    check_int,
+    check_number,
+)
 from phisim.errors import NonFiniteError, ParameterError, PhisimError, ShapeError
 
 __all__ = [
@@ -92,13 +102,9 @@ class HIGStepInfo:
     times: dict[str, float] = field(default_factory=dict)
 
 
-def _check_rcond_exponent(rcond: float, exponent: float) -> None:
-    if not isinstance(rcond, (int, float)) or not math.isfinite(rcond) or rcond < 0:
-        raise ParameterError(f"rcond must be a finite number >= 0, got {rcond!r}")
-    if not isinstance(exponent, (int, float)) or not math.isfinite(exponent):
-        raise ParameterError(
-            f"exponent must be a finite number (0.5 for HIG, 1 for Gauss-Newton), got {exponent!r}"
-        )
+def _check_rcond_exponent(rcond: float, exponent: float) -> tuple[float, float]:
+    return (check_number(rcond, "rcond", minimum=0),
+            check_number(exponent, "exponent (0.5 for HIG, 1 for Gauss-Newton)"))
 
 
 def _thin_svd(J: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -253,11 +259,12 @@ def per_sample_jacobian(
     params = _trainable(model)
     if not params:
         raise ParameterError("the model has no trainable parameters (requires_grad=True)")
+    if physics is not None:
+        check_callable(physics, "physics")
     B = _batch_size(inputs, physics_args)
+    chunk_size = check_int(chunk_size, "chunk_size", minimum=1, allow_none=True)
     if chunk_size is None:
         chunk_size = B
-    if int(chunk_size) < 1:
-        raise ParameterError(f"chunk_size must be >= 1, got {chunk_size}")
     names = list(params)
     detached = {k: v.detach() for k, v in params.items()}
 
@@ -331,15 +338,14 @@ class HIG(torch.optim.Optimizer):
     ):
         if not isinstance(model, nn.Module):
             raise ParameterError(f"model must be a torch.nn.Module, got {type(model).__name__}")
-        if not isinstance(lr, (int, float)) or not math.isfinite(lr) or lr <= 0:
-            raise ParameterError(f"lr must be a finite number > 0, got {lr!r}")
-        _check_rcond_exponent(rcond, exponent)
-        if reduction not in ("mean", "sum"):
-            raise ParameterError(f"reduction must be 'mean' or 'sum', got {reduction!r}")
-        if memory_budget is not None and memory_budget <= 0:
-            raise ParameterError(f"memory_budget must be > 0 bytes, got {memory_budget}")
-        if chunk_size is not None and chunk_size < 1:
-            raise ParameterError(f"chunk_size must be >= 1, got {chunk_size}")
+        if physics is not None:
+            check_callable(physics, "physics")
+        lr = check_number(lr, "lr", minimum=0, min_open=True)
+        rcond, exponent = _check_rcond_exponent(rcond, exponent)
+        check_choice(reduction, "reduction", ("mean", "sum"))
+        memory_budget = check_int(memory_budget, "memory_budget (bytes)", minimum=1, allow_none=True)
+        chunk_size = check_int(chunk_size, "chunk_size", minimum=1, allow_none=True)
+        timing = check_bool(timing, "timing")
         params = _trainable(model)
         if not params:
             raise ParameterError("the model has no trainable parameters (requires_grad=True)")
@@ -445,14 +451,22 @@ class HIG(torch.optim.Optimizer):
         with torch.no_grad():
             out = self.model(inputs)
             y = self.physics(out, *physics_args) if self.physics is not None else out
-        if y.ndim < 1 or y.shape[0] != B:
-            raise ShapeError(f"physics output must have batch size {B} on axis 0, got shape {tuple(y.shape)}")
+        who = f"physics {callable_name(self.physics)}" if self.physics is not None else "the model"
+        if not isinstance(y, torch.Tensor) or y.ndim < 1 or y.shape[0] != B:
+            shape = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+            raise ShapeError(f"{who} returned {shape}; its output must have batch size {B} on axis 0")
+        if not all_finite(y.detach()):
+            raise NonFiniteError(f"{who} returned NaN/Inf for inputs of shape {tuple(inputs.shape)}; the parameters "
+                                 "were not changed")
+        if isinstance(targets, torch.Tensor) and targets.ndim >= 1:
+            check_batch_compatible(y, targets, ("the physics output", "targets"), "compute the loss")
         y = y.detach().requires_grad_(True)
         with torch.enable_grad():
             losses = loss_fn(y, targets)
             if not isinstance(losses, torch.Tensor) or losses.shape != (B,):
                 shape = tuple(losses.shape) if isinstance(losses, torch.Tensor) else type(losses).__name__
-                raise ShapeError(f"loss_fn must return per-sample losses of shape ({B},), got {shape}")
+                raise ShapeError(f"loss_fn {callable_name(loss_fn)} must return per-sample losses of shape ({B},), "
+                                 f"got {shape}")
             if not bool(torch.isfinite(losses).all()):
                 raise NonFiniteError(
                     "the loss is NaN or Inf before the step; the parameters were not changed "

@@ -33,13 +33,21 @@ the numbers of entries of one sample of ``x`` and ``y``): they are meant for sma
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 import scipy.optimize
 import torch
 
+from phisim.checks import (
+    callable_name,
+    check_batch_compatible,
+    check_bool,
+    check_callable,
+    check_callable_output,
+    check_int,
+    check_number,
+)
 from phisim.errors import NonFiniteError, ParameterError, ShapeError
 
 from .operators import PhysicsOperator, check_finite
@@ -67,9 +75,7 @@ def _evaluator(forward: Forward | PhysicsOperator) -> Forward:
     """The raw (unchecked) forward function of ``forward``."""
     if isinstance(forward, PhysicsOperator):
         return forward._forward
-    if not callable(forward):
-        raise TypeError(f"forward must be callable or a PhysicsOperator, got {type(forward).__name__}")
-    return forward
+    return check_callable(forward, "forward (a callable or a PhysicsOperator)")
 
 
 def _select(forward: Forward | PhysicsOperator, index: slice) -> Forward:
@@ -175,16 +181,11 @@ def batch_hessian(
 
 
 def _check_positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (math.isfinite(value) and value > 0):
-        raise ParameterError(f"{name} must be a finite positive number, got {value}")
-    return value
+    return check_number(value, name, minimum=0, min_open=True)
 
 
-def _check_iterations(value: int) -> int:
-    if isinstance(value, bool) or int(value) != value or int(value) < 1:
-        raise ParameterError(f"max_iter must be an integer >= 1, got {value!r}")
-    return int(value)
+def _check_iterations(value: int, name: str = "max_iter") -> int:
+    return check_int(value, name, minimum=1)
 
 
 class LocalSolver:
@@ -208,19 +209,34 @@ class LocalSolver:
         Returns:
             ``x``, ``(B, *x_shape)``, detached.
 
+        Batch sizes: ``x0`` and ``y_target`` have the same batch size, or one of them 1 (shared by every sample
+        of the other; the result has the common batch size).
+
         Raises:
-            ShapeError: ``y_target``'s shape differs from ``forward(x0)``'s.
-            NonFiniteError: ``x0``, ``y_target`` or ``forward(x0)`` contain NaN/Inf.
+            ShapeError: ``y_target``'s shape differs from ``forward(x0)``'s, the batch sizes differ (and neither
+                is 1), ``forward`` does not keep the batch size, or the solver returns another shape than
+                ``x0``'s (each naming the callable).
+            NonFiniteError: ``x0``, ``y_target`` or ``forward(x0)`` contain NaN/Inf, or the solver's result does.
+            ParameterError: ``forward`` is not callable (also a ``TypeError``).
         """
         x0 = torch.as_tensor(x0).detach()
         y_target = torch.as_tensor(y_target, device=x0.device).detach()
         if y_target.is_floating_point():
             y_target = y_target.to(x0.dtype)
+        if x0.ndim < 1 or y_target.ndim < 1:
+            raise ShapeError("x0 and y_target must be batch-first tensors with at least one dimension")
+        batch = check_batch_compatible(x0, y_target, ("x0", "y_target"), "solve (batch sizes differ)")
+        x0 = x0.expand(batch, *x0.shape[1:]).clone() if x0.shape[0] != batch else x0
+        y_target = y_target.expand(batch, *y_target.shape[1:]) if y_target.shape[0] != batch else y_target
         check_finite("x0", x0)
         check_finite("y_target", y_target)
         fn = _evaluator(forward)
         with torch.no_grad():
             y0 = fn(x0)
+        if not isinstance(y0, torch.Tensor) or y0.ndim < 1 or y0.shape[0] != batch:
+            shape = tuple(y0.shape) if isinstance(y0, torch.Tensor) else type(y0).__name__
+            raise ShapeError(f"forward {callable_name(forward)} returned {shape} for x0 of shape {tuple(x0.shape)}; "
+                             f"it must keep the batch size {batch} on axis 0")
         if tuple(y0.shape) != tuple(y_target.shape):
             raise ShapeError(
                 f"y_target has shape {tuple(y_target.shape)} but forward(x0) has shape {tuple(y0.shape)}"
@@ -229,6 +245,7 @@ class LocalSolver:
             raise NonFiniteError("forward(x0) contains NaN/Inf; the start x0 is outside the forward's domain")
         with torch.enable_grad():
             x = self._solve(forward, y_target, x0)
+        check_callable_output(x, x0.shape, None, f"local solver {type(self).__name__}")
         return x.detach().to(device=x0.device, dtype=x0.dtype)
 
     def _solve(
@@ -301,11 +318,9 @@ class NewtonSolver(LocalSolver):
     ):
         self.max_iter = _check_iterations(max_iter)
         self.step_size = _check_positive("step_size", step_size)
-        self.saddle_free = bool(saddle_free)
+        self.saddle_free = check_bool(saddle_free, "saddle_free")
         self.clip = None if clip is None else _check_positive("clip", clip)
-        if not (math.isfinite(rcond) and rcond >= 0):
-            raise ParameterError(f"rcond must be finite and >= 0, got {rcond}")
-        self.rcond = float(rcond)
+        self.rcond = check_number(rcond, "rcond", minimum=0)
 
     def _solve(self, forward, y_target, x0):
         x = x0.clone()
@@ -346,9 +361,7 @@ class InverseGradientSolver(LocalSolver):
         self.max_iter = _check_iterations(max_iter)
         self.step_size = _check_positive("step_size", step_size)
         self.clip = None if clip is None else _check_positive("clip", clip)
-        if not (math.isfinite(rcond) and rcond >= 0):
-            raise ParameterError(f"rcond must be finite and >= 0, got {rcond}")
-        self.rcond = float(rcond)
+        self.rcond = check_number(rcond, "rcond", minimum=0)
 
     def _solve(self, forward, y_target, x0):
         fn = _evaluator(forward)
@@ -395,11 +408,15 @@ class LBFGSBSolver(LocalSolver):
         self.max_iter = _check_iterations(max_iter)
         self.ftol = _check_positive("ftol", ftol)
         self.gtol = _check_positive("gtol", gtol)
-        self.maxcor = _check_iterations(maxcor)
+        self.maxcor = _check_iterations(maxcor, "maxcor")
         if bounds is not None:
-            lo, hi = bounds
+            if isinstance(bounds, (str, bytes)) or not hasattr(bounds, "__len__") or len(bounds) != 2:
+                raise ParameterError(f"bounds must be None or a pair (lower, upper), got {bounds!r}")
+            lo = check_number(bounds[0], "bounds[0] (lower)", allow_none=True, finite=False)
+            hi = check_number(bounds[1], "bounds[1] (upper)", allow_none=True, finite=False)
             if lo is not None and hi is not None and not lo < hi:
                 raise ParameterError(f"bounds must satisfy lower < upper, got {bounds}")
+            bounds = (lo, hi)
         self.bounds = bounds
         self.last_results: list[scipy.optimize.OptimizeResult] = []
 
@@ -451,7 +468,7 @@ class SolverOperator(PhysicsOperator):
             the output shape is taken from the wrapped operator, or is unknown for a plain callable.
 
     Raises:
-        TypeError: ``forward`` or ``solver`` is not callable.
+        ParameterError: ``forward`` or ``solver`` is not callable (also a ``TypeError``).
     """
 
     def __init__(
@@ -460,10 +477,8 @@ class SolverOperator(PhysicsOperator):
         solver: LocalSolver | Callable,
         output_shape: Callable[[Sequence[int]], Sequence[int]] | None = None,
     ):
-        if not callable(forward):
-            raise TypeError(f"forward must be callable, got {type(forward).__name__}")
-        if not callable(solver):
-            raise TypeError(f"solver must be callable, got {type(solver).__name__}")
+        check_callable(forward, "forward")
+        check_callable(solver, "solver")
         self.inner = forward
         self.solver = solver
         self._output_shape = output_shape

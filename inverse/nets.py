@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from phisim.checks import check_choice, check_int
 from phisim.errors import ParameterError, ShapeError
 
 __all__ = ["UNet", "MLP", "count_parameters"]
@@ -88,14 +89,12 @@ class UNet(nn.Module):
         padding_mode: str = "circular",
     ):
         super().__init__()
-        for name, v in (("in_channels", in_channels), ("out_channels", out_channels), ("levels", levels),
-                        ("filters", filters)):
-            if isinstance(v, bool) or int(v) != v or v < 1:
-                raise ParameterError(f"{name} must be a positive integer, got {v!r}")
-        if padding_mode not in _PADDING_MODES:
-            raise ParameterError(f"padding_mode must be one of {_PADDING_MODES}, got {padding_mode!r}")
-        self.in_channels, self.out_channels = int(in_channels), int(out_channels)
-        self.levels, self.filters, self.padding_mode = int(levels), int(filters), padding_mode
+        # sizes beyond 2**31 - 1 cannot allocate a layer (and levels beyond 31 cannot pool a grid torch holds)
+        self.in_channels = check_int(in_channels, "in_channels", minimum=1, maximum=2**31 - 1)
+        self.out_channels = check_int(out_channels, "out_channels", minimum=1, maximum=2**31 - 1)
+        self.levels = check_int(levels, "levels", minimum=1, maximum=31)
+        self.filters = check_int(filters, "filters", minimum=1, maximum=2**31 - 1)
+        self.padding_mode = check_choice(padding_mode, "padding_mode", _PADDING_MODES)
         f = self.filters
         self.down = nn.ModuleList(
             [_Block(self.in_channels if i == 0 else f, f, padding_mode) for i in range(self.levels)]
@@ -154,15 +153,18 @@ class MLP(nn.Module):
 
     def __init__(self, sizes: Sequence[int], activation: str | type[nn.Module] = "relu"):
         super().__init__()
-        sizes = [int(s) for s in sizes]
-        if len(sizes) < 2 or any(s < 1 for s in sizes):
-            raise ParameterError(f"sizes must hold at least two positive widths, got {sizes}")
+        if isinstance(sizes, (str, bytes)) or not isinstance(sizes, Sequence) or len(sizes) < 2:
+            raise ParameterError(f"sizes must be a sequence of at least two positive widths, got {sizes!r}")
+        sizes = [check_int(s, f"sizes[{i}]", minimum=1, maximum=2**31 - 1) for i, s in enumerate(sizes)]
         if isinstance(activation, str):
             if activation not in _ACTIVATIONS:
                 raise ParameterError(f"unknown activation {activation!r}; known: {sorted(_ACTIVATIONS)}")
             act = _ACTIVATIONS[activation]
-        else:
+        elif callable(activation):
             act = activation
+        else:
+            raise ParameterError(f"activation must be a name {sorted(_ACTIVATIONS)} or a module class/factory, "
+                                 f"got {activation!r}")
         layers: list[nn.Module] = []
         for i in range(len(sizes) - 1):
             layers.append(nn.Linear(sizes[i], sizes[i + 1]))

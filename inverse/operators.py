@@ -23,6 +23,7 @@ from collections.abc import Sequence
 
 import torch
 
+from phisim.checks import callable_name, check_batch_compatible, check_callable_output, check_choice, check_number
 from phisim.errors import NonFiniteError, ParameterError, ShapeError
 from phisim.solvers.diffusion import fourier_heat, fourier_k2
 from phisim.solvers.linalg import Solve, cg, remove_mean
@@ -88,6 +89,16 @@ class PhysicsOperator:
 
     check_inputs: bool = True
 
+    def _callable_name(self, role: str) -> str:
+        """The user callable behind ``role`` (``'forward'`` or ``'local inverse'``), for error messages: a wrapped
+        function (``physics``, ``inverse_fn``, ``solver``) by its name, else the operator's method."""
+        attrs = ("physics",) if role == "forward" else ("inverse_fn", "solver")
+        for attr in attrs:
+            fn = self.__dict__.get(attr)
+            if fn is not None:
+                return callable_name(fn)
+        return f"{type(self).__name__}.{'_forward' if role == 'forward' else '_local_inverse'}"
+
     # ----------------------------------------------------------------- to implement in subclasses
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -136,7 +147,9 @@ class PhysicsOperator:
             ``y``, ``(B, *y_shape)``, same device and dtype as ``x``.
 
         Raises:
-            ShapeError: ``x`` has no batch dimension or a shape the operator does not accept.
+            ShapeError: ``x`` has no batch dimension or a shape the operator does not accept, or the forward
+                returns another batch size than ``x``'s (or another shape than :meth:`output_shape` says),
+                naming the forward callable.
             NonFiniteError: ``x`` contains NaN/Inf (when :attr:`check_inputs`).
         """
         x = _as_tensor(x)
@@ -146,7 +159,12 @@ class PhysicsOperator:
             raise ShapeError(f"x must be a floating-point tensor, got dtype {x.dtype}")
         if self.check_inputs:
             check_finite("x", x)
-        return self._forward(x)
+        y = self._forward(x)
+        if not isinstance(y, torch.Tensor) or y.ndim < 1 or y.shape[0] != x.shape[0]:
+            shape = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+            raise ShapeError(f"forward {self._callable_name('forward')} returned {shape} for x of shape "
+                             f"{tuple(x.shape)}; it must keep the batch size {x.shape[0]} on axis 0")
+        return y
 
     __call__ = forward
 
@@ -168,10 +186,15 @@ class PhysicsOperator:
         Returns:
             ``x``, ``(B, *x_shape)``, detached, same device and dtype as ``x0``.
 
+        Batch sizes: ``x0`` and ``y_target`` have the same batch size, or one of them has 1 (a shared start or
+        a shared target), which is broadcast to the other's.
+
         Raises:
-            ShapeError: ``y_target`` does not have the shape of ``P(x0)`` (or of ``y0``), or the batch
-                sizes differ.
-            NonFiniteError: an input contains NaN/Inf (when :attr:`check_inputs`).
+            ShapeError: ``y_target`` does not have the shape of ``P(x0)`` (or of ``y0``), the batch sizes
+                differ (and neither is 1), or the local inverse returns another shape than ``x0``'s (naming
+                the callable).
+            NonFiniteError: an input, or the local inverse's result, contains NaN/Inf (when
+                :attr:`check_inputs`).
         """
         x0 = _as_tensor(x0).detach()
         y_target = torch.as_tensor(y_target, device=x0.device).detach()
@@ -179,10 +202,12 @@ class PhysicsOperator:
             y_target = y_target.to(dtype=x0.dtype)
         if x0.ndim < 1 or y_target.ndim < 1:
             raise ShapeError("x0 and y_target must be batch-first tensors with at least one dimension")
-        if y_target.shape[0] != x0.shape[0]:
-            raise ShapeError(
-                f"batch sizes differ: y_target has {y_target.shape[0]} samples, x0 has {x0.shape[0]}"
-            )
+        batch = check_batch_compatible(x0, y_target, ("x0", "y_target"), "invert (batch sizes differ)")
+        x0 = x0.expand(batch, *x0.shape[1:]) if x0.shape[0] != batch else x0
+        y_target = y_target.expand(batch, *y_target.shape[1:]) if y_target.shape[0] != batch else y_target
+        if y0 is not None:
+            y0 = _as_tensor(y0)
+            y0 = y0.expand(batch, *y0.shape[1:]) if y0.ndim >= 1 and y0.shape[0] == 1 != batch else y0
         if self.check_inputs:
             check_finite("x0", x0)
             check_finite("y_target", y_target)
@@ -204,7 +229,14 @@ class PhysicsOperator:
                 f"y_target has shape {tuple(y_target.shape)} but {source} has shape {tuple(expected)}; "
                 "the target must have the shape of the forward output for the given x0"
             )
-        return self._local_inverse(y_target, x0, y0).detach()
+        x = self._local_inverse(y_target, x0, y0)
+        if not isinstance(x, torch.Tensor) or x.shape != x0.shape:
+            check_callable_output(x, x0.shape, None, "local inverse " + self._callable_name("local inverse"),
+                                  finite=False)
+        if self.check_inputs and not bool(torch.isfinite(x.detach()).all()):
+            raise NonFiniteError(f"local inverse {self._callable_name('local inverse')} returned NaN/Inf for "
+                                 "finite inputs")
+        return x.detach()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -231,8 +263,8 @@ class ScaleToy(PhysicsOperator):
     """
 
     def __init__(self, alpha: float = 1.0):
-        alpha = float(alpha)
-        if alpha == 0.0 or not math.isfinite(alpha):
+        alpha = check_number(alpha, "alpha")
+        if alpha == 0.0:
             raise ParameterError(f"alpha must be finite and non-zero, got {alpha}")
         self.alpha = alpha
 
@@ -315,10 +347,15 @@ class Sine(PhysicsOperator):
     """
 
     def __init__(self, a: float | torch.Tensor, closest: str = "x"):
-        if closest not in ("x", "phase"):
-            raise ParameterError(f"closest must be 'x' or 'phase', got {closest!r}")
-        self.closest = closest
-        a_t = torch.as_tensor(a)
+        self.closest = check_choice(closest, "closest", ("x", "phase"))
+        if isinstance(a, (str, bytes)) or a is None:
+            raise ParameterError(f"a must be a number or a (B,) tensor, got {a!r}")
+        try:
+            a_t = torch.as_tensor(a)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ParameterError(f"a must be a number or a (B,) tensor, got {a!r}") from exc
+        if a_t.is_complex() or a_t.dtype == torch.bool:
+            raise ParameterError(f"a must be real, got dtype {a_t.dtype}")
         if not a_t.is_floating_point():
             a_t = a_t.to(torch.get_default_dtype())
         if a_t.ndim > 1:
@@ -431,10 +468,8 @@ class Poisson(PhysicsOperator):
         compute_dtype: torch.dtype | None = torch.float64,
         convention: str = "face",
     ):
-        if preconditioner not in (None, "spectral"):
-            raise ParameterError(f"preconditioner must be None or 'spectral', got {preconditioner!r}")
-        if convention not in ("face", "ghost"):
-            raise ParameterError(f"convention must be 'face' or 'ghost', got {convention!r}")
+        check_choice(preconditioner, "preconditioner", (None, "spectral"))
+        check_choice(convention, "convention", ("face", "ghost"))
         if convention == "ghost" and kinds != "dirichlet":
             raise ParameterError("convention='ghost' is the zero-Dirichlet-everywhere box of E3: use kinds='dirichlet'")
         self.convention = convention
@@ -574,19 +609,12 @@ class Heat(PhysicsOperator):
     def __init__(self, nu_t: float = 8.0, noise_scale: float = 1e-6, signal_scale: float = 64.0,
                  threshold: float = 0.68, noise_floor: float = 0.0,
                  compute_dtype: torch.dtype | None = torch.float64):
-        for name, v in (("nu_t", nu_t), ("noise_scale", noise_scale), ("signal_scale", signal_scale)):
-            if not (math.isfinite(float(v)) and float(v) > 0):
-                raise ParameterError(f"{name} must be a finite positive number, got {v!r}")
-        if not (math.isfinite(float(noise_floor)) and float(noise_floor) >= 0):
-            raise ParameterError(f"noise_floor must be finite and >= 0, got {noise_floor!r}")
-        self.noise_floor = float(noise_floor)
+        self.nu_t = check_number(nu_t, "nu_t", minimum=0, min_open=True)
+        self.noise_scale = check_number(noise_scale, "noise_scale", minimum=0, min_open=True)
+        self.signal_scale = check_number(signal_scale, "signal_scale", minimum=0, min_open=True)
+        self.noise_floor = check_number(noise_floor, "noise_floor", minimum=0)
         self.compute_dtype = _check_compute_dtype(compute_dtype)
-        if not 0.5 <= float(threshold) <= 1.0:
-            raise ParameterError(f"threshold must lie in [0.5, 1], got {threshold!r}")
-        self.nu_t = float(nu_t)
-        self.noise_scale = float(noise_scale)
-        self.signal_scale = float(signal_scale)
-        self.threshold = float(threshold)
+        self.threshold = check_number(threshold, "threshold", minimum=0.5, maximum=1.0)
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim < 2 or x.ndim > 4:

@@ -33,12 +33,18 @@ leaves alone. A frequency-weighted loss such as E5's is
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 
-from phisim.checks import check_positive
+from phisim.checks import (
+    check_batch_compatible,
+    check_callable_output,
+    check_choice,
+    check_int,
+    check_number,
+    check_positive,
+)
 from phisim.errors import ParameterError, ShapeError
 
 from .operators import PhysicsOperator, check_finite
@@ -54,13 +60,7 @@ __all__ = [
 
 
 def _check_eta(eta: float) -> float:
-    try:
-        eta_f = float(eta)
-    except (TypeError, ValueError) as err:
-        raise ParameterError(f"eta must be a number, got {eta!r}") from err
-    if not (math.isfinite(eta_f) and eta_f > 0):
-        raise ParameterError(f"eta must be a finite positive number (typically in (0, 1]), got {eta!r}")
-    return eta_f
+    return check_number(eta, "eta (a finite positive number, typically in (0, 1])", minimum=0, min_open=True)
 
 
 class FourierTransform:
@@ -78,9 +78,7 @@ class FourierTransform:
     """
 
     def __init__(self, ndim: int):
-        if int(ndim) != ndim or ndim < 1:
-            raise ParameterError(f"ndim must be a positive integer, got {ndim!r}")
-        self.ndim = int(ndim)
+        self.ndim = check_int(ndim, "ndim", minimum=1)
 
     def __call__(self, y: torch.Tensor) -> torch.Tensor:
         """Forward transform.
@@ -132,25 +130,33 @@ class QuadraticLoss:
         rcond: float = 0.0,
     ):
         if weights is not None:
-            weights = torch.as_tensor(weights)
+            if isinstance(weights, (str, bytes)):
+                raise ParameterError(f"weights must be a tensor of numbers >= 0, got {weights!r}")
+            try:
+                weights = torch.as_tensor(weights)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise ParameterError(f"weights must be a tensor of numbers >= 0, got {weights!r}") from exc
+            if weights.is_complex() or weights.dtype == torch.bool:
+                raise ParameterError(f"weights must be real, got dtype {weights.dtype}")
             if not bool(torch.isfinite(weights).all()) or bool((weights < 0).any()):
                 raise ParameterError("weights must be finite and non-negative")
-        if transform is not None and not callable(getattr(transform, "inverse", None)):
+        if transform is not None and not (callable(transform) and callable(getattr(transform, "inverse", None))):
             raise ParameterError("transform must be callable with an inverse(c) method (unitary transform)")
-        if not (math.isfinite(damping) and damping >= 0):
-            raise ParameterError(f"damping must be finite and >= 0, got {damping}")
-        if not (math.isfinite(rcond) and rcond >= 0):
-            raise ParameterError(f"rcond must be finite and >= 0, got {rcond}")
         self.weights = weights
         self.transform = transform
-        self.damping = float(damping)
-        self.rcond = float(rcond)
+        self.damping = check_number(damping, "damping", minimum=0)
+        self.rcond = check_number(rcond, "rcond", minimum=0)
 
     def _fwd(self, r: torch.Tensor) -> torch.Tensor:
-        return r if self.transform is None else self.transform(r)
+        if self.transform is None:
+            return r
+        return check_callable_output(self.transform(r), r.shape, self.transform, "transform", finite=False)
 
     def _inv(self, c: torch.Tensor) -> torch.Tensor:
-        return c if self.transform is None else self.transform.inverse(c)
+        if self.transform is None:
+            return c
+        return check_callable_output(self.transform.inverse(c), c.shape, self.transform.inverse, "transform.inverse",
+                                     finite=False)
 
     def _weights_like(self, c: torch.Tensor) -> torch.Tensor | None:
         if self.weights is None:
@@ -227,15 +233,22 @@ def physical_update(
     Returns:
         ``(x̃, y)``: the corrected state ``(B, *x_shape)`` and ``P(x)`` ``(B, *y_shape)``, both detached.
 
+    Batch sizes: ``x`` and ``y_target`` have the same batch size, or ``y_target`` has 1 (one target shared by
+    every sample).
+
     Raises:
         ParameterError: Invalid ``eta``.
-        ShapeError: ``y_target``'s shape differs from ``P(x)``'s.
+        ShapeError: ``y_target``'s shape differs from ``P(x)``'s, or its batch size is neither ``x``'s nor 1.
         NonFiniteError: ``x`` or ``y_target`` contain NaN/Inf.
     """
     eta = _check_eta(eta)
     loss = _L2 if loss is None else loss
     xd = x.detach()
     y_target = torch.as_tensor(y_target, device=xd.device).detach()
+    if xd.ndim >= 1 and y_target.ndim >= 1:
+        check_batch_compatible(xd, y_target, ("x", "y_target"), "compute a physical update")
+        if y_target.shape[0] == 1 != xd.shape[0]:
+            y_target = y_target.expand(xd.shape[0], *y_target.shape[1:])
     check_finite("x", xd)
     check_finite("y_target", y_target)
     with torch.no_grad():
@@ -282,8 +295,7 @@ def physical_gradient_loss(
         ShapeError: ``y_target``'s shape differs from ``P(x)``'s.
         NonFiniteError: ``x`` or ``y_target`` contain NaN/Inf.
     """
-    if reduction not in ("sum", "mean"):
-        raise ParameterError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
+    check_choice(reduction, "reduction", ("sum", "mean"))
     x_tilde, _ = physical_update(x, y_target, operator, eta=eta, loss=loss)
     per_sample = 0.5 * ((x - x_tilde) ** 2).reshape(x.shape[0], -1).sum(dim=1)
     return per_sample.sum() if reduction == "sum" else per_sample.mean()

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from phisim.checks import check_callable, check_number
 from phisim.errors import ParameterError
 
 from .local_solvers import LocalSolver
@@ -58,17 +59,15 @@ class Method:
     loss: Callable | None = None
 
     def __post_init__(self):
-        import math
-
         for name in ("lr", "momentum", "eta", "rcond"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ParameterError(f"method {self.name!r}: {name} must be a finite number >= 0, got {v!r}")
+            check_number(getattr(self, name), f"method {self.name!r}: {name}", minimum=0)
         if self.lr == 0:
             raise ParameterError(f"method {self.name!r}: lr must be > 0 (a zero learning rate never trains)")
-        if self.grad_clip is not None and (isinstance(self.grad_clip, bool) or not isinstance(
-                self.grad_clip, (int, float)) or not self.grad_clip > 0):
-            raise ParameterError(f"method {self.name!r}: grad_clip must be None or > 0, got {self.grad_clip!r}")
+        check_number(self.grad_clip, f"method {self.name!r}: grad_clip", minimum=0, min_open=True, allow_none=True)
+        if self.loss is not None:
+            check_callable(self.loss, f"method {self.name!r}: loss")
+        if self.local_solver is not None:
+            check_callable(self.local_solver, f"method {self.name!r}: local_solver")
 
 
 @dataclass

@@ -283,14 +283,18 @@ def callable_name(fn) -> str:
     return repr(name) if isinstance(name, str) and name else _short(fn)
 
 
+class NotCallableError(ParameterError, TypeError):
+    """A ParameterError for an argument that must be callable; also a ``TypeError``, which such code raised before."""
+
+
 def check_callable(value, name: str):
     """Validate that ``value`` is callable.
 
     Raises:
-        ParameterError: Naming ``name``.
+        NotCallableError: A :class:`ParameterError` (and ``TypeError``) naming ``name``.
     """
     if not callable(value):
-        raise ParameterError(f"{name} must be callable, got {_short(value)} ({type(value).__name__})")
+        raise NotCallableError(f"{name} must be callable, got {_short(value)} ({type(value).__name__})")
     return value
 
 
@@ -350,7 +354,7 @@ def check_callable_output(out, expected_shape, fn, name: str, *, finite: bool = 
     Args:
         out: The returned value.
         expected_shape: The shape it must have.
-        fn: The callable (named in the message by :func:`callable_name`).
+        fn: The callable (named in the message by :func:`callable_name`), or None when ``name`` names it.
         name: Its role (``'preconditioner'``, ``'local inverse'``...).
         finite: Also check for NaN/Inf (one reduction; a device sync on accelerators).
 
@@ -362,12 +366,13 @@ def check_callable_output(out, expected_shape, fn, name: str, *, finite: bool = 
         NonFiniteError: NaN/Inf in the output.
     """
     expected = tuple(expected_shape)
+    who = name if fn is None else f"{name} {callable_name(fn)}"
     if not isinstance(out, torch.Tensor):
-        raise ShapeError(f"{name} {callable_name(fn)} returned {type(out).__name__}, expected a tensor of shape "
+        raise ShapeError(f"{who} returned {type(out).__name__}, expected a tensor of shape "
                          f"{expected}")
     if tuple(out.shape) != expected:
-        raise ShapeError(f"{name} {callable_name(fn)} returned shape {tuple(out.shape)}, expected {expected}")
+        raise ShapeError(f"{who} returned shape {tuple(out.shape)}, expected {expected}")
     if finite and not all_finite(out.detach()):
         bad = int((~torch.isfinite(out.detach())).sum())
-        raise NonFiniteError(f"{name} {callable_name(fn)} returned {bad} NaN/Inf value(s) (shape {expected})")
+        raise NonFiniteError(f"{who} returned {bad} NaN/Inf value(s) (shape {expected})")
     return out
