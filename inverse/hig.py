@@ -465,8 +465,8 @@ class HIG(torch.optim.Optimizer):
             losses = loss_fn(y, targets)
             if not isinstance(losses, torch.Tensor) or losses.shape != (B,):
                 shape = tuple(losses.shape) if isinstance(losses, torch.Tensor) else type(losses).__name__
-                raise ShapeError(f"loss_fn {callable_name(loss_fn)} must return per-sample losses of shape ({B},), "
-                                 f"got {shape}")
+                raise ShapeError(f"loss_fn {callable_name(loss_fn)} returned {shape}; it must return per-sample "
+                                 f"losses of shape ({B},)")
             if not bool(torch.isfinite(losses).all()):
                 raise NonFiniteError(
                     "the loss is NaN or Inf before the step; the parameters were not changed "

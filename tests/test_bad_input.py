@@ -417,3 +417,362 @@ def test_cuda_asked_for_without_cuda(capsys):
         train("sine", "adam", iterations=1, device="cuda")
     assert cli_main(["train", "sine", "adam", "--iterations", "1", "--device", "cuda"]) == 2
     assert "CUDA is not available" in capsys.readouterr().err
+
+
+# ==== bad input by class (issue 27, item 5) =============================================================
+# One parametrized test per class of bad input, each run across the public functions the class applies to.
+# Arguments are checked by the helpers of phisim/checks.py (check_number, check_int, check_seed, check_bool,
+# check_choice, check_batch_compatible, check_nonempty_batch, check_callable_output).
+
+import importlib  # noqa: E402
+import re  # noqa: E402
+
+from inverse import hig as _hig  # noqa: E402
+from inverse import local_solvers as _ls  # noqa: E402
+from inverse import nets as _nets  # noqa: E402
+from inverse import operators as _ops  # noqa: E402
+from inverse.custom import CallableOperator  # noqa: E402
+from phisim.simulate import noise as _noise  # noqa: E402
+from phisim.solvers.linalg import cg as _cg  # noqa: E402
+from phisim.spectral.settings import FFTSettings  # noqa: E402
+
+_pg = importlib.import_module("inverse.physgrad")
+_NET = torch.nn.Linear(2, 2)
+
+
+def _s(b, boundary=None):
+    return ps.CenteredGrid.zeros(G, boundary or W.for_scalar(), b)
+
+
+def _v(b):
+    return ps.StaggeredGrid.zeros(G, W, b)
+
+
+# ---- class 1: two operands whose batch sizes differ (2 vs 3) -------------------------------------------
+BATCH_MISMATCH = [
+    ("centered+centered", lambda: _s(2) + _s(3)),
+    ("centered-centered-reversed", lambda: _s(3).__rsub__(_s(2))),
+    ("vector*scalar", lambda: ps.CenteredGrid.zeros(G, W, 2, channels=2) * ps.CenteredGrid.zeros(G, W, 3)),
+    ("staggered+staggered", lambda: _v(2) + _v(3)),
+    ("staggered*staggered", lambda: _v(3) * _v(2)),
+    ("centered+tensor", lambda: _s(2) + torch.zeros(3, 8, 6)),
+    ("staggered*tensor", lambda: _v(2) * torch.ones(3, 1, 1)),
+    ("advect-velocity", lambda: ps.advect(_s(2), _v(3), 0.1)),
+    ("sample-padded-index", lambda: ps.sample_padded(torch.zeros(2, 1, 8, 6), torch.zeros(3, 4, 2))),
+    ("rectangles-corners", lambda: _noise.rectangles(G, torch.zeros(2, 2), torch.ones(3, 2))),
+    ("vortex-centre-strength", lambda: _noise.gaussian_vortex(G, torch.zeros(2, 2), torch.ones(3), 1.0)),
+    ("uniform-velocity-batch", lambda: _noise.uniform_velocity(G, torch.zeros(2, 2), batch_size=3)),
+    ("cg-x0-rhs", lambda: _cg(lambda x: x, torch.ones(2, 4), torch.zeros(3, 4))),
+    ("operator-local-inverse", lambda: _ops.ScaleToy().local_inverse(torch.ones(3, 2), torch.ones(2, 2))),
+    ("solver-operator", lambda: _ls.SolverOperator(lambda x: x, _ls.GradientStepSolver()).local_inverse(
+        torch.ones(3, 2), torch.ones(2, 2))),
+    ("local-solver", lambda: _ls.NewtonSolver()(lambda x: x, torch.ones(3, 2), torch.ones(2, 2))),
+    ("physical-update", lambda: _pg.physical_update(torch.ones(2, 2), torch.ones(3, 2), _ops.ScaleToy())),
+    ("physical-gradient-loss", lambda: _pg.physical_gradient_loss(torch.ones(2, 2), torch.ones(3, 2),
+                                                                  _ops.ScaleToy())),
+    ("hig-targets", lambda: _hig.HIG(_NET).step(torch.ones(2, 2), torch.ones(3, 2))),
+    ("hig-physics-args", lambda: _hig.HIG(_NET, physics=lambda o, s: o * s).step(
+        torch.ones(2, 2), torch.ones(2, 2), physics_args=(torch.ones(3, 2),))),
+]
+
+
+@pytest.mark.parametrize("call", [c[1] for c in BATCH_MISMATCH], ids=[c[0] for c in BATCH_MISMATCH])
+def test_batch_sizes_that_differ_give_shape_error_naming_both(call):
+    with pytest.raises(ShapeError) as info:
+        call()
+    msg = str(info.value)
+    assert re.search(r"\b2\b", msg) and re.search(r"\b3\b", msg), msg
+
+
+BATCH_BROADCAST = [  # the documented rule's other half: a batch of 1 is shared by every sample of the other
+    ("centered+centered", lambda: (_s(1) + _s(3)).batch_size),
+    ("staggered*staggered", lambda: (_v(3) * _v(1)).batch_size),
+    ("cg-x0", lambda: _cg(lambda x: 2 * x, torch.ones(3, 4), torch.zeros(1, 4)).shape[0]),
+    ("operator-target", lambda: _ops.ScaleToy().local_inverse(torch.ones(1, 2), torch.ones(3, 2)).shape[0]),
+    ("local-solver-target", lambda: _ls.GradientStepSolver()(lambda x: x, torch.ones(1, 2), torch.ones(3, 2)).shape[0]),
+    ("physical-update", lambda: _pg.physical_update(torch.ones(3, 2), torch.ones(1, 2), _ops.ScaleToy())[0].shape[0]),
+]
+
+
+@pytest.mark.parametrize("call", [c[1] for c in BATCH_BROADCAST], ids=[c[0] for c in BATCH_BROADCAST])
+def test_batch_of_one_broadcasts(call):
+    assert call() == 3
+
+
+# ---- class 2: a string, None, a list, NaN or an out-of-range integer where a number is expected --------
+# (function of the bad value, the argument's name in the message, kind: 'int', 'float', 'int?', 'float?'
+# (None allowed), 'pos' (a finite number > 0 where a huge int is fine), 'seed')
+NUMBER_ARGS = [
+    # phisim: fields, noise, solver and FFT settings
+    ("centered-zeros-batch", lambda v: ps.CenteredGrid.zeros(G, W, v), "batch_size", "int"),
+    ("centered-zeros-channels", lambda v: ps.CenteredGrid.zeros(G, W, 1, channels=v), "channels", "int?"),
+    ("staggered-zeros-batch", lambda v: ps.StaggeredGrid.zeros(G, W, v), "batch_size", "int"),
+    ("noise-seed", lambda v: _noise.spectral_noise(G, seed=v), "seed", "seed"),
+    ("noise-batch", lambda v: _noise.spectral_noise(G, v), "batch_size", "int"),
+    ("noise-channels", lambda v: _noise.spectral_noise(G, channels=v), "channels", "int?"),
+    ("noise-power", lambda v: _noise.spectral_noise(G, power=v), "power", "float"),
+    ("noise-scale", lambda v: _noise.spectral_noise(G, scale=v), "scale", "pos"),
+    ("noise-cutoff", lambda v: _noise.spectral_noise(G, cutoff=v), "cutoff", "float"),
+    ("rectangles-seed", lambda v: _noise.random_rectangles(G, seed=v), "seed", "seed"),
+    ("rectangles-batch", lambda v: _noise.random_rectangles(G, v), "batch_size", "int"),
+    ("rectangles-count", lambda v: _noise.random_rectangles(G, count=(1, v)), "count", "int"),
+    ("rectangles-half-size", lambda v: _noise.random_rectangles(G, max_half_size=v), "max_half_size", "float"),
+    ("rectangles-margin", lambda v: _noise.random_rectangles(G, margin=v), "margin", "float"),
+    ("rectangles-strength", lambda v: _noise.random_rectangles(G, strength=(0.0, v)), "strength", "float"),
+    ("vortex-sigma", lambda v: _noise.gaussian_vortex(G, (1.0, 1.0), 1.0, v), "sigma", "pos"),
+    ("vortex-axis", lambda v: _noise.gaussian_vortex(G3, (1.0, 1.0, 1.0), 1.0, 1.0, axis=v), "axis", "int"),
+    ("vortex-batch", lambda v: _noise.gaussian_vortex(G, (1.0, 1.0), 1.0, 1.0, batch_size=v), "batch_size", "int?"),
+    ("uniform-batch", lambda v: _noise.uniform_velocity(G, (1.0, 0.0), batch_size=v), "batch_size", "int?"),
+    ("solve-rtol", lambda v: ps.Solve(rtol=v), "rtol", "float"),
+    ("solve-atol", lambda v: ps.Solve(atol=v), "atol", "float"),
+    ("solve-refine-rtol", lambda v: ps.Solve(refine_rtol=v), "refine_rtol", "float"),
+    ("solve-max-iter", lambda v: ps.Solve(max_iter=v), "max_iter", "int?"),
+    ("solve-max-refine", lambda v: ps.Solve(max_refine=v), "max_refine", "int"),
+    ("solve-stagnation", lambda v: ps.Solve(stagnation_window=v), "stagnation_window", "int"),
+    ("solve-check-every", lambda v: ps.Solve(check_every=v), "check_every", "int?"),
+    ("fft-threads", lambda v: FFTSettings(threads=v), "threads", "int"),
+    ("fft-plan-cache", lambda v: FFTSettings(plan_cache_size=v), "plan_cache_size", "int"),
+    ("fft-transpose-bytes", lambda v: FFTSettings(transpose_bytes=v), "transpose_bytes", "int"),
+    ("fft-wall-transpose", lambda v: FFTSettings(wall_transpose_bytes=v), "wall_transpose_bytes", "int"),
+    ("fft-wall-samples", lambda v: FFTSettings(wall_solve_min_samples=v), "wall_solve_min_samples", "int"),
+    ("set-fft-threads", lambda v: ps.set_fft_settings(threads=v), "threads", "int"),
+    # inverse: optimizers, local solvers, physgrad, nets, operators, methods
+    ("hig-lr", lambda v: _hig.HIG(_NET, lr=v), "lr", "pos"),
+    ("hig-rcond", lambda v: _hig.HIG(_NET, rcond=v), "rcond", "float"),
+    ("hig-exponent", lambda v: _hig.HIG(_NET, exponent=v), "exponent", "float"),
+    ("hig-memory-budget", lambda v: _hig.HIG(_NET, memory_budget=v), "memory_budget", "int?"),
+    ("hig-chunk-size", lambda v: _hig.HIG(_NET, chunk_size=v), "chunk_size", "int?"),
+    ("gauss-newton-lr", lambda v: _hig.GaussNewton(_NET, lr=v), "lr", "pos"),
+    ("gauss-newton-rcond", lambda v: _hig.GaussNewton(_NET, rcond=v), "rcond", "float"),
+    ("jacobian-chunk-size", lambda v: _hig.per_sample_jacobian(_NET, torch.ones(2, 2), chunk_size=v),
+     "chunk_size", "int?"),
+    ("power-svd-rcond", lambda v: _hig.truncated_power_svd(torch.eye(2), torch.ones(2), rcond=v), "rcond", "float"),
+    ("gradient-step-size", lambda v: _ls.GradientStepSolver(step_size=v), "step_size", "pos"),
+    ("gradient-max-iter", lambda v: _ls.GradientStepSolver(max_iter=v), "max_iter", "int"),
+    ("newton-max-iter", lambda v: _ls.NewtonSolver(max_iter=v), "max_iter", "int"),
+    ("newton-step-size", lambda v: _ls.NewtonSolver(step_size=v), "step_size", "pos"),
+    ("newton-clip", lambda v: _ls.NewtonSolver(clip=v), "clip", "pos?"),
+    ("newton-rcond", lambda v: _ls.NewtonSolver(rcond=v), "rcond", "float"),
+    ("inverse-gradient-max-iter", lambda v: _ls.InverseGradientSolver(max_iter=v), "max_iter", "int"),
+    ("inverse-gradient-rcond", lambda v: _ls.InverseGradientSolver(rcond=v), "rcond", "float"),
+    ("inverse-gradient-clip", lambda v: _ls.InverseGradientSolver(clip=v), "clip", "pos?"),
+    ("lbfgsb-max-iter", lambda v: _ls.LBFGSBSolver(max_iter=v), "max_iter", "int"),
+    ("lbfgsb-maxcor", lambda v: _ls.LBFGSBSolver(maxcor=v), "maxcor", "int"),
+    ("lbfgsb-ftol", lambda v: _ls.LBFGSBSolver(ftol=v), "ftol", "pos"),
+    ("lbfgsb-gtol", lambda v: _ls.LBFGSBSolver(gtol=v), "gtol", "pos"),
+    ("lbfgsb-bounds", lambda v: _ls.LBFGSBSolver(bounds=(0.0, v)), "bounds", "pos?"),
+    ("quadratic-damping", lambda v: _pg.QuadraticLoss(damping=v), "damping", "float"),
+    ("quadratic-rcond", lambda v: _pg.QuadraticLoss(rcond=v), "rcond", "float"),
+    ("fourier-ndim", lambda v: _pg.FourierTransform(v), "ndim", "int"),
+    ("physgrad-loss-eta", lambda v: _pg.physical_gradient_loss(torch.ones(2, 2), torch.ones(2, 2), _ops.ScaleToy(),
+                                                               eta=v), "eta", "pos"),
+    ("physgrad-grad-scale", lambda v: _pg.physgrad(_ops.ScaleToy(), grad_scale=v), "grad_scale", "pos"),
+    ("physgrad-eta", lambda v: _pg.physgrad(_ops.ScaleToy(), eta=v), "eta", "pos"),
+    ("unet-levels", lambda v: _nets.UNet(levels=v), "levels", "int"),
+    ("unet-filters", lambda v: _nets.UNet(filters=v), "filters", "int"),
+    ("unet-in-channels", lambda v: _nets.UNet(in_channels=v), "in_channels", "int"),
+    ("mlp-size", lambda v: _nets.MLP([1, v]), "sizes", "int"),
+    ("scale-toy-alpha", lambda v: _ops.ScaleToy(v), "alpha", "float"),
+    ("heat-nu-t", lambda v: _ops.Heat(nu_t=v), "nu_t", "pos"),
+    ("heat-threshold", lambda v: _ops.Heat(threshold=v), "threshold", "float"),
+    ("heat-noise-floor", lambda v: _ops.Heat(noise_floor=v), "noise_floor", "float"),
+    ("method-lr", lambda v: Method("m", "physics", lr=v), "lr", "pos"),
+    ("method-momentum", lambda v: Method("m", "physics", momentum=v), "momentum", "float"),
+    ("method-grad-clip", lambda v: Method("m", "physics", grad_clip=v), "grad_clip", "pos?"),
+]
+
+_BAD_VALUES = {  # every kind gets a string, a list and NaN; None unless it is allowed; ints also a float and 2**64
+    "int": ["3", [3], NAN, None, 1.5, 2**64],
+    "int?": ["3", [3], NAN, 1.5, 2**64],
+    "seed": ["3", [3], NAN, 1.5, 2**64, -(2**63) - 1],
+    "float": ["0.5", [0.5], NAN, None],
+    "pos": ["0.5", [0.5], NAN, None, math.inf],
+    "pos?": ["0.5", [0.5], NAN],
+}
+NUMBER_CASES = [(f"{name}-{bad!r}"[:60], call, arg, bad) for name, call, arg, kind in NUMBER_ARGS
+                for bad in _BAD_VALUES[kind]]
+
+
+@pytest.mark.parametrize("call, arg, bad", [c[1:] for c in NUMBER_CASES], ids=[c[0] for c in NUMBER_CASES])
+def test_bad_number_gives_parameter_error_naming_the_argument(call, arg, bad):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ParameterError) as info:
+            call(bad)
+    assert arg in str(info.value), str(info.value)
+
+
+FLAG_AND_CHOICE_ARGS = [  # True/False or one of a few names expected: 1, 'yes', None or a list refused
+    ("noise-normalize", lambda v: _noise.spectral_noise(G, normalize=v), "normalize"),
+    ("vortex-staggered", lambda v: _noise.gaussian_vortex(G, (1.0, 1.0), 1.0, 1.0, staggered=v), "staggered"),
+    ("vortex-wrap", lambda v: _noise.gaussian_vortex(G, (1.0, 1.0), 1.0, 1.0, wrap=v), "wrap"),
+    ("solve-raise", lambda v: ps.Solve(raise_on_failure=v), "raise_on_failure"),
+    ("solve-widen", lambda v: ps.Solve(widen_tolerance=v), "widen_tolerance"),
+    ("hig-timing", lambda v: _hig.HIG(_NET, timing=v), "timing"),
+    ("newton-saddle-free", lambda v: _ls.NewtonSolver(saddle_free=v), "saddle_free"),
+    ("hig-reduction", lambda v: _hig.HIG(_NET, reduction=v), "reduction"),
+    ("fft-engine", lambda v: FFTSettings(engine=v), "engine"),
+    ("fft-planner", lambda v: FFTSettings(planner_effort=v), "planner_effort"),
+    ("physgrad-reduction", lambda v: _pg.physical_gradient_loss(torch.ones(2, 2), torch.ones(2, 2), _ops.ScaleToy(),
+                                                                reduction=v), "reduction"),
+    ("unet-padding", lambda v: _nets.UNet(padding_mode=v), "padding_mode"),
+    ("sine-closest", lambda v: _ops.Sine(1.0, closest=v), "closest"),
+    ("poisson-convention", lambda v: _ops.Poisson(convention=v), "convention"),
+]
+FLAG_CASES = [(f"{name}-{bad!r}", call, arg, bad) for name, call, arg in FLAG_AND_CHOICE_ARGS
+              for bad in (1, "yes", None, ["x"])]
+
+
+@pytest.mark.parametrize("call, arg, bad", [c[1:] for c in FLAG_CASES], ids=[c[0] for c in FLAG_CASES])
+def test_bad_flag_or_choice_gives_parameter_error_naming_the_argument(call, arg, bad):
+    with pytest.raises(ParameterError) as info:
+        call(bad)
+    assert arg in str(info.value), str(info.value)
+
+
+# ---- class 3: user callables that return the wrong shape, a flat tensor, a batch of 1 or NaN ------------
+def flat_output(x, *args):
+    return x.reshape(-1)
+
+
+def first_sample_only(x, *args):
+    return x[:1]
+
+
+def nan_output(x, *args):
+    return x * NAN
+
+
+def drops_an_axis(x, *args):
+    return x[..., :1]
+
+
+def _solver_returning(fn):
+    def bad_solver(forward, y_target, x0):
+        return fn(x0)
+    bad_solver.__name__ = fn.__name__
+    return bad_solver
+
+
+class ShapeChangingSolver(_ls.LocalSolver):
+    def _solve(self, forward, y_target, x0):
+        return x0[:1]
+
+
+def _two_arg(fn):
+    def wrapped(y_target, x0):
+        return fn(x0)
+    wrapped.__name__ = fn.__name__
+    return wrapped
+
+
+class _BadTransform:
+    def __call__(self, y):
+        return y[:1]
+
+    def inverse(self, c):
+        return c.real
+
+
+CALLABLE_CASES = [  # (id, call, name of the callable in the message, error)
+    *[(f"cg-preconditioner-{f.__name__}", lambda f=f: _cg(lambda x: 2 * x, torch.ones(3, 4), preconditioner=f),
+       f.__name__, NonFiniteError if f is nan_output else ShapeError)
+      for f in (flat_output, first_sample_only, nan_output, drops_an_axis)],
+    *[(f"cg-projection-{f.__name__}", lambda f=f: _cg(lambda x: 2 * x, torch.ones(3, 4), project=f), f.__name__,
+       NonFiniteError if f is nan_output else ShapeError) for f in (flat_output, first_sample_only, nan_output)],
+    *[(f"cg-operator-{f.__name__}", lambda f=f: _cg(f, torch.ones(3, 4)), f.__name__, ShapeError)
+      for f in (flat_output, first_sample_only)],
+    *[(f"solver-operator-{f.__name__}", lambda f=f: _ls.SolverOperator(lambda x: x, _solver_returning(f))
+       .local_inverse(torch.ones(3, 2), torch.ones(3, 2)), f.__name__,
+       NonFiniteError if f is nan_output else ShapeError)
+      for f in (flat_output, first_sample_only, nan_output, drops_an_axis)],
+    *[(f"callable-operator-inverse-{f.__name__}", lambda f=f: CallableOperator(lambda x: x, _two_arg(f))
+       .local_inverse(torch.ones(3, 2), torch.ones(3, 2)), f.__name__,
+       NonFiniteError if f is nan_output else ShapeError)
+      for f in (flat_output, first_sample_only, nan_output, drops_an_axis)],
+    *[(f"callable-operator-physics-{f.__name__}", lambda f=f: CallableOperator(f).forward(torch.ones(3, 2)),
+       f.__name__, ShapeError) for f in (flat_output, first_sample_only)],
+    *[(f"local-solver-forward-{f.__name__}", lambda f=f: _ls.GradientStepSolver()(f, torch.ones(3, 2),
+                                                                                  torch.ones(3, 2)),
+       f.__name__, ShapeError) for f in (flat_output, first_sample_only)],
+    ("local-solver-result", lambda: ShapeChangingSolver()(lambda x: x, torch.ones(3, 2), torch.ones(3, 2)),
+     "ShapeChangingSolver", ShapeError),
+    *[(f"hig-physics-{f.__name__}", lambda f=f: _hig.HIG(_NET, physics=f).step(torch.ones(3, 2), torch.ones(3, 2)),
+       f.__name__, NonFiniteError if f is nan_output else ShapeError)
+      for f in (flat_output, first_sample_only, nan_output)],
+    ("hig-loss-fn", lambda: _hig.HIG(_NET).step(torch.ones(3, 2), torch.ones(3, 2), loss_fn=flat_output),
+     "flat_output", ShapeError),
+    ("quadratic-loss-transform", lambda: _pg.QuadraticLoss(transform=_BadTransform()).newton_step(
+        torch.ones(3, 2), torch.zeros(3, 2)), "_BadTransform", ShapeError),
+]
+
+
+@pytest.mark.parametrize("call, fn_name, error", [c[1:] for c in CALLABLE_CASES], ids=[c[0] for c in CALLABLE_CASES])
+def test_callable_returning_wrong_output_is_named(call, fn_name, error):
+    with pytest.raises(error) as info:
+        call()
+    msg = str(info.value)
+    assert fn_name in msg and "returned" in msg, msg
+    if error is ShapeError:
+        assert re.search(r"\(3,( ?[24])?\)|batch size 3", msg), msg  # the shape expected is named
+
+
+# ---- class 4: NaN or infinite sample coordinates ------------------------------------------------------
+_G1 = ps.Grid(8)
+SAMPLE_CASES = [
+    ("centered-2d", lambda p: _s(1).sample(torch.tensor([[p, 1.0]]))),
+    ("centered-2d-per-sample", lambda p: _s(2).sample(torch.tensor([[[1.0, 1.0]], [[p, 1.0]]]), per_sample=True)),
+    ("centered-vector", lambda p: ps.CenteredGrid.zeros(G, W, 1, channels=2).sample(torch.tensor([[1.0, p]]))),
+    ("centered-1d", lambda p: ps.CenteredGrid.zeros(_G1, "wall", 1).sample(torch.tensor([[p]]))),
+    ("centered-3d", lambda p: ps.CenteredGrid.zeros(G3, "periodic", 1).sample(torch.tensor([[p, 1.0, 1.0]]))),
+    ("staggered-2d", lambda p: _v(1).sample(torch.tensor([[1.0, p]]))),
+    ("staggered-periodic", lambda p: VP.sample(torch.tensor([[p, 1.0]]))),
+    ("sample-padded-1d", lambda p: ps.sample_padded(torch.zeros(1, 1, 8), torch.tensor([[[p]]]))),
+    ("sample-padded-2d", lambda p: ps.sample_padded(torch.zeros(1, 1, 8, 6), torch.tensor([[[p, 0.0]]]))),
+]
+SAMPLE_BAD = [(f"{name}-{p}", call, p) for name, call in SAMPLE_CASES for p in (NAN, math.inf, -math.inf)]
+
+
+@pytest.mark.parametrize("call, point", [c[1:] for c in SAMPLE_BAD], ids=[c[0] for c in SAMPLE_BAD])
+def test_non_finite_sample_coordinates_give_non_finite_error(call, point):
+    with pytest.raises(NonFiniteError, match="NaN/Inf"):
+        call(point)
+
+
+# ---- class 5: empty batches (batch size 0) ---------------------------------------------------------------
+# Choice: fields never hold an empty batch (refused where they are made), and padding, sampling and advection
+# refuse one at their entry with a ShapeError; batched tensor functions without a field (cg, the local solvers
+# and operators of inverse/) return the natural empty result.
+EMPTY_CASES = [
+    ("centered-grid", lambda: ps.CenteredGrid(torch.zeros(0, 8, 6), G, W)),
+    ("centered-vector", lambda: ps.CenteredGrid(torch.zeros(0, 2, 8, 6), G, W)),
+    ("staggered-grid", lambda: ps.StaggeredGrid((torch.zeros(0, 9, 6), torch.zeros(0, 8, 7)), G, W)),
+    ("with-values", lambda: S.with_values(torch.zeros(0, 8, 6))),
+    ("pad", lambda: ps.pad(torch.zeros(0, 8, 6), W.for_scalar(), G.dx)),
+    ("pad-vector", lambda: ps.pad(torch.zeros(0, 2, 8, 6), W, G.dx, vector=True)),
+    ("pad-staggered", lambda: ps.pad_staggered_component(torch.zeros(0, 9, 6), 0, W, G.dx)),
+    ("sample-padded", lambda: ps.sample_padded(torch.zeros(0, 1, 8, 6), torch.zeros(0, 1, 2))),
+    ("advect-trusted-field", lambda: ps.advect(ps.CenteredGrid._trusted(torch.zeros(0, 8, 6), G, S.boundary), V, 0.1)),
+    ("uniform-velocity", lambda: _noise.uniform_velocity(G, torch.zeros(0, 2))),
+    ("spectral-poisson", lambda: ps.spectral_poisson_solve(torch.zeros(0, 4, 4), 1.0, "dirichlet")),
+    ("hig-step", lambda: _hig.HIG(_NET).step(torch.ones(0, 2), torch.ones(0, 2))),
+]
+
+
+@pytest.mark.parametrize("call", [c[1] for c in EMPTY_CASES], ids=[c[0] for c in EMPTY_CASES])
+def test_empty_batch_gives_shape_error(call):
+    with pytest.raises(ShapeError, match="empty"):
+        call()
+
+
+def test_empty_batch_natural_results_of_field_free_functions():
+    assert _cg(lambda x: x, torch.ones(0, 4)).shape == (0, 4)
+    assert _ops.ScaleToy().local_inverse(torch.ones(0, 2), torch.ones(0, 2)).shape == (0, 2)
+
+
+def test_bad_class_inputs_write_nothing(tmp_path):
+    """The classes above raise before anything is written: the working folder stays empty."""
+    for call in [c[1] for c in BATCH_MISMATCH] + [c[1] for c in EMPTY_CASES]:
+        with pytest.raises(PhisimError):
+            call()
+    assert list(tmp_path.iterdir()) == []
