@@ -10,8 +10,11 @@ outside the compiled function.
   process to find out; without one, :func:`compile` says so in one warning and the stepper runs eager.
 * CUDA: ``mode='reduce-overhead'`` (CUDA graphs) unless another mode is asked for.
 
-Shapes and dtypes are static (``dynamic=False``): a new resolution or batch size compiles anew, new values of the
-state do not.
+Shapes and dtypes are static (``dynamic=False``): a new resolution, batch size or grad mode compiles anew, new
+values of the state do not (the stepper hands its step neither the time nor a pressure it does not use, and builds
+its caches before the first trace). Steps that depend on the time (moving bodies, time-dependent inflows) are not
+worth compiling: the time is a constant of the graph, so each step traces anew; moving bodies and PCG pressure
+solves (``direct=False`` or where the direct solve does not apply) do not trace as one graph at all.
 
 Example:
     >>> import phisim
