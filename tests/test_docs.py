@@ -31,12 +31,14 @@ says exactly how, so the whole file takes about a minute on two cores:
 * ``phisim`` lines: the flags of :data:`SMALL_FLAGS`, keyed by the line's ``--out``, are appended (argparse
   keeps the last value of a flag; ``--set`` and ``--setting`` the last per key).
 
-``PHISIM_DOCS_FULL=1`` (or the tests marked ``slow``, e.g. ``PHISIM_SLOW=1 bash run.sh test``) runs the
-documents exactly as written (minutes to hours).
+``PHISIM_DOCS_FULL=1 python -m pytest tests/test_docs.py`` runs the documents exactly as written, every
+``phisim`` line in a process of its own (the README's dataset and training sizes: an hour or more on two
+cores; not part of any default or ``slow`` run).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -162,21 +164,74 @@ def phisim_command() -> list[str]:
     return [str(script)] if script.is_file() else [sys.executable, "-m", "inverse.cli"]
 
 
+_RESULT = "@@phisim-docs-result@@"
+_DRIVER = f"""
+import contextlib, io, json, os, sys, traceback
+from inverse.cli import main
+for request in sys.stdin:
+    req = json.loads(request)
+    os.chdir(req["cwd"])
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(req["argv"])
+        except SystemExit as exc:
+            rc = exc.code if isinstance(exc.code, int) else 1
+        except BaseException:
+            rc = 99
+            traceback.print_exc()
+    print("{_RESULT}" + json.dumps({{"rc": rc, "out": out.getvalue(), "err": err.getvalue()}}), flush=True)
+"""
+
+
+class Phisim:
+    """Runs ``phisim`` lines as subprocesses of this environment.
+
+    By default one process per document runs its lines one after the other through ``inverse.cli.main`` (what
+    the ``phisim`` script calls; torch is imported once instead of once per line); with ``PHISIM_DOCS_FULL=1``
+    every line is a process of its own, as typed.
+    """
+
+    def __init__(self):
+        self.proc = None
+
+    def __call__(self, argv: list[str], cwd: Path) -> tuple[int, str, str]:
+        env = {**os.environ, "MPLBACKEND": "Agg", "PYTHONWARNINGS": "ignore::DeprecationWarning"}
+        if FULL:
+            r = subprocess.run([*phisim_command(), *argv], cwd=cwd, capture_output=True, text=True, env=env,
+                               timeout=6 * 3600)
+            return r.returncode, r.stdout, r.stderr
+        if self.proc is None:
+            self.proc = subprocess.Popen([sys.executable, "-c", _DRIVER], cwd=cwd, stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True, env=env)
+        self.proc.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd)}) + "\n")
+        self.proc.stdin.flush()
+        for out in self.proc.stdout:
+            if out.startswith(_RESULT):
+                r = json.loads(out[len(_RESULT):])
+                return r["rc"], r["out"], r["err"]
+        return -1, "", f"the phisim process ended (status {self.proc.wait()})"
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=60)
+            self.proc = None
+
+
 _used_flags: set[str] = set()
 
 
-def run_phisim(line: str, cwd: Path, log: list) -> None:
+def run_phisim(line: str, cwd: Path, log: list, phisim: Phisim) -> None:
     argv = shlex.split(line, comments=True)[1:]
     out = argv[argv.index("--out") + 1] if "--out" in argv else None
     if not FULL and out in SMALL_FLAGS:
         argv += SMALL_FLAGS[out]
         _used_flags.add(out)
-    env = {**os.environ, "MPLBACKEND": "Agg", "PYTHONWARNINGS": "ignore::DeprecationWarning"}
     t = time.perf_counter()
-    r = subprocess.run([*phisim_command(), *argv], cwd=cwd, capture_output=True, text=True, env=env, timeout=900)
-    log.append((line, r.returncode, round(time.perf_counter() - t, 1)))
-    assert r.returncode == 0, (f"`{line}` (run as phisim {' '.join(argv)}) failed:\n{r.stdout[-2000:]}\n"
-                              f"{r.stderr[-3000:]}")
+    rc, stdout, stderr = phisim(argv, cwd)
+    log.append((line, rc, round(time.perf_counter() - t, 1)))
+    assert rc == 0, f"`{line}` (run as phisim {' '.join(argv)}) failed:\n{stdout[-2000:]}\n{stderr[-3000:]}"
 
 
 def write_file_block(b: Block, cwd: Path) -> None:
@@ -187,7 +242,7 @@ def write_file_block(b: Block, cwd: Path) -> None:
 
 
 def run_document(blocks_: list[Block], cwd: Path, namespace: dict | None, log: list,
-                 errors: list | None = None) -> None:
+                 errors: list | None = None, phisim: Phisim | None = None) -> None:
     """Run blocks in order in ``cwd``: python (one ``namespace``, or a fresh one each when None), phisim lines.
 
     With ``errors`` a failing ``phisim`` line is recorded there and the next lines still run (each failure is
@@ -195,6 +250,8 @@ def run_document(blocks_: list[Block], cwd: Path, namespace: dict | None, log: l
     """
     old = Path.cwd()
     os.chdir(cwd)
+    own = phisim is None
+    phisim = phisim or Phisim()
     try:
         for b in blocks_:
             if b.lang == "python":
@@ -204,7 +261,7 @@ def run_document(blocks_: list[Block], cwd: Path, namespace: dict | None, log: l
             elif b.lang in ("bash", "sh", "console", "shell"):
                 for line in phisim_lines(b):
                     try:
-                        run_phisim(line, cwd, log)
+                        run_phisim(line, cwd, log, phisim)
                     except AssertionError as exc:
                         if errors is None:
                             raise
@@ -213,6 +270,8 @@ def run_document(blocks_: list[Block], cwd: Path, namespace: dict | None, log: l
                 write_file_block(b, cwd)
     finally:
         os.chdir(old)
+        if own:
+            phisim.close()
 
 
 # ---- README -------------------------------------------------------------------------------------------------
@@ -227,7 +286,8 @@ def readme_dir(tmp_path_factory, load_example):
     load_example("demo").simulate_smoke(cwd / "out" / "demo", 48 if FULL else 16, 40 if FULL else 3)
     log: list = []
     errors: list = []  # reported by test_readme_daily_workflows_run_in_order; the python blocks still run
-    run_document([b for b in section(README, "## Daily workflows") if b.lang != "python"], cwd, None, log, errors)
+    workflow = [b for b in section(README, "## Daily workflows") if b.lang != "python"]
+    run_document(workflow, cwd, None, log, errors)
     return cwd, log, errors
 
 
@@ -270,7 +330,7 @@ def _tutorial_dir(tmp_path: Path) -> Path:
     return cwd
 
 
-def _check_tutorial(ns: dict, cwd: Path) -> None:
+def _check_tutorial(ns: dict, cwd: Path, phisim: Phisim) -> None:
     import torch
 
     from inverse import get_problem, load_model
@@ -298,18 +358,21 @@ def _check_tutorial(ns: dict, cwd: Path) -> None:
         os.chdir(old)
     with torch.no_grad():
         assert torch.equal(net(ns["u_T"]), ns["u0"])
-    log: list = []
     later = cwd / "data" / "later" / "data" / "train" / "burgers_00000.h5"
     run_phisim(f"phisim predict {cwd / 'out' / 'burgers.h5.adam.model.pt'} {later} --key t1_fields/velocity "
-               f"--out {elsewhere / 'p.h5'}", elsewhere, log)
+               f"--out {elsewhere / 'p.h5'}", elsewhere, [], phisim)
 
 
 def test_tutorial_runs_end_to_end(tmp_path):
     cwd = _tutorial_dir(tmp_path)
     ns: dict = {"__name__": "__docs__"}
     log: list = []
-    run_document(blocks(TUTORIAL), cwd, ns, log)
-    _check_tutorial(ns, cwd)
+    phisim = Phisim()
+    try:
+        run_document(blocks(TUTORIAL), cwd, ns, log, phisim=phisim)
+        _check_tutorial(ns, cwd, phisim)
+    finally:
+        phisim.close()
     if not FULL:
         assert {"out/burgers_cli.h5", "data/later", "data/burgers1d", "data/heat", "out/well.h5"} <= _used_flags
         assert ("docs/TUTORIAL_custom_physics.md", "iterations=200") in _used_edits
@@ -347,13 +410,4 @@ def test_small_edits_all_match():
                         outs.add(argv[argv.index("--out") + 1])
     assert set(SMALL_FLAGS) <= outs, f"SMALL_FLAGS keys no document line writes: {set(SMALL_FLAGS) - outs}"
 
-
-@pytest.mark.slow
-def test_documents_as_written(tmp_path, monkeypatch):
-    """The README's and the tutorial's blocks at the sizes they show (PHISIM_DOCS_FULL=1 in a fresh process)."""
-    env = {**os.environ, "PHISIM_DOCS_FULL": "1"}
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m", "not slow",
-                        str(Path(__file__)), "-k", "readme or tutorial or other"], cwd=ROOT, env=env,
-                       capture_output=True, text=True, timeout=6 * 3600)
-    assert r.returncode == 0, r.stdout[-5000:]
 
