@@ -246,7 +246,8 @@ def per_sample_jacobian(
         inputs: Network inputs of shape ``(B, ...)``.
         physics: Differentiable function ``(net_out, *physics_args) -> y`` acting on batches;
             ``None`` means the identity.
-        physics_args: Extra per-sample tensors for ``physics`` (each of shape ``(B, ...)``).
+        physics_args: Extra per-sample tensors for ``physics`` (each of shape ``(B, ...)``, or ``(1, ...)``
+            shared by every sample).
         chunk_size: Samples per ``vmap`` call; ``None`` means all ``B`` at once.
 
     Returns:
@@ -262,6 +263,7 @@ def per_sample_jacobian(
     if physics is not None:
         check_callable(physics, "physics")
     B = _batch_size(inputs, physics_args)
+    physics_args = _expand_args(physics_args, B)
     chunk_size = check_int(chunk_size, "chunk_size", minimum=1, allow_none=True)
     if chunk_size is None:
         chunk_size = B
@@ -292,10 +294,18 @@ def _batch_size(inputs: torch.Tensor, physics_args: Sequence[torch.Tensor]) -> i
     if B == 0:
         raise ShapeError("the batch is empty")
     for k, a in enumerate(physics_args):
-        if not isinstance(a, torch.Tensor) or a.ndim < 1 or a.shape[0] != B:
+        if not isinstance(a, torch.Tensor) or a.ndim < 1:
             shape = tuple(a.shape) if isinstance(a, torch.Tensor) else type(a).__name__
-            raise ShapeError(f"physics_args[{k}] must have batch size {B} on axis 0, got {shape}")
+            raise ShapeError(f"physics_args[{k}] must have batch size {B} (or 1) on axis 0, got {shape}")
+        if a.shape[0] not in (1, B):
+            raise ShapeError(f"cannot evaluate the physics: inputs has batch size {B} but physics_args[{k}] has batch "
+                             f"size {a.shape[0]}; it must be {B}, or 1 (shared by every sample)")
     return B
+
+
+def _expand_args(physics_args: Sequence[torch.Tensor], B: int) -> tuple[torch.Tensor, ...]:
+    """``physics_args`` with a batch of 1 shared by all ``B`` samples (expanded, no copy)."""
+    return tuple(a.expand(B, *a.shape[1:]) if a.shape[0] != B else a for a in physics_args)
 
 
 class HIG(torch.optim.Optimizer):
@@ -444,6 +454,7 @@ class HIG(torch.optim.Optimizer):
                 raise ParameterError("step() needs targets for the default squared-error loss, or a loss_fn")
             loss_fn = squared_error
         B = _batch_size(inputs, physics_args)
+        physics_args = _expand_args(physics_args, B)
         device = inputs.device
         times: dict[str, float] = {}
 

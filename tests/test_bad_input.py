@@ -491,6 +491,8 @@ BATCH_BROADCAST = [  # the documented rule's other half: a batch of 1 is shared 
     ("operator-target", lambda: _ops.ScaleToy().local_inverse(torch.ones(1, 2), torch.ones(3, 2)).shape[0]),
     ("local-solver-target", lambda: _ls.GradientStepSolver()(lambda x: x, torch.ones(1, 2), torch.ones(3, 2)).shape[0]),
     ("physical-update", lambda: _pg.physical_update(torch.ones(3, 2), torch.ones(1, 2), _ops.ScaleToy())[0].shape[0]),
+    ("hig-physics-args", lambda: _hig.per_sample_jacobian(_NET, torch.ones(3, 2), lambda o, s: o * s,
+                                                          (torch.ones(1, 2),)).shape[0] // 2),
 ]
 
 
