@@ -778,3 +778,18 @@ def test_bad_class_inputs_write_nothing(tmp_path):
         with pytest.raises(PhisimError):
             call()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_non_finite_sample_points_give_nan_where_raising_would_cost_a_sync(monkeypatch):
+    """On accelerators the finiteness check would force a device sync: the values sampled at NaN/Inf points are
+    NaN there instead of a plausible clamped value (the accelerator branch, run on the CPU here)."""
+    import phisim.field as field_module
+
+    monkeypatch.setattr(field_module, "_finite_points", lambda index, name: torch.isfinite(index).all(-1))
+    ones = ps.CenteredGrid(torch.ones(1, 8, 6), G, "periodic")
+    out = ones.sample(torch.tensor([[NAN, 1.0], [2.0, 1.0]]))
+    assert math.isnan(float(out[0, 0])) and float(out[0, 1]) == pytest.approx(1.0)
+    out1 = ps.sample_padded(torch.ones(1, 1, 8), torch.tensor([[[math.inf], [3.0]]]))
+    assert math.isnan(float(out1[0, 0, 0])) and float(out1[0, 0, 1]) == pytest.approx(1.0)
+    out_v = ps.StaggeredGrid.zeros(G, P, 1).sample(torch.tensor([[1.0, -math.inf]]))
+    assert bool(torch.isnan(out_v).all())
