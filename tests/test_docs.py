@@ -8,15 +8,15 @@ What runs, and how:
 
   - ``README.md``: each block in a fresh namespace (each is a complete example). They run in one folder
     prepared as the README says: ``out/demo`` as ``bash run.sh demo`` writes it (``examples/demo.py``'s
-    simulation, at 16 cells and 3 steps) and the files of the "Daily workflows" commands, which run first.
+    simulation, at 16 cells and 3 steps) and the files of the README's ``phisim`` lines, which run first.
   - ``docs/TUTORIAL_custom_physics.md``: one namespace, blocks in document order (they build on each other:
     functions, problem, training, loading), interleaved with the page's ``phisim`` lines; ``examples/`` is
     linked into the folder (the page runs from the repository root). Its problem must be the example file's.
   - every other document: each block in a fresh namespace, in a folder of its own.
 
-* ```` ```bash ```` blocks: the lines that start with ``phisim`` run as subprocesses of this virtual
-  environment's ``phisim`` (``python -m inverse.cli`` where there is no script), in document order, in the
-  README's "Daily workflows" and in the tutorial. Other shell lines (``bash run.sh``, ``python examples/...``,
+* ```` ```bash ```` blocks: the lines that start with ``phisim`` run in a subprocess of this virtual
+  environment (see :class:`Phisim`), in document order: the README's (its command-line training, then the
+  "Daily workflows") and the tutorial's. Other shell lines (``bash run.sh``, ``python examples/...``,
   ``torchrun``) are long runs the examples' own tests cover.
 * ```` ```yaml ```` blocks whose first line is ``# <file name>`` are written to that file when reached (the
   README's ``burgers.yaml``).
@@ -60,7 +60,6 @@ DOCS = [README, *sorted((ROOT / "docs").glob("*.md"))]
 SMALL_EDITS: dict[str, list[tuple[str, str]]] = {
     "README.md": [("iterations=100", "iterations=2"), ('resolution=(32, 32)', 'resolution=(16, 16)')],
     "docs/TUTORIAL_custom_physics.md": [("iterations=200", "iterations=2")],
-    "docs/VALIDATION_SPECTRAL.md": [("steps=500, every=5", "steps=20, every=5")],
 }
 
 _SIM = ["--trajectories", "2", "--trajectories-per-file", "2", "--workers", "1", "--quiet"]
@@ -68,7 +67,8 @@ _TRAIN = ["--iterations", "2", "--batch-size", "2", "--quiet"]
 
 #: Flags appended to ``phisim`` lines for the default (small) run, keyed by the line's ``--out``.
 SMALL_FLAGS: dict[str, list[str]] = {
-    # README, "Daily workflows"
+    # README: training from the command line, then "Daily workflows"
+    "out/poisson_cli.h5": ["--iterations", "2", "--resolution", "16", "16", "--quiet"],
     "data/smoke": [*_SIM, "--steps", "5", "--resolution", "16"],   # the loader block reads 4 + 1 frames
     "data/burgers": [*_SIM, "--steps", "2", "--resolution", "16"],
     "out/b.h5": [*_TRAIN, "--setting", "steps=2"],
@@ -279,28 +279,32 @@ def run_document(blocks_: list[Block], cwd: Path, namespace: dict | None, log: l
 
 @pytest.fixture(scope="module")
 def readme_dir(tmp_path_factory, load_example):
-    """A folder with what the README's blocks read: the demo output and the Daily workflows' files."""
+    """A folder with what the README's blocks read: the demo output, then every ``phisim`` line of the README in
+    order (training from the command line, the Daily workflows) with the files they write."""
     cwd = tmp_path_factory.mktemp("readme")
     (cwd / "examples").symlink_to(ROOT / "examples")  # the commands run from the repository root
     # out/demo as `bash run.sh demo` (examples/demo.py) writes it; simulated at 16 cells and 3 steps
     load_example("demo").simulate_smoke(cwd / "out" / "demo", 48 if FULL else 16, 40 if FULL else 3)
     log: list = []
-    errors: list = []  # reported by test_readme_daily_workflows_run_in_order; the python blocks still run
-    workflow = [b for b in section(README, "## Daily workflows") if b.lang != "python"]
+    errors: list = []  # reported by test_readme_phisim_lines_run_in_order; the python blocks still run
+    workflow = [b for b in blocks(README) if b.lang != "python"]
     run_document(workflow, cwd, None, log, errors)
     return cwd, log, errors
 
 
-def test_readme_daily_workflows_run_in_order(readme_dir):
+def test_readme_phisim_lines_run_in_order(readme_dir):
     cwd, log, errors = readme_dir
     assert not errors, "\n\n".join(errors)
-    lines = [ln for b in section(README, "## Daily workflows") if b.lang == "bash" for ln in phisim_lines(b)]
+    lines = [ln for b in blocks(README) if b.lang == "bash" for ln in phisim_lines(b)]
     ran = [entry[0] for entry in log if not entry[0].endswith("(python)")]
-    assert ran == lines and len(lines) >= 8
+    assert ran[:len(lines)] == lines and len(lines) >= 11
+    workflows = [ln for b in section(README, "## Daily workflows") if b.lang == "bash" for ln in phisim_lines(b)]
+    assert len(workflows) >= 8 and set(workflows) <= set(lines)
     assert (cwd / "burgers.yaml").is_file()  # written from the README's yaml block
     assert (cwd / "pred.h5").is_file() and any((cwd / "out" / "curves").glob("*.csv"))
     if not FULL:
-        assert {"data/smoke", "data/burgers", "out/b.h5", "data/later", "data/heat", "out/w.h5"} <= _used_flags
+        assert {"out/poisson_cli.h5", "data/smoke", "data/burgers", "out/b.h5", "data/later", "data/heat",
+                "out/w.h5"} <= _used_flags
     print("\n".join(f"{t:6.1f} s  rc={rc}  {line}" for line, rc, t in log))
 
 
