@@ -1,4 +1,18 @@
-"""Cheap input checks shared by the physics functions; each raises a PhisimError subclass."""
+"""Cheap input checks shared by the physics functions; each raises a PhisimError subclass.
+
+The one mechanism for argument checking in phisim and inverse. Constructors and keyword settings validate numbers,
+integers, seeds, flags and choices with :func:`check_number`, :func:`check_int`, :func:`check_seed`,
+:func:`check_bool` and :func:`check_choice`; two operands' batch sizes with :func:`check_batch_compatible` (equal,
+or one of them 1, which is shared by every sample of the other); empty batches with :func:`check_nonempty_batch`;
+what a user callable returned with :func:`check_callable_output`. Every message names the argument (or the
+callable and the shape it returned against the one expected).
+
+Plain functions rather than a runtime type-checking library (typeguard, beartype, pydantic): the checks are about
+values as much as types (finite, in range, a seed torch accepts, a batch size that fits another operand's, a
+callable's output shape), which annotations do not express; the errors must be phisim's own typed errors with a
+hint, not a library's TypeError; and the helpers cost a few isinstance tests per call, with no decorator on hot
+paths and no new dependency.
+"""
 
 from __future__ import annotations
 
