@@ -29,6 +29,7 @@ convection would produce grid-scale wiggles).
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -52,6 +53,7 @@ from phisim.fluid import (
     solid_layout,
 )
 from phisim.grid import Grid
+from phisim.pde import EQUATIONS, make_stepper, random_field
 from phisim.simulate.noise import random_rectangles, spectral_noise
 from phisim.solvers.heat import HeatStepper
 
@@ -352,6 +354,95 @@ def _build_karman(cfg, p, batch, g, dtype, device) -> Simulation:
                       lambda s: {"velocity": s.velocity}, {"obstacle_mask": solid})
 
 
+
+# ---- spectral (ETDRK) equations -------------------------------------------------------------------------
+
+#: Per equation: (scenario name, dims, field names per channel or "velocity" for a vector, physical
+#: parameters of the scenario, initial state (amplitude, mean, max_wavenumber), steps, description).
+_PDE = {
+    "advection": ("advection", (1, 2, 3), ("u",), {"velocity": Param(1.0, help="advection speed")},
+                  (1.0, 0.0, 4.0), 100, "linear advection u_t + c·∇u = 0 (spectral, exact in time)"),
+    "diffusion": ("diffusion_spectral", (1, 2, 3), ("u",), {"diffusivity": Param(0.01, 0.005, 0.02, "ν")},
+                  (1.0, 0.0, 4.0), 100, "diffusion u_t = ν∇²u (spectral, exact in time)"),
+    "dispersion": ("dispersion", (1, 2, 3), ("u",), {"dispersivity": Param(0.01, help="a in u_t = a Σ∂³u")},
+                   (1.0, 0.0, 4.0), 100, "dispersion u_t = a Σ ∂³u/∂x³ (spectral, exact in time)"),
+    "hyper_diffusion": ("hyper_diffusion", (1, 2, 3), ("u",), {"hyperdiffusivity": Param(1e-4, help="ν")},
+                        (1.0, 0.0, 4.0), 100, "hyper-diffusion u_t = -ν∇⁴u (spectral, exact in time)"),
+    "wave": ("wave", (1, 2, 3), ("u", "v"), {"speed": Param(1.0, 0.5, 1.5, "wave speed c")},
+             (1.0, 0.0, 4.0), 100, "wave equation u_tt = c²∇²u, state (u, u_t) (spectral, exact in time)"),
+    "burgers": ("burgers_spectral", (1, 2), "velocity", {"viscosity": Param(0.02, 0.01, 0.05, "ν")},
+                (1.0, 0.0, 4.0), 100, "viscous Burgers on [0, 2π)^d, ETDRK4 with 2/3 dealiasing"),
+    "kdv": ("kdv", (1,), ("u",), {}, (1.0, 0.0, 4.0), 200, "Korteweg-de Vries u_t + 6uu_x + u_xxx = 0, ETDRK4"),
+    "kuramoto_sivashinsky": ("kuramoto_sivashinsky", (1, 2), ("u",), {}, (1.0, 0.0, 4.0), 200,
+                             "Kuramoto-Sivashinsky on L = 64 (1-D) / combustion form (2-D), ETDRK4"),
+    "allen_cahn": ("allen_cahn", (1, 2), ("u",), {"diffusivity": Param(1e-3, 5e-4, 2e-3, "D"),
+                                                  "reactivity": Param(1.0, help="r")},
+                   (0.5, 0.0, 8.0), 100, "Allen-Cahn u_t = D∇²u + r(u - u³), ETDRK4"),
+    "cahn_hilliard": ("cahn_hilliard", (1, 2), ("u",), {"gamma": Param(2.5e-3, help="interface energy γ")},
+                      (0.1, 0.0, 8.0), 100, "Cahn-Hilliard u_t = M∇²(u³ - u - γ∇²u), ETDRK4 (mass conserved)"),
+    "fisher_kpp": ("fisher_kpp", (1, 2), ("u",), {"diffusivity": Param(1e-3, help="D"),
+                                                  "reactivity": Param(10.0, 5.0, 15.0, "r")},
+                   (0.1, 0.2, 8.0), 100, "Fisher-KPP u_t = D∇²u + r u(1 - u), ETDRK4"),
+    "swift_hohenberg": ("swift_hohenberg", (1, 2), ("u",), {"reactivity": Param(0.7, 0.5, 0.9, "r")},
+                        (0.1, 0.0, 8.0), 100, "Swift-Hohenberg pattern formation on L = 20π, ETDRK4"),
+    "gray_scott": ("gray_scott", (2,), ("u", "v"), {"feed": Param(0.04, help="F"), "kill": Param(0.06, help="k")},
+                   (0.05, (0.9, 0.1), 8.0), 100, "Gray-Scott reaction-diffusion (Pearson), ETDRK4"),
+    "kolmogorov": ("kolmogorov", (2,), ("vorticity",), {}, (1.0, 0.0, 4.0), 200,
+                   "2-D Navier-Stokes vorticity with Kolmogorov forcing (k_f = 4, drag 0.1), ETDRK4"),
+    "decaying_turbulence": ("decaying_turbulence", (2,), ("vorticity",), {"viscosity": Param(1e-3, help="ν")},
+                            (1.0, 0.0, 4.0), 200, "2-D decaying turbulence in vorticity form, ETDRK4"),
+}
+
+
+def _pde_builder(equation: str):
+    """The ``build`` of the scenario of one :mod:`phisim.pde` equation (periodic; sample ``j`` at ``j L / N``)."""
+    _, _, names, params, (amplitude, mean, max_wavenumber), _, _ = _PDE[equation]
+    accepted = set(inspect.signature(EQUATIONS[equation]).parameters)
+
+    def build(cfg, p, batch, g, dtype, device) -> Simulation:
+        dim = cfg["dim"]
+        kwargs = {k: p[k] for k in params}
+        kwargs.update(dt=cfg["dt"], dtype=dtype, device=device)
+        if "ndim" in accepted:
+            kwargs["ndim"] = dim
+        if cfg["resolution"] is not None or "resolution" not in accepted:
+            kwargs["resolution"] = _resolution(cfg, dim) if cfg["resolution"] is not None else None
+        kwargs = {k: v for k, v in kwargs.items() if v is not None}
+        stepper = make_stepper(equation, **kwargs)
+        seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g))
+        u0 = random_field(stepper, batch, amplitude=amplitude, mean=mean, max_wavenumber=max_wavenumber, seed=seed)
+        sg = stepper.grid
+        grid = Grid(sg.resolution, bounds=[(-0.5 * length / n, length - 0.5 * length / n)
+                                           for length, n in zip(sg.domain, sg.resolution)])
+        boundary = Boundary.create("periodic", grid.rank)
+        if names == "velocity":
+            fields = {"velocity": "vector"}
+
+            def frame(u):
+                return {"velocity": CenteredGrid(u, grid, boundary)}
+        else:
+            fields = {n: "scalar" for n in names}
+
+            def frame(u):
+                return {n: u[:, c] for c, n in enumerate(names)}
+
+        return Simulation(grid, boundary, fields, u0, stepper, frame)
+
+    return build
+
+
+def _pde_scenarios() -> dict[str, Scenario]:
+    out = {}
+    for equation, (name, dims, _, params, _, steps, description) in _PDE.items():
+        sig = inspect.signature(EQUATIONS[equation]).parameters
+        target = inspect.signature(EQUATIONS["navier_stokes"]).parameters if equation in (
+            "kolmogorov", "decaying_turbulence") else sig
+        default = {k: (sig[k].default if k in sig else target[k].default) for k in ("resolution", "dt")}
+        resolution = default["resolution"] if isinstance(default["resolution"], int) else 128
+        out[name] = Scenario(name, description + " (phisim.pde)", dict(params), dims, resolution,
+                             float(default["dt"]), steps, _pde_builder(equation))
+    return out
+
 SCENARIOS: dict[str, Scenario] = {
     "smoke": Scenario(
         "smoke", "buoyant smoke plume around a spherical obstacle in a closed box (2-D/3-D)",
@@ -397,3 +488,4 @@ SCENARIOS: dict[str, Scenario] = {
          "initial_noise": Param(0.02, help="random initial disturbance / umax, per trajectory")},
         (2,), 24, 0.05, 100, _build_karman),
 }
+SCENARIOS.update(_pde_scenarios())
