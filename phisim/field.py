@@ -200,6 +200,11 @@ class Field:
             other = _as_float_tensor(other)
         if isinstance(other, (str, bytes)) or other is None:
             raise ParameterError(f"cannot {what} a {type(self).__name__} and {other!r}")
+        if isinstance(other, torch.Tensor) and other.ndim > self._values_ndim():
+            raise ShapeError(
+                f"cannot {what} a {type(self).__name__} with values of {self._values_ndim()} axes and a tensor of "
+                f"shape {tuple(other.shape)}: the operand has more axes than the field's values (it would broadcast "
+                "into a new batch or channel axis)")
         if isinstance(other, torch.Tensor) and other.ndim == self._values_ndim():
             check_batch_compatible(self, other, ("the field", "the tensor operand"),
                                    f"{what} a {type(self).__name__} and a tensor")

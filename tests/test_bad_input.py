@@ -457,6 +457,7 @@ BATCH_MISMATCH = [
     ("staggered*staggered", lambda: _v(3) * _v(2)),
     ("centered+tensor", lambda: _s(2) + torch.zeros(3, 8, 6)),
     ("staggered*tensor", lambda: _v(2) * torch.ones(3, 1, 1)),
+    ("scalar+tensor-with-extra-axis", lambda: _s(2) + torch.zeros(3, 2, 8, 6)),
     ("advect-velocity", lambda: ps.advect(_s(2), _v(3), 0.1)),
     ("sample-padded-index", lambda: ps.sample_padded(torch.zeros(2, 1, 8, 6), torch.zeros(3, 4, 2))),
     ("rectangles-corners", lambda: _noise.rectangles(G, torch.zeros(2, 2), torch.ones(3, 2))),
