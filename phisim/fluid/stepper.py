@@ -168,11 +168,14 @@ class FluidStepper:
         #: Whether the step reads the state's pressure (the warm start of CG solves, imex2's incremental pressure).
         self.uses_pressure = self.obstacles is not None or integrator == "imex2"
         if self.dt is not None:  # one step at rest builds the caches a traced step then finds (no second graph)
-            marker = None
+            marker, rest = None, faces
             if self.buoyancy != 0 or self.marker_source is not None:
-                marker = CenteredGrid.zeros(grid, self.boundary.for_scalar(), 1, dtype=dtype, device=self.device)
+                batch = 1 if self.marker_source is None else self.marker_source.shape[0]  # a batch of sources
+                marker = CenteredGrid.zeros(grid, self.boundary.for_scalar(), batch, dtype=dtype, device=self.device)
+                rest = to_time(StaggeredGrid.zeros(grid, self.boundary, batch, dtype=dtype, device=self.device),
+                               0.0).with_boundary_faces()
             with torch.no_grad():
-                self.advance(FluidState(faces, marker), self.dt)
+                self.advance(FluidState(rest, marker), self.dt)
         self._advance = self.advance
         if compile:
             from phisim.compiled import compile_function
