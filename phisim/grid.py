@@ -21,6 +21,9 @@ from phisim.errors import ParameterError
 __all__ = ["Grid", "AXIS_NAMES"]
 
 AXIS_NAMES = ("x", "y", "z")
+#: Largest number of cells along one axis (2**31 - 1): beyond it no array fits in memory, and an int beyond 2**63
+#: overflows torch's indices.
+MAX_CELLS_PER_AXIS = 2**31 - 1
 
 
 def _as_bounds(resolution: tuple[int, ...], bounds) -> tuple[tuple[float, float], ...]:
@@ -64,7 +67,8 @@ class Grid:
             ``dx = 1`` on every axis with the lower corner at the origin.
 
     Raises:
-        ParameterError: For non-positive resolutions, more than three axes, or empty bounds.
+        ParameterError: For non-positive or too large (> 2**31 - 1) resolutions, more than three axes, or empty
+            bounds.
 
     Example:
         >>> Grid((64, 32), bounds=[(0, 2), (0, 1)]).dx
@@ -93,6 +97,9 @@ class Grid:
             raise ParameterError(f"grids have 1, 2 or 3 axes, got resolution {res}")
         if any(n < 1 for n in res):
             raise ParameterError(f"every resolution entry must be >= 1, got {res}")
+        if any(n > MAX_CELLS_PER_AXIS for n in res):
+            raise ParameterError(f"every resolution entry must be <= {MAX_CELLS_PER_AXIS} (torch indexes arrays with "
+                                 f"64-bit ints, and no array that long fits in memory), got {res}")
         object.__setattr__(self, "resolution", res)
         object.__setattr__(self, "bounds", _as_bounds(res, bounds))
         for axis, d in enumerate(self.dx):

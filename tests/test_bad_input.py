@@ -575,6 +575,7 @@ NUMBER_ARGS = [
     ("unet-filters", lambda v: _nets.UNet(filters=v), "filters", "int"),
     ("unet-in-channels", lambda v: _nets.UNet(in_channels=v), "in_channels", "int"),
     ("mlp-size", lambda v: _nets.MLP([1, v]), "sizes", "int"),
+    ("grid-resolution", lambda v: ps.Grid((4, v)), "resolution", "int"),
     ("scale-toy-alpha", lambda v: _ops.ScaleToy(v), "alpha", "float"),
     ("heat-nu-t", lambda v: _ops.Heat(nu_t=v), "nu_t", "pos"),
     ("heat-threshold", lambda v: _ops.Heat(threshold=v), "threshold", "float"),
