@@ -22,6 +22,8 @@ from phisim.solvers import box
 from phisim.solvers.heat import HeatStepper
 
 F32, F64 = torch.float32, torch.float64
+#: Field steppers: float32 in the default run, float64 too in the slow one.
+DTYPES_FIELD = [pytest.param(F32, id="f32"), pytest.param(F64, id="f64", marks=pytest.mark.slow)]
 N = 10  # cells per axis: tracing cost does not depend on it
 
 
@@ -155,7 +157,7 @@ def test_traced_step_is_differentiable():
         torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
+@pytest.mark.parametrize("dtype", DTYPES_FIELD)
 @pytest.mark.parametrize("rank", [2, 3])
 @pytest.mark.parametrize("boundary", ["periodic", "dirichlet", "neumann"])
 @pytest.mark.parametrize("method", ["spectral", "implicit"])
@@ -171,7 +173,7 @@ def test_heat_step_traces_as_one_graph(method, boundary, rank, dtype):
     assert counters["stats"]["unique_graphs"] == 1
 
 
-@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
+@pytest.mark.parametrize("dtype", DTYPES_FIELD)
 @pytest.mark.parametrize("rank", [1, 2, 3])
 @pytest.mark.parametrize("advection", ["maccormack", "semi_lagrangian"])
 def test_burgers_step_traces_as_one_graph(advection, rank, dtype):
@@ -186,7 +188,7 @@ def test_burgers_step_traces_as_one_graph(advection, rank, dtype):
     assert counters["stats"]["unique_graphs"] == 1
 
 
-@pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
+@pytest.mark.parametrize("dtype", DTYPES_FIELD)
 @pytest.mark.parametrize("rank", [2, 3])
 @pytest.mark.parametrize("diffusion", ["spectral", "implicit", "explicit"])
 def test_advection_diffusion_step_traces_as_one_graph(diffusion, rank, dtype):
