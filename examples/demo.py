@@ -103,8 +103,9 @@ def train_poisson(out: Path, resolution: int, iterations: int, batch_size: int, 
     problem = get_problem("poisson", resolution=(resolution, resolution), heldout_size=heldout)
     results = {}
     for method in ("adam", "pg"):
+        # the demo rewrites its own output folder on every run: replace earlier runs of the same method
         results[method] = train(problem, method, iterations=iterations, batch_size=batch_size, seed=0,
-                                out=out / "training" / "training.h5", progress=True)
+                                out=out / "training" / "training.h5", progress=True, overwrite=True)
     ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
                               title="Poisson inverse problem")
     save_figure(ax.figure, out / "training.png")

@@ -39,6 +39,8 @@ import dataclasses
 import json
 import logging
 import math
+import os
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -57,6 +59,7 @@ from inverse.train import batch_generator, train  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError, PhisimError  # noqa: E402
 from phisim.io import TrainingLog, read_training  # noqa: E402
+from phisim.io.interrupts import interruptible
 from phisim.viz.plot import new_figure, plot_curves, plot_field, save_figure  # noqa: E402
 
 X_L1 = "x L1 per sample (sum over cells), training batch"
@@ -576,4 +579,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    main()
+    try:
+        with interruptible():  # SIGTERM stops it like Ctrl-C
+            main()
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the files are closed by now; leave without the slow shutdown
+        print("interrupted: finished runs are complete; rerun with the same arguments to continue", file=sys.stderr)
+        sys.stderr.flush()
+        os._exit(130)
