@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from phisim.checks import check_device
+from phisim.checks import check_bool, check_device, check_int, check_seed
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
 from phisim.io import TrainingLog, recover_file
 from phisim.io.h5util import check_output_path
@@ -428,10 +428,10 @@ def _train(problem, method, *, iterations, batch_size, seed, device, out, checkp
         problem = get_problem(problem)
     if isinstance(method, str):
         method = problem.method(method)
-    if not isinstance(iterations, int) or iterations < 0:
-        raise ParameterError(f"iterations must be an int >= 0, got {iterations!r}")
-    if checkpoint_every < 0:
-        raise ParameterError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
+    iterations = check_int(iterations, "iterations", minimum=0)
+    checkpoint_every = check_int(checkpoint_every, "checkpoint_every", minimum=0)
+    seed = check_seed(seed, allow_none=False)
+    resume, overwrite = check_bool(resume, "resume"), check_bool(overwrite, "overwrite")
     if (resume or checkpoint_every) and out is None:
         raise ParameterError("checkpoints and resume need an output file (out=...)")
     batch_size = problem.batch_size if batch_size is None else batch_size
