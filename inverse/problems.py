@@ -17,12 +17,14 @@ the published reference code's test set) drawn from a generator seeded with ``he
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+from phisim.checks import check_int, check_number
 from phisim.errors import ParameterError
 from phisim.grid import Grid
 from phisim.simulate.noise import random_rectangles, spectral_noise
@@ -123,6 +125,13 @@ class _UNetGridProblem(Problem):
     lbfgsb_iterations: int = 32
 
     def __post_init__(self):
+        if isinstance(self.resolution, (str, bytes)) or not hasattr(self.resolution, "__len__") or len(
+                self.resolution) != 2:
+            raise ParameterError(f"resolution must be two cell counts (nx, ny), got {self.resolution!r}")
+        self.resolution = tuple(check_int(n, "resolution", minimum=4) for n in self.resolution)
+        self.batch_size = check_int(self.batch_size, "batch_size", minimum=1)
+        self.lbfgsb_iterations = check_int(self.lbfgsb_iterations, "lbfgsb_iterations", minimum=1)
+        self.sgd_lr = check_number(self.sgd_lr, "sgd_lr", minimum=0, min_open=True)
         self.methods = {
             "adam": Method("adam", "physics", lr=1e-3),
             "sgd": Method("sgd", "physics", optimizer="sgd", lr=self.sgd_lr, momentum=0.9),
@@ -291,8 +300,6 @@ def get_problem(name: str, **settings) -> Problem:
 
         return load_problem(name, **settings)
     if name not in PROBLEMS:
-        import difflib
-
         close = difflib.get_close_matches(str(name), list(PROBLEMS), n=1)
         hint = f"; did you mean {close[0]!r}?" if close else ""
         raise ParameterError(f"unknown problem {name!r}{hint} (choose from {sorted(PROBLEMS)}, or give a "
