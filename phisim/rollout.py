@@ -15,14 +15,13 @@ one :class:`~phisim.field.CenteredGrid` (:class:`~phisim.solvers.heat.HeatSteppe
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, is_dataclass, replace
 
 import torch
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
 from phisim.errors import ParameterError
-from phisim.field import CenteredGrid
-from phisim.fluid.step import FluidState
+from phisim.field import CenteredGrid, StaggeredGrid
 
 __all__ = ["Trajectory", "rollout"]
 
@@ -52,8 +51,15 @@ class Trajectory:
         return int(self.times.shape[0])
 
 
+def _is_fluid(state) -> bool:
+    """A :class:`~phisim.fluid.FluidState` (velocity, marker, pressure, time), recognised by its fields: this core
+    module does not import the fluid layer."""
+    return (is_dataclass(state) and isinstance(getattr(state, "velocity", None), StaggeredGrid)
+            and all(hasattr(state, f) for f in ("marker", "pressure", "time")))
+
+
 def _flatten(state) -> list[torch.Tensor | None]:
-    if isinstance(state, FluidState):
+    if _is_fluid(state):
         return [*state.velocity.values,
                 None if state.marker is None else state.marker.values,
                 None if state.pressure is None else state.pressure.values]
@@ -62,7 +68,7 @@ def _flatten(state) -> list[torch.Tensor | None]:
 
 def _unflatten(template, tensors, time, pressure_like):
     """A state like ``template`` holding ``tensors`` (as made by :func:`_flatten`) at ``time``."""
-    if isinstance(template, FluidState):
+    if _is_fluid(template):
         d = template.velocity.rank
         v = template.velocity.with_values(tuple(tensors[:d]))
         m = None if tensors[d] is None else template.marker.with_values(tensors[d])
@@ -74,7 +80,7 @@ def _unflatten(template, tensors, time, pressure_like):
 
 
 def _time_of(state, default: float) -> float:
-    return float(state.time) if isinstance(state, FluidState) else default
+    return float(state.time) if _is_fluid(state) else default
 
 
 def rollout(stepper, state, steps: int, *, every: int = 1, checkpoint: int | None = None, dt=None) -> Trajectory:
@@ -103,7 +109,7 @@ def rollout(stepper, state, steps: int, *, every: int = 1, checkpoint: int | Non
             raise ParameterError(f"{name} must be an int >= {low}, got {value!r}")
     if checkpoint is not None and (isinstance(checkpoint, bool) or not isinstance(checkpoint, int) or checkpoint < 1):
         raise ParameterError(f"checkpoint must be None or an int >= 1, got {checkpoint!r}")
-    fluid = isinstance(state, FluidState)
+    fluid = _is_fluid(state)
     if not fluid and not isinstance(state, CenteredGrid):
         raise ParameterError(f"rollout advances a FluidState or a CenteredGrid, got {type(state).__name__}")
     if fluid:
@@ -146,7 +152,7 @@ def _segment(one, state, n, marks):
     for k in range(1, n + 1):
         state = one(state)
         if k in marks:
-            recorded.append((_flatten(state), state.time if isinstance(state, FluidState) else None))
+            recorded.append((_flatten(state), state.time if _is_fluid(state) else None))
     return state, recorded
 
 
@@ -156,8 +162,8 @@ def _segment_checkpointed(one, state, n, marks, step_dt):
     structure: dict = {}
 
     def run(*flat):
-        s = _unflatten(template, list(flat), template.time if isinstance(template, FluidState) else None,
-                       template.pressure if isinstance(template, FluidState) else None)
+        s = _unflatten(template, list(flat), template.time if _is_fluid(template) else None,
+                       template.pressure if _is_fluid(template) else None)
         s, recorded = _segment(one, s, n, marks)
         structure["final"] = s  # the metadata of the result (grids, boundaries, time); its tensors come back out
         out = _flatten(s)
@@ -173,8 +179,8 @@ def _segment_checkpointed(one, state, n, marks, step_dt):
     recorded = [([None if none else next(it) for none in rec], time)
                 for rec, time in zip(structure["rec_none"], structure["rec_time"])]
     meta = structure["final"]
-    final = _unflatten(meta, final_tensors, meta.time if isinstance(meta, FluidState) else None,
-                       meta.pressure if isinstance(meta, FluidState) else None)
+    final = _unflatten(meta, final_tensors, meta.time if _is_fluid(meta) else None,
+                       meta.pressure if _is_fluid(meta) else None)
     return final, recorded
 
 

@@ -26,6 +26,7 @@ import torch
 
 from phisim.boundary import Boundary, Inflow
 from phisim.checks import check_dt, check_finite, check_finite_number, check_nonnegative
+from phisim.compiled import compile_function
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
@@ -178,7 +179,6 @@ class FluidStepper:
                 self.advance(FluidState(rest, marker), self.dt)
         self._advance = self.advance
         if compile:
-            from phisim.compiled import compile_function
             self._advance = compile_function(self.advance, device_type=self.device.type)
 
     def __call__(self, state: FluidState, dt=None) -> FluidState:
