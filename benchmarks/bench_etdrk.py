@@ -43,6 +43,8 @@ sys.path.insert(0, str(HERE.parent))
 
 from peer_exponax import initial_state  # noqa: E402
 
+from phisim.checks import check_device  # noqa: E402
+from phisim.errors import ParameterError  # noqa: E402
 from phisim.pde import KuramotoSivashinsky, NavierStokesVorticity  # noqa: E402
 
 XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -166,7 +168,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--quick", action="store_true", help="smallest sizes only")
     ap.add_argument("--peer-venv", default=str(HERE / ".venv-jax"))
     ap.add_argument("--out", default=str(HERE / "results" / "etdrk.json"))
+    ap.add_argument("--device", default="cpu", help="torch device of the phisim side (the comparison is on the CPU)")
     args = ap.parse_args(argv)
+    if check_device(args.device).type != "cpu":
+        raise ParameterError("the ETDRK benchmark compares with exponax on the CPU; use --device cpu")
     torch.set_num_threads(1)
     load_before = os.getloadavg()
     peer = Peer(str(Path(args.peer_venv) / "bin" / "python"))

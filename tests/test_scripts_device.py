@@ -68,6 +68,7 @@ SCRIPTS = {
     "benchmarks/run.py": ["--suite", "operators", "--quick", "--out", "{out}"],
     "benchmarks/bench_viscosity.py": ["--sizes", "8", "--dtype", "float64"],
     "benchmarks/bench_jaxcfd.py": ["--sides", "phisim", "--sizes", "8"],
+    "benchmarks/bench_etdrk.py": ["--quick", "--rounds", "1", "--out", "{out}/etdrk.json"],
     "benchmarks/bench_simulate.py": ["--step-cost", "--sizes", "8", "12", "--sizes3d", "--rounds", "1", "--calls",
                                      "2", "--out", "{out}/s.json"],
 }
@@ -82,7 +83,8 @@ def test_every_script_is_listed():
     found = {f"examples/{p.name}" for p in (ROOT / "examples").glob("*.py")}
     found |= {f"benchmarks/{p.name}" for p in (ROOT / "benchmarks").glob("*.py")}
     helpers = {"examples/demo.py", "examples/seed_table.py", "benchmarks/cases_phisim.py", "benchmarks/inputs.py",
-               "benchmarks/peer_phiflow.py", "benchmarks/timing.py", "benchmarks/peer_jaxcfd.py"}
+               "benchmarks/peer_phiflow.py", "benchmarks/timing.py", "benchmarks/peer_jaxcfd.py",
+               "benchmarks/peer_exponax.py"}
     assert found - helpers == set(SCRIPTS)
     for script in SCRIPTS:
         assert "--device" in (ROOT / script).read_text(), script

@@ -158,7 +158,10 @@ def spectral_apply(
 def transform_scale(res, kinds: Kinds) -> float:
     """Normalisation of an unnormalised forward + inverse real-to-real transform pair."""
     r2r, _ = transform_layout(kinds)
-    return 1.0 / math.prod(2 * res[a] for a in r2r) if r2r else 1.0
+    count = 1
+    for a in r2r:  # a plain loop: traceable by torch.compile (math.prod of a generator is not)
+        count *= 2 * res[a]
+    return 1.0 / count
 
 
 def apply_multiplier(x: torch.Tensor, kinds: Kinds, mult: torch.Tensor, engine, prescaled: bool = False

@@ -18,7 +18,6 @@ from phisim import CenteredGrid, Grid, StaggeredGrid
 from phisim.boundary import Inflow, Open
 from phisim.errors import NonFiniteError, ParameterError
 from phisim.fluid import AdvectionDiffusionStepper, Body, BurgersStepper, FluidState, FluidStepper, Sphere
-from phisim.solvers import box
 from phisim.solvers.heat import HeatStepper
 
 F32, F64 = torch.float32, torch.float64
@@ -112,22 +111,11 @@ def test_fluid_step_traces_as_one_graph(case, dtype):
         assert counters["stats"]["unique_graphs"] == 1, f"{name}: new state values traced a new graph"
 
 
-def _transform_scale_as_a_loop(res, kinds):
-    r2r, _ = box.transform_layout(kinds)
-    n = 1
-    for a in r2r:
-        n *= 2 * res[a]
-    return 1.0 / n if r2r else 1.0
-
-
 @pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
 @pytest.mark.parametrize("rank", [2])  # in 3-D the direct solve does not pay at these sizes: PCG, not traced
-def test_static_body_step_traces_as_one_graph(rank, dtype, monkeypatch):
+def test_static_body_step_traces_as_one_graph(rank, dtype):
     """A resting body with the direct pressure solve: the traced step takes the exact capacitance solve alone (the
-    eager step lets CG check and polish it, a host loop). ``phisim.solvers.box.transform_scale`` takes
-    ``math.prod`` over a generator, which dynamo cannot trace; the direct solve's box inverse calls it, so this
-    test swaps in the same product written as a loop."""
-    monkeypatch.setattr(box, "transform_scale", _transform_scale_as_a_loop)
+    eager step lets CG check and polish it, a host loop)."""
     grid = Grid((12,) * rank, bounds=[(0, 1)] * rank)
     body = Body(Sphere((0.55,) + (0.5,) * (rank - 1), 0.2))
     stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=1e-2, dt=0.02, dtype=dtype)
