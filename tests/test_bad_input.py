@@ -474,6 +474,10 @@ BATCH_MISMATCH = [
     ("hig-targets", lambda: _hig.HIG(_NET).step(torch.ones(2, 2), torch.ones(3, 2))),
     ("hig-physics-args", lambda: _hig.HIG(_NET, physics=lambda o, s: o * s).step(
         torch.ones(2, 2), torch.ones(2, 2), physics_args=(torch.ones(3, 2),))),
+    ("buoyancy-marker", lambda: ps.buoyancy(_v(2), _s(3), 0.1, strength=1.0)),
+    ("normalize-energy-target", lambda: ps.normalize_energy(_v(2), torch.ones(3))),
+    ("relative-divergence-reference", lambda: ps.relative_divergence(_v(2), reference=_v(3))),
+    ("projection-pressure-guess", lambda: ps.make_incompressible(_v(2), pressure_guess=torch.zeros(3, 8, 6))),
 ]
 
 

@@ -45,7 +45,7 @@ from typing import NamedTuple
 import torch
 
 from phisim.boundary import NORMAL, Boundary
-from phisim.checks import all_finite
+from phisim.checks import all_finite, check_batch_compatible
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, SolidLayout, as_solids, solid_layout
@@ -345,6 +345,7 @@ def make_incompressible(
     if method not in ("auto", "spectral", "cg"):
         raise ParameterError(f"method must be 'auto', 'spectral' or 'cg', got {method!r}")
     grid, boundary = velocity.grid, velocity.boundary
+    _guess_tensor(pressure_guess, velocity)  # checked also where the exact solve does not use it
     layout = solid_layout(obstacles, grid, boundary, time, velocity.dtype, velocity.device)
     if layout is not None and method == "spectral":
         raise ParameterError("the direct spectral pressure solve cannot handle obstacles; use method='auto' or 'cg'")
@@ -491,6 +492,7 @@ def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None
         d = divergence(velocity).values.flatten(1)
         if reference is not None:
             check_velocity(reference, "reference")
+            check_batch_compatible(velocity, reference, ("velocity", "reference"), "compare")
             ref = divergence(reference.with_boundary_faces()).values.flatten(1).norm(dim=1)
             return d.norm(dim=1) / ref.clamp_min(torch.finfo(d.dtype).tiny)
         scale = torch.stack([c.flatten(1).abs().max(1).values for c in velocity.values]).max(0).values

@@ -22,7 +22,14 @@ from dataclasses import dataclass
 import torch
 
 from phisim.boundary import Boundary, Inflow, pad
-from phisim.checks import all_finite, check_dt, check_finite, check_finite_number, check_positive
+from phisim.checks import (
+    all_finite,
+    check_batch_compatible,
+    check_dt,
+    check_finite,
+    check_finite_number,
+    check_positive,
+)
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
@@ -78,6 +85,7 @@ def buoyancy(
     dt = check_dt(dt)
     strength, direction = buoyancy_args(strength, direction, velocity.grid.rank)
     m, mb = scalar_values(marker, velocity.grid)
+    check_batch_compatible(velocity, m, ("velocity", "marker"), "apply buoyancy")
     return apply_buoyancy(velocity, m, mb, dt, strength, direction)
 
 
@@ -137,6 +145,9 @@ def normalize_energy(velocity: StaggeredGrid, energy: torch.Tensor) -> Staggered
     check_velocity(velocity)
     e = kinetic_energy(velocity)
     target = torch.as_tensor(energy, dtype=e.dtype, device=e.device)
+    if target.numel() not in (1, e.numel()) or target.ndim > 1:
+        raise ShapeError(f"normalize_energy: the target energy must be a number or one per sample ({e.numel()}), "
+                         f"got shape {tuple(target.shape)}")
     if not all_finite(target) or bool((target.detach() < 0).any()):
         raise ParameterError(f"normalize_energy: the target energy must be finite and >= 0, got {energy!r}")
     return rescale_energy(velocity, target)
