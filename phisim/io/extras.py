@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from phisim.errors import FileFormatError, ParameterError, ShapeError
+from phisim.io.h5util import check_storable_name
 
 UNEVEN_MODES = ("error", "warn")
 INTERVAL_RTOL = 1e-6
@@ -87,8 +88,7 @@ def constant_arrays(values: Mapping[str, object] | None, resolution: tuple[int, 
     """Validate constant fields: name -> ``(*res)`` (shared by all samples) or ``(B, *res)`` numeric arrays."""
     out: dict[str, np.ndarray] = {}
     for name, value in (values or {}).items():
-        if not isinstance(name, str) or not name or "/" in name or name == "time" or name in reserved:
-            raise ParameterError(f"invalid constant field name {name!r} (non-empty, no '/', not a frame field)")
+        check_storable_name(name, "constant field name", reserved={"time", *reserved})
         if isinstance(value, torch.Tensor):
             value = value.detach().cpu().numpy()
         arr = np.asarray(value)

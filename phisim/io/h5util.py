@@ -117,6 +117,33 @@ def open_for_read(path: PathLike) -> h5py.File:
 # ---- attributes and required objects ------------------------------------------------------------------
 
 
+#: Root attributes of The Well's layout (and ours): a simulation parameter may not take one of these names.
+RESERVED_ROOT_NAMES = frozenset({"dataset_name", "grid_type", "n_spatial_dims", "n_trajectories",
+                                 "simulation_parameters", "format", "phisim_format"})
+
+
+def check_storable_name(name, what: str, reserved=frozenset()) -> str:
+    """A name the file layout can store as a dataset, group or attribute name, and read back.
+
+    Args:
+        name: The name.
+        what: What it names, for the message (``'field name'``, ``'parameter name'``, ``'method'``...).
+        reserved: Names the layout keeps for itself in that place.
+
+    Raises:
+        ParameterError: For a non-string, an empty name, ``.``/``..``, a ``/``, a NUL or other control character,
+            or a reserved name.
+    """
+    if not isinstance(name, str) or not name:
+        raise ParameterError(f"{what} must be a non-empty string, got {name!r}")
+    if name in (".", "..") or "/" in name or any(ord(c) < 32 for c in name):
+        raise ParameterError(f"{what} {name!r} cannot be stored in HDF5: no '/', no control characters (NUL, "
+                             "newline...), not '.' or '..'")
+    if name in reserved:
+        raise ParameterError(f"{what} {name!r} is reserved by the file layout; choose another name")
+    return name
+
+
 def str_array(names: Sequence[str]) -> np.ndarray:
     """A numpy array of variable-length UTF-8 strings (also for an empty list), for HDF5 attributes."""
     return np.array([str(n) for n in names], dtype=h5py.string_dtype())

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from phisim.boundary import Boundary
+from phisim.checks import check_int
 from phisim.errors import FileFormatError, IncompleteFileWarning, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import AXIS_NAMES, Grid
@@ -95,6 +96,7 @@ class SimulationData:
         """
         if name not in self.kinds:
             raise ParameterError(f"no field {name!r} in {self.path}; fields: {list(self.kinds)}")
+        index = check_int(index, "frame index")
         if not -self.n_frames <= index < self.n_frames:
             raise ParameterError(f"frame {index} out of range for {self.n_frames} frames")
         if self.kinds[name] == "staggered":

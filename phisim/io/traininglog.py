@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from phisim.errors import FileFormatError, IncompleteFileWarning, ParameterError
-from phisim.io.h5util import PathLike, check_output_path, open_for_read, to_json
+from phisim.io.h5util import PathLike, check_output_path, check_storable_name, open_for_read, to_json
 from phisim.io.interrupts import uninterrupted
 from phisim.io.journal import (
     Journal,
@@ -144,8 +144,7 @@ class TrainingLog:
     def __init__(self, target: PathLike | h5py.Group, method: str, *, attrs: Mapping[str, Any] | None = None,
                  planned_iterations: int | None = None, overwrite: bool = False, resume: bool = False,
                  journal: Journal | None = None):
-        if not isinstance(method, str) or not method or "/" in method:
-            raise ParameterError(f"method must be a non-empty name without '/', got {method!r}")
+        check_storable_name(method, "method")
         if overwrite and resume:
             raise ParameterError("overwrite=True and resume=True exclude each other: replace the log or continue it")
         if planned_iterations is not None and (isinstance(planned_iterations, bool) or not isinstance(

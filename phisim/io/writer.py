@@ -68,7 +68,7 @@ from phisim.errors import FileFormatError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import AXIS_NAMES, Grid
 from phisim.io.extras import IntervalCheck, constant_arrays, write_constant_fields
-from phisim.io.h5util import PathLike, check_output_path, str_array, to_json
+from phisim.io.h5util import RESERVED_ROOT_NAMES, PathLike, check_output_path, check_storable_name, str_array, to_json
 from phisim.io.interrupts import uninterrupted
 from phisim.io.journal import Journal, check_space, journal_path, write_failure
 from phisim.io.traininglog import TrainingLog
@@ -205,15 +205,13 @@ class SimulationWriter:
         self.dtype = _np_dtype(dtype)
         self.kinds: dict[str, str] = {}
         for name, kind in fields.items():
-            if not isinstance(name, str) or not name or "/" in name or name in ("time",):
-                raise ParameterError(f"invalid field name {name!r} (non-empty, no '/', not 'time')")
+            check_storable_name(name, "field name", reserved={"time"})
             if kind not in FIELD_KINDS:
                 raise ParameterError(f"field {name!r}: kind must be one of {FIELD_KINDS}, got {kind!r}")
             self.kinds[name] = kind
         params = {}
         for name, value in (parameters or {}).items():
-            if not isinstance(name, str) or not name or "/" in name:
-                raise ParameterError(f"invalid parameter name {name!r}")
+            check_storable_name(name, "parameter name", reserved=RESERVED_ROOT_NAMES)
             if isinstance(value, torch.Tensor) and value.numel() == 1:
                 value = value.item()
             if isinstance(value, np.generic):
