@@ -128,7 +128,7 @@ class _UNetGridProblem(Problem):
         if isinstance(self.resolution, (str, bytes)) or not hasattr(self.resolution, "__len__") or len(
                 self.resolution) != 2:
             raise ParameterError(f"resolution must be two cell counts (nx, ny), got {self.resolution!r}")
-        self.resolution = tuple(check_int(n, "resolution", minimum=4) for n in self.resolution)
+        self.resolution = tuple(check_int(n, "resolution", minimum=1) for n in self.resolution)
         self.batch_size = check_int(self.batch_size, "batch_size", minimum=1)
         self.lbfgsb_iterations = check_int(self.lbfgsb_iterations, "lbfgsb_iterations", minimum=1)
         self.sgd_lr = check_number(self.sgd_lr, "sgd_lr", minimum=0, min_open=True)
