@@ -806,7 +806,7 @@ def test_non_finite_sample_points_give_nan_where_raising_would_cost_a_sync(monke
 BAD_NAMES = [".", "..", "", "a/b", "a\x00b", "line\nbreak"]
 
 
-def _writer(tmp_path, **kw):
+def _names_writer(tmp_path, **kw):
     from phisim.io import SimulationWriter
 
     return SimulationWriter(tmp_path / "names.h5", G, W, dataset_name="names", batch_size=1, **kw)
@@ -815,7 +815,7 @@ def _writer(tmp_path, **kw):
 @pytest.mark.parametrize("name", BAD_NAMES + ["time"])
 def test_field_names_that_cannot_be_stored(name, tmp_path):
     with pytest.raises(ParameterError, match="field name"):
-        _writer(tmp_path, fields={name: "scalar"})
+        _names_writer(tmp_path, fields={name: "scalar"})
     assert not any(tmp_path.iterdir())  # nothing written
 
 
@@ -823,7 +823,7 @@ def test_field_names_that_cannot_be_stored(name, tmp_path):
                                               "simulation_parameters"])
 def test_parameter_names_that_cannot_be_stored_or_are_reserved(name, tmp_path):
     with pytest.raises(ParameterError, match="parameter name"):
-        _writer(tmp_path, fields={"u": "scalar"}, parameters={name: 1.0})
+        _names_writer(tmp_path, fields={"u": "scalar"}, parameters={name: 1.0})
     assert not any(tmp_path.iterdir())
 
 
@@ -832,7 +832,7 @@ def test_constant_field_and_method_names_that_cannot_be_stored(name, tmp_path):
     from phisim.io import TrainingLog
 
     with pytest.raises(ParameterError, match="constant field name"):
-        _writer(tmp_path, fields={"u": "scalar"}, constant_fields={name: torch.zeros(G.resolution)})
+        _names_writer(tmp_path, fields={"u": "scalar"}, constant_fields={name: torch.zeros(G.resolution)})
     with pytest.raises(ParameterError, match="method"):
         TrainingLog(tmp_path / "log.h5", name)
     assert not any(tmp_path.iterdir())
@@ -841,7 +841,7 @@ def test_constant_field_and_method_names_that_cannot_be_stored(name, tmp_path):
 def test_fractional_frame_index_is_a_parameter_error(tmp_path):
     from phisim.io import read_simulation
 
-    with _writer(tmp_path, fields={"u": "scalar"}) as w:
+    with _names_writer(tmp_path, fields={"u": "scalar"}) as w:
         w.append(0.0, u=torch.zeros(1, *G.resolution))
     data = read_simulation(tmp_path / "names.h5")
     with pytest.raises(ParameterError, match="frame index"):
