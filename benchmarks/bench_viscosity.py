@@ -63,7 +63,8 @@ NOTES = """Reading the tables:
 - How the box solve got there. Per component the exact solve is one transform pair per axis. The normal
   component between two walls needs a DST-I along its own axis, which pocketfft (like FFTW) computes from a
   real FFT of twice the length: the most expensive pass (255 samples: 0.09 ms float32, 0.16-0.29 ms float64,
-  against 0.05 / 0.07 ms for a real FFT of 256). From about 90² up (`FFTSettings.wall_solve_min_samples`) that axis is now
+  against 0.05 / 0.07 ms for a real FFT of 256). From about 90² up
+  (`FFTSettings.wall_solve_min_samples`) that axis is now
   solved as periodic over the faces 0..n-1, an FFT of length n, and one exact correction per transverse mode
   puts face 0 back to zero: the periodic Green's function of face 0, scaled by the value found there
   (`phisim.spectral.fft.wall_solve`; the other faces then satisfy exactly the wall problem, tests compare with the

@@ -56,8 +56,9 @@ from phisim.solvers.linalg import Solve, SolveInfo
 from phisim.solvers.masked import MaskedPoisson
 from phisim.solvers.poisson import field_kinds_and_values
 
-__all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "project_box", "make_incompressible",
-           "project_trusted", "check_balance", "relative_divergence", "impose_solids", "net_boundary_flux"]
+__all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "check_fits", "project_box",
+           "make_incompressible", "project_trusted", "check_balance", "relative_divergence", "impose_solids",
+           "net_boundary_flux"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -159,6 +160,21 @@ def _pressure_kinds(boundary: Boundary):
     return kinds
 
 
+def check_fits(velocity: StaggeredGrid, grid, dtype: torch.dtype, device: torch.device, owner: str) -> None:
+    """Check that ``velocity`` is a MAC velocity on ``grid`` of the ``dtype`` and device an object was built for.
+
+    Raises:
+        GridMismatchError: For a velocity that is not a StaggeredGrid or lives on another grid.
+        ParameterError: For another dtype or device.
+    """
+    check_velocity(velocity)
+    if velocity.grid != grid:
+        raise GridMismatchError(f"velocity grid {velocity.grid} differs from the {owner}'s {grid}")
+    if velocity.dtype != dtype or velocity.device.type != device.type:
+        raise ParameterError(f"this {owner} was built for {dtype} on {device}; got a velocity of {velocity.dtype} "
+                             f"on {velocity.device}")
+
+
 def _operator(layout: SolidLayout, kinds, dx) -> MaskedPoisson:
     """The pressure operator of ``layout``: kept on a persistent layout (with the direct solve where it applies
     and the layout's policy allows it), built anew for a one-off layout (PCG)."""
@@ -242,12 +258,7 @@ class Projection:
             GridMismatchError: For a velocity on another grid or with another boundary.
             ParameterError: For a velocity of another dtype or device than the projection was built for.
         """
-        check_velocity(velocity)
-        if velocity.grid != self.grid:
-            raise GridMismatchError(f"velocity grid {velocity.grid} differs from the projection's {self.grid}")
-        if velocity.dtype != self.dtype or velocity.device.type != self.device.type:
-            raise ParameterError(f"this projection was built for {self.dtype} on {self.device}; got a velocity "
-                                 f"of {velocity.dtype} on {velocity.device}")
+        check_fits(velocity, self.grid, self.dtype, self.device, "projection")
         return self._apply(velocity, self.layout(time), pressure_guess, time)
 
     def _apply(self, velocity, layout, pressure_guess, time) -> ProjectionResult:

@@ -31,7 +31,7 @@ from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
 from phisim.fluid.integrators import INTEGRATORS, check_viscous_number, navier_stokes_rk_step, rk_advance
-from phisim.fluid.projection import check_balance, check_velocity, project_box
+from phisim.fluid.projection import check_balance, check_fits, check_velocity, project_box
 from phisim.fluid.step import (
     FluidState,
     apply_buoyancy,
@@ -47,6 +47,21 @@ from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect, advect_trusted
 from phisim.solvers.linalg import Solve
 
 __all__ = ["FluidStepper", "step", "navier_stokes_step", "advance"]
+
+
+def _check_schemes(advection: str, marker_advection: str | None, viscosity_scheme: str, integrator: str) -> str:
+    """Validate the scheme settings of a fluid step; return the marker's scheme (default: ``advection``)."""
+    if advection not in SCHEMES:
+        raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    marker_advection = advection if marker_advection is None else marker_advection
+    if marker_advection not in SCALAR_SCHEMES:
+        raise ParameterError(f"unknown marker advection scheme marker_advection={marker_advection!r}; choose one "
+                             f"of {SCALAR_SCHEMES}")
+    if viscosity_scheme not in VISCOSITY_SCHEMES:
+        raise ParameterError(f"unknown viscosity_scheme {viscosity_scheme!r}; choose one of {VISCOSITY_SCHEMES}")
+    if integrator not in INTEGRATORS:
+        raise ParameterError(f"unknown integrator {integrator!r}; choose one of {tuple(INTEGRATORS)}")
+    return marker_advection
 
 
 class FluidStepper:
@@ -117,15 +132,7 @@ class FluidStepper:
         self.grid: Grid = grid
         self.boundary: Boundary = template.boundary
         self.dtype, self.device = dtype, template.device
-        if advection not in SCHEMES:
-            raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
-        marker_advection = advection if marker_advection is None else marker_advection
-        if marker_advection not in SCALAR_SCHEMES:
-            raise ParameterError(f"unknown marker_advection {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
-        if viscosity_scheme not in VISCOSITY_SCHEMES:
-            raise ParameterError(f"unknown viscosity_scheme {viscosity_scheme!r}; choose one of {VISCOSITY_SCHEMES}")
-        if integrator not in INTEGRATORS:
-            raise ParameterError(f"unknown integrator {integrator!r}; choose one of {tuple(INTEGRATORS)}")
+        marker_advection = _check_schemes(advection, marker_advection, viscosity_scheme, integrator)
         if pressure is not None and not isinstance(pressure, Solve):
             raise ParameterError(f"pressure must be a phisim.solvers.Solve, got {type(pressure).__name__}")
         if not isinstance(energy_normalization, bool):
@@ -191,12 +198,7 @@ class FluidStepper:
         if not isinstance(state, FluidState):
             raise ParameterError(f"a FluidStepper advances a FluidState, got {type(state).__name__}")
         v = state.velocity
-        check_velocity(v)
-        if v.grid != self.grid:
-            raise GridMismatchError(f"state grid {v.grid} differs from the stepper's {self.grid}")
-        if v.dtype != self.dtype or v.device.type != self.device.type:
-            raise ParameterError(f"this stepper was built for {self.dtype} on {self.device}; the state is "
-                                 f"{v.dtype} on {v.device}")
+        check_fits(v, self.grid, self.dtype, self.device, "stepper")
         if state.marker is not None:
             scalar_values(state.marker, self.grid)
         elif self.buoyancy != 0:
@@ -379,13 +381,7 @@ def step(
     dt = check_dt(dt)
     v0 = state.velocity
     check_velocity(v0)
-    if advection not in SCHEMES:
-        raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
-    marker_advection = advection if marker_advection is None else marker_advection
-    if marker_advection not in SCALAR_SCHEMES:
-        raise ParameterError(f"unknown marker advection scheme {marker_advection!r}; choose one of {SCALAR_SCHEMES}")
-    if integrator not in INTEGRATORS:
-        raise ParameterError(f"unknown integrator {integrator!r}; choose one of {tuple(INTEGRATORS)}")
+    marker_advection = _check_schemes(advection, marker_advection, viscosity_scheme, integrator)
     marker = state.marker
     # validated once here (types, grids, dt, a finite velocity); the inner calls take the trusted paths
     if marker is not None:
