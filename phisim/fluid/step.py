@@ -72,7 +72,8 @@ def buoyancy(
         marker: Scalar CenteredGrid or tensor ``(B, *res)`` on the velocity's grid (batch 1 broadcasts).
         dt: Time step ``>= 0``.
         strength: Buoyancy per unit marker (acceleration); negative values sink.
-        direction: The "up" vector, one entry per axis; default the last axis (``+y`` in 2-D, ``+z`` in 3-D).
+        direction: The "up" vector, one entry per axis; default: y, axis 1 (``+y`` in 2-D and 3-D, the axis
+            pictures draw upwards; ``+x`` in 1-D).
 
     Returns:
         The accelerated velocity (same grid and boundary).
@@ -90,9 +91,11 @@ def buoyancy(
 
 
 def buoyancy_args(strength, direction, rank: int) -> tuple[float, tuple[float, ...]]:
-    """Validated buoyancy strength and "up" direction (default: the last axis)."""
+    """Validated buoyancy strength and "up" direction (default: y, axis 1; the only axis in 1-D)."""
     strength = check_finite_number(strength, "buoyancy strength")
-    direction = tuple(float(c) for c in direction) if direction is not None else (0.0,) * (rank - 1) + (1.0,)
+    up = min(1, rank - 1)
+    direction = (tuple(float(c) for c in direction) if direction is not None
+                 else tuple(1.0 if a == up else 0.0 for a in range(rank)))
     if len(direction) != rank:
         raise ParameterError(f"direction needs {rank} entries, got {direction}")
     return strength, direction

@@ -80,7 +80,7 @@ class FluidStepper:
         viscosity_scheme: ``'explicit'`` (default), ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'``.
         integrator: ``'split'`` (default), ``'rk2'``, ``'rk3'`` or ``'imex2'``.
         buoyancy: Buoyancy per unit marker (acceleration); needs a marker in the state.
-        buoyancy_direction: The "up" vector (default the last axis).
+        buoyancy_direction: The "up" vector (default: y, axis 1).
         marker_source: Marker added per unit time, CenteredGrid or tensor ``(1 or B, *res)``.
         energy_normalization: Rescale the velocity to its kinetic energy at the start of each step.
         pressure: :class:`~phisim.solvers.linalg.Solve` settings of the masked pressure solve (and of viscous
@@ -357,7 +357,7 @@ def step(
         dt: Time step ``>= 0``.
         viscosity: Kinematic viscosity.
         buoyancy_strength: Buoyancy per unit marker (see :func:`buoyancy`); needs a marker.
-        buoyancy_direction: "Up" vector (default the last axis).
+        buoyancy_direction: "Up" vector (default: y, axis 1).
         advection: ``'semi_lagrangian'`` or ``'maccormack'`` (for the velocity of the split step, and for
             the marker unless ``marker_advection`` says otherwise).
         viscosity_scheme: ``'explicit'``, ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'`` (split step).
