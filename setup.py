@@ -20,8 +20,10 @@ setup(
     ],
     extras_require={
         # the-well: its loader reads our HDF5 files in a test (small pure-Python dependencies)
-        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well"],
-        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "pytest-timeout>=2"],
+        # nbclient, nbformat, ipykernel: a test executes the quickstart notebook (inline pictures)
+        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "nbclient>=0.7", "nbformat>=5", "ipykernel>=6"],
+        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "pytest-timeout>=2", "nbclient>=0.7",
+                "nbformat>=5", "ipykernel>=6"],
         "well": ["the-well"],
     },
     entry_points={"console_scripts": ["phisim=inverse.cli:main"]},
