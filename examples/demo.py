@@ -9,7 +9,8 @@
        <out>/data/valid/smoke.h5    trajectory 1 (the validation split)
        <out>/stats.yaml             normalisation statistics of the training split
 
-   Each file stores the obstacle as the constant field ``obstacle`` (1 in solid cells). Pictures:
+   Each file stores the obstacle as the constant field ``obstacle_mask`` (1 in solid cells; the name the
+   ``smoke`` scenario of ``phisim simulate`` uses too). Pictures:
    ``smoke.gif`` (every frame, titled with its time) and ``smoke_last.png``, both with the obstacle in grey.
 2. The Poisson inverse problem (E3) at reduced size: a U-net learns ``y -> x`` for ``y = ∇⁻² x``,
    once with Adam through the CG solve and once with Adam + physical gradients (analytic inverse), on
@@ -29,12 +30,12 @@ Run: ``python examples/demo.py [--out out/demo] [--steps 40] [--iterations 60]``
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
 
+from inverse.cli_checks import json_summary
 from inverse.problems import get_problem
 from inverse.train import train
 from phisim import CenteredGrid, Grid, StaggeredGrid, divergence
@@ -62,7 +63,7 @@ def simulate_smoke(out: Path, resolution: int, steps: int, dt: float = 0.5) -> d
     writers = {
         split: SimulationWriter(out / "data" / split / "smoke.h5", grid, boundary, dataset_name="phisim_smoke_plume",
                                 fields={"density": "scalar", "velocity": "staggered"}, parameters=params,
-                                batch_size=1, output_interval=dt, constant_fields={"obstacle": solid},
+                                batch_size=1, output_interval=dt, constant_fields={"obstacle_mask": solid},
                                 config={"resolution": resolution, "steps": steps, "split": split,
                                         "inflow_x": centres[b]})
         for b, split in enumerate(SPLITS)
@@ -105,7 +106,7 @@ def train_poisson(out: Path, resolution: int, iterations: int, batch_size: int, 
     for method in ("adam", "pg"):
         # the demo rewrites its own output folder on every run: replace earlier runs of the same method
         results[method] = train(problem, method, iterations=iterations, batch_size=batch_size, seed=0,
-                                out=out / "training" / "training.h5", progress=True, overwrite=True)
+                                out=out / "training" / "training.h5", overwrite=True)  # a bar in a terminal
     ax = plot_training_curves({m: r.curves for m, r in results.items()}, problem.metric_name,
                               title="Poisson inverse problem")
     save_figure(ax.figure, out / "training.png")
@@ -118,13 +119,14 @@ def train_poisson(out: Path, resolution: int, iterations: int, batch_size: int, 
 
 def main(argv: list[str] | None = None) -> dict:
     """Run the demo; returns a summary dict (also written to ``summary.json``)."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--out", type=Path, default=Path("out/demo"))
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
     p.add_argument("--resolution", type=int, default=48, help="smoke grid cells per axis")
     p.add_argument("--steps", type=int, default=40, help="smoke time steps (one frame each, dt = 0.5)")
-    p.add_argument("--train-resolution", type=int, default=32)
+    p.add_argument("--train-resolution", type=int, default=32, help="Poisson grid cells per axis")
     p.add_argument("--iterations", type=int, default=60, help="training iterations per method")
-    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--batch-size", type=int, default=16, help="training samples per iteration")
     p.add_argument("--heldout", type=int, default=64, help="held-out samples of the Poisson problem")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -134,8 +136,9 @@ def main(argv: list[str] | None = None) -> dict:
     summary["training"] = train_poisson(args.out, args.train_resolution, args.iterations, args.batch_size,
                                         args.heldout)
     summary["seconds"] = round(time.perf_counter() - t0, 1)
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2, ensure_ascii=False))
-    print(json.dumps(summary, indent=2, ensure_ascii=False))
+    text = json_summary(summary, indent=2)  # strict JSON: a NaN is written as null (and the summary says so)
+    (args.out / "summary.json").write_text(text + "\n")
+    print(text)
     print(f"outputs in {args.out}/: data/train/smoke.h5 data/valid/smoke.h5 stats.yaml smoke.gif smoke_last.png "
           "training/training.h5 training.png summary.json")
     return summary

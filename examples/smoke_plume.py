@@ -23,7 +23,7 @@ Outputs (in ``--out``):
 * ``smoke_plume.h5``: the run in The Well layout (:class:`phisim.io.SimulationWriter`): ``density`` in
   ``/t0_fields`` ``(B, T, *res)``, the velocity at cell centres in ``/t1_fields`` and its exact face values
   in ``/staggered``, one frame per output interval (stored as the scalar ``dt``), written as the
-  simulation goes; the obstacle as the constant field ``obstacle`` (1 in solid cells);
+  simulation goes; the obstacle as the constant field ``obstacle_mask`` (1 in solid cells);
 * ``smoke_plume.gif``: an animation of the density with the time of each frame and the obstacle in grey
   (the middle ``z`` slice in 3-D);
 * ``smoke_plume.png``: the last frame (density and velocity magnitude, obstacle in grey).
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> dict:
         batch_size=args.batch_size,
         config=config,
         output_interval=args.interval,
-        constant_fields={"obstacle": solid.cpu().to(torch.float32)},
+        constant_fields={"obstacle_mask": solid.cpu().to(torch.float32)},
     ) as writer:
         writer.append(0.0, density=state.marker, velocity=state.velocity)
         bar = tqdm(

@@ -46,7 +46,7 @@ def test_demo_tiny(tmp_path):
     assert train.dt == 0.5 and np.allclose(np.diff(train.times), 0.5)
     assert np.isfinite(train.fields["density"]).all() and train.fields["density"][0, -1].sum() > 0
     assert not np.array_equal(train.fields["density"][0, -1], valid.fields["density"][0, -1])  # other inflow
-    solid = train.constant_fields["obstacle"]
+    solid = train.constant_fields["obstacle_mask"]  # the one name of the obstacle field (scenarios too)
     assert solid.shape == (16, 16) and 0 < solid.sum() < 256
     assert np.abs(train.fields["density"][0, :, solid > 0.5]).max() < np.abs(train.fields["density"]).max()
     # The README's three lines: the loader opens the folder as it is, with normalisation

@@ -65,7 +65,7 @@ def test_smoke_plume_frames_are_equally_spaced_for_the_well_loader(tmp_path, loa
     data = read_simulation(res["h5"])
     np.testing.assert_array_equal(data.times, 2.0 * np.arange(6))
     assert data.dt == 2.0
-    assert data.constant_fields["obstacle"].sum() > 0
+    assert data.constant_fields["obstacle_mask"].sum() > 0
     ds = WellDataset(path=str(tmp_path), n_steps_input=2, n_steps_output=2, normalize_time_grid=False)
     assert len(ds) == 3  # 6 frames, windows of 4
     for i in range(len(ds)):
