@@ -4,14 +4,22 @@ The library never touches pyplot's global state and never calls ``plt.show``: fi
 ``matplotlib.figure.Figure`` objects with an Agg canvas, so the functions work on headless machines and in
 tests. Pass an existing ``Axes`` (from pyplot or elsewhere) to draw into your own figure.
 
-Orientation: phisim arrays are indexed ``values[..., i, j]`` at ``(x_i, y_j)``; images are drawn transposed
+Orientation ("up" is ``y``, axis 1, everywhere: in pictures and as the default buoyancy direction of the
+fluid steps): phisim arrays are indexed ``values[..., i, j]`` at ``(x_i, y_j)``; images are drawn transposed
 with ``origin='lower'`` and the grid's physical extent, so ``x`` runs to the right and ``y`` upwards.
+
+3-D fields are shown as a slice normal to ``axis`` (default ``'z'``: an ``x``-``y`` picture with ``y`` up, at the
+middle ``index``) or as a projection of the whole volume along ``axis`` (``projection='max'``: maximum
+intensity, ``'mean'``, ``'min'``). The picture's axes for each normal (:data:`PLANES`): ``z`` -> ``x`` right,
+``y`` up; ``x`` -> ``z`` right, ``y`` up; ``y`` -> ``x`` right, ``z`` up (a view from above).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -29,11 +37,20 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import Grid
 
 __all__ = [
-    "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
-    "ffmpeg_available", "draw_mask", "plot_training_curves",
+    "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "make_animation", "save_figure",
+    "ffmpeg_available", "draw_mask", "plot_training_curves", "AXIS_NAMES", "PLANES", "PROJECTIONS", "axis_index",
+    "volume_view", "mask_view", "plane_grid", "view_label", "panel_layout", "save_animation",
 ]
 
 PathLike = str | os.PathLike
+
+#: Axis names by index (``y``, axis 1, is up).
+AXIS_NAMES = ("x", "y", "z")
+#: For each slice normal (axis index) of a 3-D field, the picture's (horizontal, vertical) axes: ``y`` is drawn
+#: upwards whenever it is in the picture.
+PLANES = {2: (0, 1), 0: (2, 1), 1: (0, 2)}
+#: Projections of a whole volume along an axis (``None``: a slice).
+PROJECTIONS = ("max", "mean", "min")
 
 
 def new_figure(figsize: tuple[float, float] = (5.0, 4.0), dpi: int = 100) -> tuple[Figure, Axes]:
@@ -49,6 +66,143 @@ def new_figure(figsize: tuple[float, float] = (5.0, 4.0), dpi: int = 100) -> tup
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     return fig, fig.add_subplot(1, 1, 1)
+
+
+def axis_index(axis, rank: int = 3) -> int:
+    """The index of an axis given as ``'x'`` / ``'y'`` / ``'z'`` or as an int (negative counts from the end).
+
+    Raises:
+        ParameterError: For an unknown name, an index out of range, or another type.
+    """
+    names = list(AXIS_NAMES[:rank])
+    if isinstance(axis, str):
+        key = axis.strip().lower()
+        if key in names:
+            return names.index(key)
+        raise ParameterError(f"unknown axis {axis!r}: use one of {names} or an index 0..{rank - 1}")
+    if isinstance(axis, (int, np.integer)) and not isinstance(axis, bool):
+        if -rank <= int(axis) < rank:
+            return int(axis) % rank
+        raise ParameterError(f"axis {int(axis)} out of range for a {rank}-D field: use 0..{rank - 1} or {names}")
+    raise ParameterError(f"axis must be one of {names} or an int, got {axis!r}")
+
+
+def _view_args(axis, index, projection, n_along=None) -> tuple[int, int | None, str | None]:
+    """Validated ``(normal axis, slice index or None for a projection, projection)`` of a 3-D view."""
+    a = 2 if axis is None else axis_index(axis, 3)
+    if projection is not None:
+        if not isinstance(projection, str) or projection not in PROJECTIONS:
+            raise ParameterError(f"unknown projection {projection!r}: use None (a slice), "
+                                 + ", ".join(repr(p) for p in PROJECTIONS))
+        if index is not None:
+            raise ParameterError(f"index= picks a slice; projection={projection!r} uses the whole volume along "
+                                 f"{AXIS_NAMES[a]} (pass one of them)")
+        return a, None, projection
+    if index is None:
+        return a, None if n_along is None else n_along // 2, None
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
+        raise ParameterError(f"index must be an int (a slice along {AXIS_NAMES[a]}), got {index!r}")
+    k = int(index)
+    if n_along is not None:
+        if not -n_along <= k < n_along:
+            raise ParameterError(f"index {k} out of range: {n_along} cells along {AXIS_NAMES[a]} "
+                                 f"(0..{n_along - 1}, negative counts from the end)")
+        k %= n_along
+    return a, k, None
+
+
+def volume_view(values, axis="z", index: int | None = None, projection: str | None = None) -> np.ndarray:
+    """A 2-D picture of one 3-D array: the slice normal to ``axis`` or a projection of the volume along it.
+
+    Args:
+        values: Array ``(nx, ny, nz)`` (numpy or torch).
+        axis: The slice normal, ``'x'`` / ``'y'`` / ``'z'`` or 0 / 1 / 2 (default ``'z'``: an ``x``-``y`` picture).
+        index: The slice's cell index along ``axis`` (default the middle; negative counts from the end).
+        projection: ``None`` for a slice, or ``'max'`` (maximum intensity), ``'mean'``, ``'min'`` along ``axis``
+            (NaN cells are left out).
+
+    Returns:
+        ``image`` with ``image[i, j]`` at the ``i``-th cell of the picture's horizontal axis and the ``j``-th of
+        its vertical axis (:data:`PLANES`); draw ``image.T`` with ``origin='lower'``.
+
+    Raises:
+        ShapeError: For an array that is not 3-D.
+        ParameterError: For an unknown axis or projection, an index out of range, or both index and projection.
+    """
+    v = _np(values)
+    if v.ndim != 3:
+        raise ShapeError(f"volume_view takes one 3-D array (nx, ny, nz), got shape {v.shape}")
+    a = 2 if axis is None else axis_index(axis, 3)
+    a, k, projection = _view_args(a, index, projection, v.shape[a])
+    if projection is None:
+        img = np.take(v, k, axis=a)
+    else:
+        reduce = {"max": np.nanmax, "mean": np.nanmean, "min": np.nanmin}[projection]
+        with warnings.catch_warnings():  # columns of NaN only stay NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            img = reduce(v, axis=a)
+    h, vert = PLANES[a]
+    return img.T if h > vert else img
+
+
+def mask_view(mask, axis="z", index: int | None = None, projection: str | None = None) -> np.ndarray:
+    """The 2-D picture of a boolean 3-D mask matching :func:`volume_view`: its slice, or for a projection its
+    shadow (solid where any cell along ``axis`` is solid)."""
+    m = _np(mask).astype(bool)
+    if projection is not None:
+        _view_args(axis, index, projection)
+        return volume_view(m.astype(np.uint8), axis, None, "max").astype(bool)
+    return volume_view(m, axis, index, None)
+
+
+def plane_grid(grid: Grid, axis="z") -> Grid:
+    """The 2-D grid of a picture of a 3-D grid (:data:`PLANES`); a 2-D grid is its own picture."""
+    if grid.rank == 2:
+        return grid
+    if grid.rank != 3:
+        raise ShapeError(f"plane_grid takes a 2-D or 3-D grid, got {grid}")
+    h, v = PLANES[axis_index(axis, 3)]
+    return Grid((grid.resolution[h], grid.resolution[v]), bounds=[grid.bounds[h], grid.bounds[v]])
+
+
+def view_label(grid: Grid, axis="z", index: int | None = None, projection: str | None = None) -> str:
+    """A short description of a 3-D view: ``'z = 0.47 (slice 8 of 16)'`` or ``'max along z'``."""
+    a = axis_index("z" if axis is None else axis, 3)
+    a, k, projection = _view_args(a, index, projection, grid.resolution[a])
+    if projection is not None:
+        return f"{projection} along {AXIS_NAMES[a]}"
+    lo, hi = grid.bounds[a]
+    coord = lo + (k + 0.5) * (hi - lo) / grid.resolution[a]
+    return f"{AXIS_NAMES[a]} = {coord:.3g} (slice {k} of {grid.resolution[a]})"
+
+
+def panel_layout(n: int, columns: int | None = None) -> tuple[int, int]:
+    """``(rows, columns)`` of a grid of ``n`` panels with no empty row: one row up to six panels (or
+    ``columns``), else rows as even as possible. The caller makes only ``n`` axes, so no panel stays empty.
+
+    Raises:
+        ParameterError: For ``n < 1`` or ``columns < 1``.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ParameterError(f"a picture needs at least one panel, got {n!r}")
+    if columns is not None and (isinstance(columns, bool) or not isinstance(columns, (int, np.integer))
+                                or columns < 1):
+        raise ParameterError(f"columns must be a positive int, got {columns!r}")
+    most = 6 if columns is None else int(columns)
+    rows = math.ceil(n / most)
+    return rows, math.ceil(n / rows)
+
+
+def _picture(v: np.ndarray, g: Grid, axis, index, projection, what: str) -> tuple[np.ndarray, Grid, str, str]:
+    """``(image (nh, nv), picture grid, horizontal name, vertical name)`` of a 2-D or 3-D sample."""
+    if g.rank == 2:
+        if index is not None or projection is not None or axis not in (None, "z", 2):
+            raise ParameterError(f"{what}: axis=, index= and projection= choose views of 3-D fields; "
+                                 "this field is 2-D (x right, y up)")
+        return v, g, "x", "y"
+    a = 2 if axis is None else axis_index(axis, 3)
+    h, vert = PLANES[a]
+    return volume_view(v, a, index, projection), plane_grid(g, a), AXIS_NAMES[h], AXIS_NAMES[vert]
 
 
 def _axes(ax: Axes | None) -> Axes:
@@ -113,26 +267,28 @@ def _finite_check(v: np.ndarray, what: str) -> None:
         raise ParameterError(f"{what}: every value is NaN or Inf; nothing to plot")
 
 
-def _mask_2d(mask, grid: Grid, batch: int = 0, slice_index: int | None = None) -> np.ndarray:
-    """A ``(nx, ny)`` boolean picture of a solid mask (one sample; the middle ``z`` slice in 3-D)."""
+def _mask_2d(mask, grid: Grid, batch: int = 0, axis=None, index: int | None = None,
+             projection: str | None = None) -> np.ndarray:
+    """A 2-D boolean picture of a solid mask (one sample; for 3-D the view of :func:`mask_view`)."""
     m = _np(mask)
     if m.ndim == grid.rank + 1:
         m = m[min(batch, m.shape[0] - 1)]
     if tuple(m.shape) != grid.resolution:
         raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
     if grid.rank == 3:
-        m = m[:, :, grid.resolution[2] // 2 if slice_index is None else slice_index]
+        return mask_view(m, axis, index, projection)
     return m.astype(bool)
 
 
-def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55") -> None:
-    """Draw solid cells (``True`` in a 2-D boolean ``(nx, ny)`` mask) as opaque grey over an image.
+def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55", outline: str | None = "k") -> None:
+    """Draw solid cells (``True`` in a 2-D boolean ``(nx, ny)`` mask) as opaque grey over an image, outlined.
 
     Args:
         ax: The axes holding the image.
         mask: Boolean ``(nx, ny)`` array, ``True`` where the cell is solid.
-        grid: The 2-D grid of the picture (for the extent).
+        grid: The 2-D grid of the picture (for the extent; :func:`plane_grid` of a 3-D grid).
         color: Matplotlib colour of the solid cells.
+        outline: Colour of the solids' outline (the 0.5 contour of the mask), or None for none.
 
     Raises:
         ShapeError: For a mask that does not fit the grid.
@@ -140,11 +296,15 @@ def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55") -> None:
     m = _np(mask).astype(bool)
     if m.shape != tuple(grid.resolution[:2]):
         raise ShapeError(f"mask of shape {m.shape} does not fit {grid}")
+    g2 = Grid(grid.resolution[:2], bounds=grid.bounds[:2])
     rgba = np.zeros((*m.T.shape, 4))
     rgba[..., :3] = to_rgb(color)
     rgba[..., 3] = m.T.astype(float)
-    ax.imshow(rgba, origin="lower", extent=_extent(Grid(grid.resolution[:2], bounds=grid.bounds[:2])),
-              interpolation="nearest", aspect="equal")
+    ax.imshow(rgba, origin="lower", extent=_extent(g2), interpolation="nearest", aspect="equal")
+    if outline is not None and m.any() and not m.all() and min(m.shape) >= 2:
+        xc = _np(g2.center_coords(0, torch.float64))
+        yc = _np(g2.center_coords(1, torch.float64))
+        ax.contour(xc, yc, m.T.astype(float), levels=[0.5], colors=outline, linewidths=1.0)
 
 
 def plot_field(
@@ -161,8 +321,13 @@ def plot_field(
     colorbar: bool = True,
     slice_index: int | None = None,
     mask=None,
+    axis=None,
+    index: int | None = None,
+    projection: str | None = None,
+    label: str | None = None,
 ) -> Axes:
-    """Draw a scalar field: an image for 2-D, a line for 1-D, the middle ``z`` slice for 3-D.
+    """Draw a scalar field: a line for 1-D, an image for 2-D (``x`` right, ``y`` up), a slice or a projection
+    of the volume for 3-D.
 
     Args:
         field: A :class:`CenteredGrid` (scalar, or vector shown as its magnitude or one ``component``), a
@@ -177,43 +342,56 @@ def plot_field(
         vmin: Lower colour limit (default: data minimum).
         vmax: Upper colour limit.
         colorbar: Add a colour bar.
-        slice_index: For 3-D fields, the ``z`` index of the slice (default the middle).
-        mask: Solid cells (e.g. an obstacle) drawn in grey over the image: a boolean array of the field's
-            resolution (or ``(1 or B, *res)``, sample ``batch`` is used); 2-D and 3-D fields only.
+        slice_index: The same as ``index`` (the ``z`` index of the default 3-D slice; kept for old callers).
+        mask: Solid cells (e.g. an obstacle) drawn in grey and outlined over the image: a boolean array of the
+            field's resolution (or ``(1 or B, *res)``, sample ``batch`` is used); 2-D and 3-D fields only. In a
+            3-D projection the solids' shadow is drawn.
+        axis: 3-D only: the slice normal, ``'x'`` / ``'y'`` / ``'z'`` or an int (default ``'z'``: an ``x``-``y``
+            picture with ``y`` up); see :data:`PLANES`.
+        index: 3-D only: the slice's cell index along ``axis`` (default the middle).
+        projection: 3-D only: ``None`` (a slice), ``'max'`` (maximum intensity), ``'mean'`` or ``'min'`` along
+            ``axis``.
+        label: Label of the colour bar (1-D: of the y axis), e.g. the field's name and units.
 
     Returns:
-        The axes. For 2-D fields ``ax.images[-1]`` is the ``AxesImage``; its data are ``values.T``
-        (origin lower), so ``x`` runs left to right and ``y`` bottom to top.
+        The axes. For 2-D and 3-D fields ``ax.images[0]`` is the ``AxesImage``; its data are ``image.T``
+        (origin lower) of the 2-D field or of :func:`volume_view`, so the horizontal axis runs left to right and
+        the vertical one (``y`` where it is in the picture) bottom to top.
 
     Raises:
         ShapeError: For arrays that are not one sample of a 1-D/2-D/3-D field or do not fit ``grid``.
-        ParameterError: For bad indices or all-NaN data.
+        ParameterError: For bad indices, an unknown axis or projection, 3-D options on 1-D/2-D fields, or
+            all-NaN data.
     """
+    if slice_index is not None:
+        if index is not None and index != slice_index:
+            raise ParameterError(f"slice_index={slice_index} and index={index} disagree; pass index= only")
+        index = slice_index
     v, g = _scalar_2d(field, batch, component, grid)
     _finite_check(v, "plot_field")
+    if g.rank == 1 and (mask is not None or axis is not None or index is not None or projection is not None):
+        raise ParameterError("plot_field: mask=, axis=, index= and projection= apply to 2-D and 3-D fields; "
+                             "this field is 1-D")
+    if g.rank > 1:
+        img, pg, hname, vname = _picture(v, g, axis, index, projection, "plot_field")
     ax = _axes(ax)
     if g.rank == 1:
         ax.plot(_np(g.center_coords(0, torch.float64)), v)
         ax.set_xlabel("x")
         ax.set_xlim(*g.bounds[0])
+        if label is not None:
+            ax.set_ylabel(label)
         if vmin is not None or vmax is not None:
             ax.set_ylim(vmin, vmax)
     else:
-        if g.rank == 3:
-            k = g.resolution[2] // 2 if slice_index is None else slice_index
-            if not 0 <= k < g.resolution[2]:
-                raise ParameterError(f"slice_index {k} out of range for {g.resolution[2]} z cells")
-            v = v[:, :, k]
-        im = ax.imshow(v.T, origin="lower", extent=_extent(g), cmap=cmap, vmin=vmin, vmax=vmax,
+        im = ax.imshow(img.T, origin="lower", extent=_extent(pg), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", aspect="equal")
         if mask is not None:
-            draw_mask(ax, _mask_2d(mask, g, batch, slice_index), g)
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
+            draw_mask(ax, _mask_2d(mask, g, batch, axis, index, projection), pg)
+        ax.set_xlabel(hname)
+        ax.set_ylabel(vname)
         if colorbar:
-            ax.figure.colorbar(im, ax=ax)
-    if mask is not None and g.rank == 1:
-        raise ParameterError("plot_field draws masks on 2-D and 3-D fields only")
+            ax.figure.colorbar(im, ax=ax, label=label or "")
     if title is not None:
         ax.set_title(title)
     return ax
@@ -459,7 +637,9 @@ def save_figure(fig: Figure, path: PathLike, *, dpi: int | None = None) -> Path:
     return p
 
 
-def _frames_to_arrays(frames, grid: Grid | None, component: int | None) -> tuple[list[np.ndarray], Grid]:
+def _frames_to_arrays(frames, grid: Grid | None, component: int | None, axis=None, index=None,
+                      projection=None) -> tuple[list[np.ndarray], Grid, Grid, tuple[str, str]]:
+    """The frames as 1-D arrays or 2-D pictures, the frames' grid, the picture's grid and axis names."""
     if isinstance(frames, (torch.Tensor, np.ndarray)):
         frames = list(frames)  # leading axis = time
     if not isinstance(frames, Sequence) or len(frames) == 0:
@@ -467,14 +647,105 @@ def _frames_to_arrays(frames, grid: Grid | None, component: int | None) -> tuple
     arrays, g0 = [], None
     for k, fr in enumerate(frames):
         v, g = _scalar_2d(fr, 0, component, grid)
-        if g.rank != 2:
-            raise ShapeError(f"animate draws 2-D fields; frame {k} is {g.rank}-D")
         if g0 is None:
             g0 = g
+            if g.rank == 1 and (axis is not None or index is not None or projection is not None):
+                raise ParameterError("axis=, index= and projection= choose views of 3-D fields; the frames are 1-D")
         elif g.resolution != g0.resolution:
             raise ShapeError(f"frame {k} has resolution {g.resolution}, frame 0 {g0.resolution}")
-        arrays.append(v)
-    return arrays, g0
+        if g.rank == 1:
+            arrays.append(v)
+            pg, names = g, ("x", "")
+        else:
+            img, pg, hname, vname = _picture(v, g, axis, index, projection, "animate")
+            arrays.append(img)
+            names = (hname, vname)
+    return arrays, g0, pg, names
+
+
+def make_animation(
+    frames,
+    *,
+    fps: int = 10,
+    grid: Grid | None = None,
+    title: str | None = None,
+    component: int | None = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    dpi: int = 80,
+    times: Sequence[float] | None = None,
+    mask=None,
+    axis=None,
+    index: int | None = None,
+    projection: str | None = None,
+    label: str | None = None,
+    figsize: tuple[float, float] | None = None,
+) -> tuple[Figure, FuncAnimation]:
+    """An animation of 1-D, 2-D or 3-D scalar frames (a line, an image, a slice or projection of the volume).
+
+    The arguments are those of :func:`animate` without the path. Write the animation with
+    ``anim.save(path, writer=...)`` or :func:`animate`; show it in a notebook with ``anim.to_jshtml()`` or
+    :func:`phisim.viz.show`.
+
+    Returns:
+        ``(figure, animation)``: a ``matplotlib.animation.FuncAnimation`` of ``len(frames)`` frames, ``1000 / fps``
+        ms apart. The image (``figure.axes[0].images[0]``) or line (``figure.axes[0].lines[0]``) holds the frame
+        last drawn.
+
+    Raises:
+        ParameterError: For ``fps < 1``, no frames, an unknown axis or projection, a slice index out of range.
+        ShapeError: For frames of different resolutions or more than 3 dimensions.
+    """
+    if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
+        raise ParameterError(f"fps must be a positive int, got {fps!r}")
+    arrays, g, pg, (hname, vname) = _frames_to_arrays(frames, grid, component, axis, index, projection)
+    if times is not None:
+        times = [float(t) for t in times]
+        if len(times) != len(arrays):
+            raise ShapeError(f"times has {len(times)} entries for {len(arrays)} frames")
+        if title is None or "{time" not in title:
+            title = (title + ", " if title else "") + "t = {time:.3g}"
+    finite = [a[np.isfinite(a)] for a in arrays]
+    lo = vmin if vmin is not None else min((float(a.min()) for a in finite if a.size), default=0.0)
+    hi = vmax if vmax is not None else max((float(a.max()) for a in finite if a.size), default=1.0)
+    if figsize is None:
+        aspect = pg.size[0] / pg.size[1] if g.rank > 1 else 1.4
+        figsize = (8.0, max(2.0, 7.0 / aspect + 0.8)) if aspect > 2 else (5.0, 4.0)
+    fig, ax = new_figure(figsize, dpi)
+    if g.rank == 1:
+        (artist,) = ax.plot(_np(g.center_coords(0, torch.float64)), arrays[0])
+        pad = 0.05 * (hi - lo) if hi > lo else 0.5
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set_xlim(*g.bounds[0])
+        ax.set_xlabel("x")
+        if label:
+            ax.set_ylabel(label)
+    else:
+        artist = ax.imshow(arrays[0].T, origin="lower", extent=_extent(pg), cmap=cmap, vmin=lo, vmax=hi,
+                           interpolation="nearest")
+        fig.colorbar(artist, ax=ax, label=label or "")
+        if mask is not None:
+            draw_mask(ax, _mask_2d(mask, g, 0, axis, index, projection), pg)
+        ax.set_xlabel(hname)
+        ax.set_ylabel(vname)
+
+    def text(k: int) -> str:
+        return title.format(t=k, time=times[k] if times is not None else float(k)) if title else ""
+
+    heading = ax.set_title(text(0))
+
+    def update(k):
+        if g.rank == 1:
+            artist.set_ydata(arrays[k])
+        else:
+            artist.set_data(arrays[k].T)
+        if title:
+            heading.set_text(text(k))
+        return (artist, heading)
+
+    anim = FuncAnimation(fig, update, frames=len(arrays), interval=1000.0 / int(fps), blit=False)
+    return fig, anim
 
 
 def animate(
@@ -491,12 +762,18 @@ def animate(
     dpi: int = 80,
     times: Sequence[float] | None = None,
     mask=None,
+    axis=None,
+    index: int | None = None,
+    projection: str | None = None,
+    label: str | None = None,
 ) -> Path:
-    """Write an animation of 2-D scalar frames as GIF (Pillow) or MP4 (ffmpeg).
+    """Write an animation of scalar frames as GIF (Pillow) or MP4 (ffmpeg): 2-D images, 3-D slices or
+    projections (``axis``, ``index``, ``projection`` as in :func:`plot_field`), 1-D lines.
 
     Args:
         frames: A sequence of fields (the first sample of each is shown; vector fields as magnitude or
-            ``component``) or of ``(nx, ny)`` arrays, or one ``(T, nx, ny)`` array.
+            ``component``) or of arrays of one sample (``(nx, ny)``, ``(nx, ny, nz)``, ``(nx,)``), or one
+            ``(T, ...)`` array.
         path: Output file ending in ``.gif`` or ``.mp4``.
         fps: Frames per second.
         grid: Grid of raw arrays (for the axis extent).
@@ -509,58 +786,53 @@ def animate(
         vmax: Upper colour limit (default: maximum over all frames).
         dpi: Resolution.
         times: The simulated time of each frame (shown in the title of every frame).
-        mask: Solid cells drawn in grey on every frame (see :func:`plot_field`).
+        mask: Solid cells drawn in grey and outlined on every frame (see :func:`plot_field`).
+        axis: 3-D frames: the slice normal (default ``'z'``).
+        index: 3-D frames: the slice index (default the middle).
+        projection: 3-D frames: ``None``, ``'max'``, ``'mean'`` or ``'min'`` along ``axis``.
+        label: Label of the colour bar (the field's name and units).
 
     Returns:
         The path written.
 
     Raises:
         ParameterError: For an unknown suffix, ``fps < 1``, no frames, or MP4 without ffmpeg installed.
-        ShapeError: For frames that are not 2-D or differ in resolution.
+        ShapeError: For frames of more than 3 dimensions or of different resolutions.
     """
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in (".gif", ".mp4"):
         raise ParameterError(f"animate writes .gif or .mp4 files, got {p.name!r}")
+    if suffix == ".mp4" and not ffmpeg_available():
+        raise ParameterError("writing MP4 needs ffmpeg on the PATH (matplotlib's animation.ffmpeg_path); "
+                             "install ffmpeg or write a .gif")
+    _, anim = make_animation(frames, fps=fps, grid=grid, title=title, component=component, cmap=cmap, vmin=vmin,
+                             vmax=vmax, dpi=dpi, times=times, mask=mask, axis=axis, index=index,
+                             projection=projection, label=label)
+    return save_animation(anim, p, fps=fps, dpi=dpi)
+
+
+def save_animation(anim: FuncAnimation, path: PathLike, *, fps: int = 10, dpi: int = 80) -> Path:
+    """Write an animation as ``.gif`` (Pillow), ``.mp4`` (ffmpeg) or ``.html`` (JavaScript player, no ffmpeg
+    needed), creating parent folders.
+
+    Raises:
+        ParameterError: For another suffix, ``fps < 1``, or MP4 without ffmpeg.
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in (".gif", ".mp4", ".html"):
+        raise ParameterError(f"an animation is written as .gif, .mp4 or .html, got {p.name!r}")
     if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
         raise ParameterError(f"fps must be a positive int, got {fps!r}")
     if suffix == ".mp4" and not ffmpeg_available():
         raise ParameterError("writing MP4 needs ffmpeg on the PATH (matplotlib's animation.ffmpeg_path); "
                              "install ffmpeg or write a .gif")
-    arrays, g = _frames_to_arrays(frames, grid, component)
-    if times is not None:
-        times = [float(t) for t in times]
-        if len(times) != len(arrays):
-            raise ShapeError(f"times has {len(times)} entries for {len(arrays)} frames")
-        if title is None or "{time" not in title:
-            title = (title + ", " if title else "") + "t = {time:.3g}"
-    solid = None if mask is None else _mask_2d(mask, g)
-    finite = [a[np.isfinite(a)] for a in arrays]
-    lo = vmin if vmin is not None else min((float(a.min()) for a in finite if a.size), default=0.0)
-    hi = vmax if vmax is not None else max((float(a.max()) for a in finite if a.size), default=1.0)
-    fig, ax = new_figure((5.0, 4.0), dpi)
-    im = ax.imshow(arrays[0].T, origin="lower", extent=_extent(g), cmap=cmap, vmin=lo, vmax=hi,
-                   interpolation="nearest")
-    fig.colorbar(im, ax=ax)
-    if solid is not None:
-        draw_mask(ax, solid, g)
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
-
-    def label(k: int) -> str:
-        return title.format(t=k, time=times[k] if times is not None else float(k)) if title else ""
-
-    text = ax.set_title(label(0))
-
-    def update(k):
-        im.set_data(arrays[k].T)
-        if title:
-            text.set_text(label(k))
-        return (im, text)
-
-    anim = FuncAnimation(fig, update, frames=len(arrays), blit=False)
-    writer = PillowWriter(fps=int(fps)) if suffix == ".gif" else FFMpegWriter(fps=int(fps))
     p.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".html":
+        p.write_text(anim.to_jshtml(fps=int(fps)))
+        return p
+    writer = PillowWriter(fps=int(fps)) if suffix == ".gif" else FFMpegWriter(fps=int(fps))
     anim.save(str(p), writer=writer, dpi=dpi)
     return p
 
