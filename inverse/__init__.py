@@ -45,6 +45,10 @@ from .fluid_inverse import FluidMarkerOperator, FluidProblem, frequency_loss  # 
 
 __all__ += ["FluidMarkerOperator", "FluidProblem", "frequency_loss"]  # E5 fluid pair and problem
 
+from .pde_inverse import ConvResNet, LinearPartSolver, PDEOperator, PDEProblem, pde_transfer, wiener_gain  # noqa: E402
+
+__all__ += ["PDEOperator", "LinearPartSolver", "ConvResNet", "PDEProblem", "pde_transfer", "wiener_gain"]  # phisim.pde
+
 from .custom import CallableOperator, CustomProblem, load_problem, make_problem  # noqa: E402
 from .models import load_model, model_path, predict_file, save_model  # noqa: E402
 

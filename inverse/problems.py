@@ -36,6 +36,7 @@ from .local_solvers import InverseGradientSolver, LBFGSBSolver, NewtonSolver
 from .nets import MLP, UNet
 from .offline import dataset_problem
 from .operators import Heat, PhysicsOperator, Poisson, Sine
+from .pde_inverse import PDEProblem
 from .problem import HELDOUT_SEED, HELDOUT_SIZE, Batch, Method, Problem
 
 __all__ = ["HELDOUT_SEED", "HELDOUT_SIZE", "Method", "Batch", "Problem", "SineProblem", "PoissonProblem",
@@ -265,6 +266,7 @@ PROBLEMS: dict[str, Callable[..., Problem]] = {
     "sine": SineProblem,
     "poisson": PoissonProblem,
     "heat": HeatProblem,
+    "pde": PDEProblem,  # an earlier state of a phisim.pde equation from a later one (inverse.pde_inverse)
 }
 
 
