@@ -9,6 +9,8 @@ setup(
     long_description_content_type="text/markdown",
     python_requires=">=3.10",
     packages=find_packages(include=["phisim", "phisim.*", "inverse", "inverse.*"]),
+    # the command's parser: standard library only, so `phisim --help` does not import torch
+    py_modules=["phisim_cli"],
     install_requires=[
         "numpy>=1.24",
         "scipy>=1.10",
@@ -26,5 +28,5 @@ setup(
                 "nbformat>=5", "ipykernel>=6"],
         "well": ["the-well"],
     },
-    entry_points={"console_scripts": ["phisim=inverse.cli:main"]},
+    entry_points={"console_scripts": ["phisim=phisim_cli:main"]},
 )

@@ -12,6 +12,10 @@ Examples::
     phisim plot data/smoke/data/train/smoke_00000.h5 --field vorticity
     phisim predict out/poisson.h5.pg.model.pt inputs.h5 --key inputs --out predictions.h5
 
+The parser lives in the light module :mod:`phisim_cli` (standard library only: ``phisim --help`` imports
+nothing else); this module runs the parsed commands. Paths are checked by :mod:`inverse.cli_checks` before
+any work starts, so a mistake reads the same in every command.
+
 ``problem`` is a registered name (``phisim list``) or a factory of your own, ``module:function`` or
 ``file.py:function`` (see :mod:`inverse.custom`).
 
@@ -24,59 +28,20 @@ and prints, and N processes follow the one-process run::
 
 from __future__ import annotations
 
-import argparse
-import json
+import os
 import sys
+import warnings
 from pathlib import Path
 
-from phisim.errors import PhisimError
+import phisim_cli
+from phisim.errors import ParameterError, PhisimError
 
-__all__ = ["main", "build_parser", "describe_file"]
+from . import cli_checks
 
+__all__ = ["main", "run", "build_parser", "describe_file"]
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``phisim`` command."""
-    p = argparse.ArgumentParser(prog="phisim", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    sub.add_parser("list", help="list problems and their methods")
-
-    def common(sp):
-        sp.add_argument("problem", help="problem name (see `phisim list`)")
-        sp.add_argument("--iterations", type=int, default=100)
-        sp.add_argument("--batch-size", type=int, default=None)
-        sp.add_argument("--resolution", type=int, nargs="+", default=None, help="grid size (Poisson/heat)")
-        sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--device", default="cpu")
-        sp.add_argument("--out", type=Path, default=None, help="HDF5 file for the curves")
-        sp.add_argument("--checkpoint-every", type=int, default=0)
-        sp.add_argument("--resume", action="store_true",
-                        help="continue the method's run in --out from its checkpoint")
-        sp.add_argument("--overwrite", action="store_true",
-                        help="replace a run of the method that --out already holds (refused otherwise)")
-        sp.add_argument("--quiet", action="store_true", help="no progress bar")
-        sp.add_argument("--eval-every", type=int, default=None,
-                        help="iterations between held-out evaluations (default: about 20 per run; 0: at the end only)")
-        sp.add_argument("--heldout-size", type=int, default=None, help="samples in the held-out set")
-        sp.add_argument("--dtype", choices=("float32", "float64"), default=None,
-                        help="network and data precision (default: the problem's)")
-        sp.add_argument("--setting", action="append", metavar="KEY=VALUE", default=[],
-                        help="a problem setting (repeatable), e.g. --setting lr=0.01")
-        sp.add_argument("--tensorboard", type=Path, default=None, help="TensorBoard folder (if installed)")
-        sp.add_argument("--csv", type=Path, default=None, help="folder for CSV copies of the curves")
-
-    t = sub.add_parser("train", help="train one method")
-    common(t)
-    t.add_argument("method")
-    c = sub.add_parser("compare", help="train several methods on the same data stream")
-    common(c)
-    c.add_argument("methods", nargs="+")
-    c.add_argument("--plot", type=Path, default=None, help="PNG of the learning curves")
-    i = sub.add_parser("info", help="summarise an HDF5 file written by phisim")
-    i.add_argument("path", type=Path)
-    from .cli_workflows import add_workflow_parsers
-
-    add_workflow_parsers(sub)
-    return p
+#: The parser of the ``phisim`` command (defined in :mod:`phisim_cli`, which imports nothing heavy).
+build_parser = phisim_cli.build_parser
 
 
 def describe_file(path: Path) -> str:
@@ -141,52 +106,89 @@ def _problem(args):
     return get_problem(args.problem, **settings)
 
 
+def progress_flag(args) -> bool | None:
+    """The ``progress=`` of a command: False with ``--quiet``, else None (a bar when stderr is a terminal)."""
+    return False if getattr(args, "quiet", False) else None
+
+
+def heldout_source(problem) -> str:
+    """Where a problem's held-out samples come from, in words (for the summary of a training run)."""
+    source = getattr(problem, "heldout_source", None)
+    if source:
+        return source
+    return f"{problem.heldout_size} samples drawn by the problem from a generator of their own"
+
+
 def _train(args, problem, method):
     from .distributed import is_main_process
     from .train import train
 
     r = train(problem, method, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
               device=args.device, out=args.out, checkpoint_every=args.checkpoint_every, resume=args.resume,
-              progress=not args.quiet, eval_every=args.eval_every, tensorboard=args.tensorboard,
+              progress=progress_flag(args), eval_every=args.eval_every, tensorboard=args.tensorboard,
               overwrite=args.overwrite)
     if args.csv is not None and args.out is not None and is_main_process():
         from .export import export_csv
 
         export_csv(args.out, args.csv)
     if is_main_process():
-        print(json.dumps({
+        print(cli_checks.json_summary({
             "problem": problem.name, "method": method, "iterations": r.iterations,
             "loss_name": problem.loss_name, "metric_name": problem.metric_name,
             "final_loss": r.final("loss"), "final_metric": r.final("metric"),
             "final_measured_on": "training batches, mean of the last 10 iterations",
             "heldout_loss": r.final_eval("loss"), "heldout_metric": r.final_eval("metric"),
-            "heldout_measured_on": f"final model, eval mode, {problem.heldout_size} held-out samples",
-            "seconds": round(r.seconds, 3)}, ensure_ascii=False))
+            "heldout_measured_on": f"final model, eval mode, {heldout_source(problem)}",
+            "seconds": round(r.seconds, 3)}))
     return r
 
 
 def _check_args(args) -> None:
-    """Check output paths and the device before any work starts (a bad --out must not fail after training)."""
+    """Check paths, numbers and the device before any work starts (a bad --out must not fail after training).
+
+    Paths go through :mod:`inverse.cli_checks` (one wording per mistake in every command).
+    """
     from phisim.checks import check_device
-    from phisim.errors import ParameterError
     from phisim.io.h5util import check_output_path
 
+    cmd = args.command
     if getattr(args, "device", None) is not None:
         check_device(args.device)
-    if getattr(args, "out", None) is not None and args.command not in ("simulate", "plot"):  # those are folders
-        check_output_path(args.out, append=True)
-    plot = getattr(args, "plot", None)
-    if plot is not None:
-        if plot.is_dir():
-            raise ParameterError(f"--plot {plot} is a directory; give a file name such as {plot / 'curves.png'}")
-        try:
-            plot.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ParameterError(f"--plot {plot}: cannot create its folder ({exc.strerror or exc})") from exc
-        import os
+    if cmd in ("train", "compare"):
+        if args.out is not None:
+            cli_checks.writable_file(args.out, "output file")
+            check_output_path(args.out, append=True)  # an existing file must be HDF5 (runs are appended)
+        if cmd == "compare" and args.plot is not None:
+            cli_checks.writable_file(args.plot, "--plot file", example="curves.png")
+        if args.csv is not None:
+            if args.out is None:
+                raise ParameterError("--csv writes the curves of --out; give --out FILE.h5 too")
+            cli_checks.writable_dir(args.csv, "CSV folder")
+        if args.tensorboard is not None:
+            cli_checks.writable_dir(args.tensorboard, "TensorBoard folder")
+    elif cmd == "info":
+        cli_checks.hdf5_file(args.path, "file")
+    elif cmd == "simulate":
+        if args.config is not None:
+            cli_checks.existing_file(args.config, "config file")
+        if args.out is not None:
+            cli_checks.writable_dir(args.out, "dataset folder")
+    elif cmd == "plot":
+        cli_checks.hdf5_file(args.path, "file")
+        if args.out is not None:
+            cli_checks.writable_dir(args.out, "output folder")
+    elif cmd == "predict":
+        order = "phisim predict MODEL INPUTS --out FILE"
+        cli_checks.model_file(args.model, argument_order=order)
+        from .models import read_model_file
 
-        if not os.access(plot.parent, os.W_OK):
-            raise ParameterError(f"--plot {plot}: the folder {plot.parent} is not writable")
+        read_model_file(args.model)  # a damaged or foreign model file is named before the inputs are read
+        cli_checks.hdf5_file(args.inputs, "input file", argument_order=order)
+        args.key = cli_checks.dataset_key(args.inputs, args.key)
+        cli_checks.writable_file(args.out, "output file")
+    elif cmd == "export":
+        cli_checks.hdf5_file(args.path, "results file")
+        cli_checks.writable_dir(args.csv, "CSV folder")
     for name in ("iterations", "checkpoint_every"):
         v = getattr(args, name, None)
         if v is not None and v < 0:
@@ -198,27 +200,43 @@ def _check_args(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the ``phisim`` command; returns the exit status.
+    """Run the ``phisim`` command with the arguments ``argv`` (None: ``sys.argv``); returns the exit status.
+
+    See :func:`run`.
+    """
+    return run(build_parser().parse_args(argv), command=argv is None)
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    text = " ".join(str(message).split())
+    print(f"phisim: warning: {text}", file=sys.stderr if file is None else file)
+
+
+def run(args, *, command: bool = False) -> int:
+    """Run a parsed ``phisim`` command; returns the exit status.
 
     User errors (bad arguments, files, devices, any :class:`~phisim.errors.PhisimError`) print one line
     ``phisim: error: ...`` and return 2; an unexpected error prints one line and returns 1 (set
-    ``PHISIM_DEBUG=1`` for its traceback); Ctrl-C returns 130 and SIGTERM 143, within a second or two:
-    files are closed cleanly on the way out, and the command itself (``argv`` None) then exits at once,
-    without the interpreter's teardown of torch (a second or more on a busy machine). No traceback is
-    printed otherwise.
-    """
-    import os
+    ``PHISIM_DEBUG=1`` for its traceback); warnings print as one line ``phisim: warning: ...``. Ctrl-C returns
+    130 and SIGTERM 143, within a second or two: files are closed cleanly on the way out, and the command
+    itself (``command=True``) then exits at once, without the interpreter's teardown of torch (a second or more
+    on a busy machine). No traceback is printed otherwise.
 
-    args = build_parser().parse_args(argv)
+    Args:
+        args: The namespace of :func:`build_parser`.
+        command: Whether this is the ``phisim`` process itself (it may exit at once after an interrupt).
+    """
     try:
-        return _dispatch(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            return _dispatch(args)
     except KeyboardInterrupt as exc:
         import signal
 
         signum = getattr(exc, "signum", signal.SIGINT)  # phisim.io.interrupts.Interrupted carries SIGTERM
         name = "" if signum == signal.SIGINT else f" ({signal.Signals(signum).name})"
         print(f"phisim: interrupted{name}", file=sys.stderr)
-        if argv is None:  # the command: every file is closed, nothing is left to tear down
+        if command:  # the command: every file is closed, nothing is left to tear down
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(128 + signum)
@@ -226,34 +244,33 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the command line shows one line, never a traceback
         if os.environ.get("PHISIM_DEBUG"):
             raise
-        print(f"phisim: error: {type(exc).__name__}: {exc} (set PHISIM_DEBUG=1 for the traceback)", file=sys.stderr)
+        text = " ".join(str(exc).split())
+        print(f"phisim: error: {type(exc).__name__}: {text} (set PHISIM_DEBUG=1 for the traceback)", file=sys.stderr)
         return 1
 
 
-def _dispatch(args) -> int:
-    """Run the parsed command; user errors (PhisimError) print one line and return 2."""
-    started = False
+def _list(args) -> int:
+    from .problems import PROBLEMS
+
+    for name, cls in PROBLEMS.items():
+        try:
+            print(f"{name}: {', '.join(cls().methods)}")
+        except (TypeError, PhisimError):  # needs settings, e.g. the dataset of `well`
+            print(f"{name}: supervised (needs --setting data_dir=DIR --setting field=NAME)")
+    print("your own problem: module:function or path/to/file.py:function (see docs/TUTORIAL_custom_physics.md)")
+    return 0
+
+
+def _info(args) -> int:
+    print(describe_file(args.path))
+    return 0
+
+
+def _training(args) -> int:
+    from .distributed import is_main_process
+
+    started = _start_process_group(args.device)
     try:
-        _check_args(args)
-        if args.command == "list":
-            from .problems import PROBLEMS
-
-            for name, cls in PROBLEMS.items():
-                try:
-                    print(f"{name}: {', '.join(cls().methods)}")
-                except (TypeError, PhisimError):  # needs settings, e.g. the dataset of `well`
-                    print(f"{name}: supervised (needs --setting data_dir=DIR --setting field=NAME)")
-            return 0
-        if args.command == "info":
-            print(describe_file(args.path))
-            return 0
-        from .cli_workflows import WORKFLOW_COMMANDS, run_workflow
-
-        if args.command in WORKFLOW_COMMANDS:
-            return run_workflow(args)
-        from .distributed import is_main_process
-
-        started = _start_process_group(args.device)
         problem = _problem(args)
         for m in [args.method] if args.command == "train" else args.methods:
             problem.method(m)  # every method known before the first one trains
@@ -272,14 +289,36 @@ def _dispatch(args) -> int:
                                       title=f"{problem.name}: {problem.metric_name}")
             save_figure(ax.figure, args.plot)
         return 0
-    except PhisimError as exc:
-        print(f"phisim: error: {exc}", file=sys.stderr)
-        return 2
     finally:
         if started:
             import torch.distributed as dist
 
             dist.destroy_process_group()
+
+
+def _workflow(args) -> int:
+    from .cli_workflows import run_workflow
+
+    return run_workflow(args)
+
+
+#: Command -> handler; every handler imports what its command needs when it runs.
+HANDLERS = {"list": _list, "info": _info, "train": _training, "compare": _training, "simulate": _workflow,
+            "plot": _workflow, "predict": _workflow, "export": _workflow}
+
+
+def _dispatch(args) -> int:
+    """Check the arguments and run the command; user errors (PhisimError) print one line and return 2."""
+    try:
+        handler = HANDLERS.get(args.command)
+        if handler is None:
+            raise ParameterError(f"unknown command {args.command!r}; `phisim --help` lists them")
+        _check_args(args)
+        return handler(args)
+    except PhisimError as exc:
+        text = " ".join(str(exc).split())
+        print(f"phisim: error: {text}", file=sys.stderr)
+        return 2
 
 
 def _start_process_group(device: str) -> bool:
@@ -294,4 +333,4 @@ def _start_process_group(device: str) -> bool:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(run(build_parser().parse_args(), command=True))

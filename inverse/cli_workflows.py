@@ -1,5 +1,8 @@
 """Sub-commands of ``phisim`` for the daily workflows: ``simulate``, ``plot``, ``predict``, ``export``.
 
+Their parsers are defined in :mod:`phisim_cli` (a light module: ``phisim --help`` imports nothing heavy);
+their paths are checked by :mod:`inverse.cli_checks` before they run.
+
 Examples::
 
     phisim simulate smoke --trajectories 64 --workers 4 --out data/smoke
@@ -15,6 +18,10 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+from phisim_cli import add_workflow_parsers  # the parsers live in the light module (kept here by name)
+
+from . import cli_checks
 
 __all__ = ["add_workflow_parsers", "run_workflow", "WORKFLOW_COMMANDS", "parse_settings"]
 
@@ -42,60 +49,23 @@ def parse_settings(items: list[str] | None) -> dict:
     return out
 
 
-def add_workflow_parsers(sub) -> None:
-    """Add the workflow sub-commands to the ``phisim`` sub-parser collection ``sub``."""
-    s = sub.add_parser("simulate", help="generate a dataset of simulations (The Well layout)")
-    s.add_argument("scenario", nargs="?", help="scenario name (see --list)")
-    s.add_argument("--list", action="store_true", help="list the scenarios and their parameters")
-    s.add_argument("--config", type=Path, default=None, help="YAML or JSON file of settings")
-    s.add_argument("--set", dest="settings", action="append", metavar="KEY=VALUE", default=[],
-                   help="a setting (repeatable), e.g. --set viscosity=0.02")
-    s.add_argument("--out", type=Path, default=None, help="dataset folder (default: data/<scenario>)")
-    s.add_argument("--trajectories", type=int, default=None)
-    s.add_argument("--trajectories-per-file", type=int, default=None)
-    s.add_argument("--steps", type=int, default=None)
-    s.add_argument("--dt", type=float, default=None)
-    s.add_argument("--resolution", type=int, nargs="+", default=None)
-    s.add_argument("--dim", type=int, default=None)
-    s.add_argument("--seed", type=int, default=None)
-    s.add_argument("--device", default=None)
-    s.add_argument("--workers", type=int, default=1, help="parallel worker processes")
-    s.add_argument("--overwrite", action="store_true", help="replace a dataset with other settings")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
-
-    p = sub.add_parser("plot", help="frames / GIF / MP4 of a simulation file, learning curves of a training file")
-    p.add_argument("path", type=Path)
-    p.add_argument("--field", default=None, help="field name, or speed / vorticity (derived from velocity)")
-    p.add_argument("--sample", type=int, default=0, help="trajectory index")
-    p.add_argument("--frames", type=int, nargs="+", default=None, help="frame indices of the PNG")
-    p.add_argument("--animation", choices=("gif", "mp4", "none"), default="gif")
-    p.add_argument("--fps", type=int, default=10)
-    p.add_argument("--out", type=Path, default=None, help="output folder (default: beside the file)")
-
-    r = sub.add_parser("predict", help="apply a trained model to inputs from an HDF5 file")
-    r.add_argument("model", type=Path, help="model file written by training (<out>.<method>.model.pt)")
-    r.add_argument("inputs", type=Path, help="HDF5 file with the inputs")
-    r.add_argument("--key", default=None, help="dataset in the input file (e.g. t0_fields/density)")
-    r.add_argument("--out", type=Path, required=True, help="HDF5 file for the predictions")
-    r.add_argument("--device", default="cpu")
-    r.add_argument("--batch-size", type=int, default=64)
-
-    e = sub.add_parser("export", help="export the training curves of a results file as CSV")
-    e.add_argument("path", type=Path)
-    e.add_argument("--csv", type=Path, required=True, help="output folder (one <method>.csv per method)")
-
-
 def _list_scenarios() -> str:
+    """Every scenario with its dimensions, its defaults (resolution, dt, steps) and its parameters, then the
+    settings every scenario takes with their defaults."""
     from phisim.simulate import COMMON_PARAMETERS, SCENARIOS
 
     lines = []
     for name, sc in SCENARIOS.items():
         dims = "/".join(f"{d}-D" for d in sorted(sc.dims))
         lines.append(f"{name} ({dims}): {sc.description}")
+        lines.append(f"    defaults: dim={sc.dims[0]}, resolution={sc.resolution}, dt={sc.dt:g}, steps={sc.steps}")
         for key, par in sc.parameters.items():
             rng = f" [random in {par.low:g}..{par.high:g} per file]" if par.low is not None else ""
             lines.append(f"    {key} = {par.default!r}{rng}  {par.help}")
-    lines.append("common settings: " + ", ".join(COMMON_PARAMETERS))
+    lines.append("settings of every scenario (--set KEY=VALUE, a --config file, or the flag of the same name):")
+    for key, par in COMMON_PARAMETERS.items():
+        default = "the scenario's" if par.default is None else repr(par.default)
+        lines.append(f"    {key} = {default}  {par.help}")
     return "\n".join(lines)
 
 
@@ -119,18 +89,23 @@ def run_workflow(args: argparse.Namespace) -> int:
                  "resolution": (res[0] if len(res) == 1 else res) if res else None}
         cfg = resolve_config(args.scenario, config, **flags)
         out = args.out or Path("data") / args.scenario
-        r = simulate_dataset(out, cfg, workers=args.workers, progress=not args.quiet, overwrite=args.overwrite)
+        cli_checks.writable_dir(out, "dataset folder")
+        r = simulate_dataset(out, cfg, workers=args.workers, progress=False if args.quiet else None,
+                             overwrite=args.overwrite)
         if r["stats"] is not None:
-            print(json.dumps({"dataset": str(r["root"]), "files": r["files"], "written": r["written"],
-                              "skipped": r["skipped"], "trajectories": r["trajectories"],
-                              "stats": str(r["stats"])}))
+            print(cli_checks.json_summary({
+                "dataset": str(r["root"]), "files": r["files"], "written": r["written"], "skipped": r["skipped"],
+                "trajectories": r["trajectories"], "files_per_split": r.get("files_per_split"),
+                "stats": str(r["stats"])}))
         return 0
     if args.command == "plot":
         from phisim.viz.plotfile import plot_file
 
         anim = None if args.animation == "none" else args.animation
+        slicing = {k: v for k, v in (("axis", _axis(args.axis)), ("index", args.index),
+                                     ("projection", args.projection)) if v is not None}
         for p in plot_file(args.path, args.out, field=args.field, sample=args.sample, frames=args.frames,
-                           animation=anim, fps=args.fps):
+                           animation=anim, fps=args.fps, **slicing):
             print(p)
         return 0
     if args.command == "predict":
@@ -146,3 +121,17 @@ def run_workflow(args: argparse.Namespace) -> int:
             print(p)
         return 0
     raise ParameterError(f"unknown command {args.command!r}")
+
+
+def _axis(value: str | None):
+    """``--axis``: a name (``x``, ``y``, ``z``) as it is, a number as an int."""
+    if value is None:
+        return None
+    v = value.strip().lower()
+    if v.lstrip("-").isdigit():
+        return int(v)
+    if v in ("x", "y", "z"):
+        return v
+    from phisim.errors import ParameterError
+
+    raise ParameterError(f"--axis must be x, y, z or an axis number 0, 1, 2, got {value!r}")

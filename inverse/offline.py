@@ -16,6 +16,7 @@ Example (the earlier state of a heat dataset from its last frame)::
 from __future__ import annotations
 
 import os
+import warnings
 
 import h5py
 import numpy as np
@@ -168,7 +169,8 @@ def dataset_problem(data_dir: str, field: str, split: str = "train", x_frame: in
         A :class:`~inverse.custom.CustomProblem` whose only method is ``supervised`` (no physics: the y-space
         loss is logged as NaN). Its held-out set is every trajectory of the ``valid`` split (else ``test``;
         ``problem.heldout_split`` says which, None when neither has files and held-out samples are drawn
-        from the training split).
+        from the training split, with a warning); ``problem.heldout_source`` says it in words (training
+        summaries and logs report it).
 
     Raises:
         FileFormatError: Bad dataset folder or field.
@@ -197,7 +199,15 @@ def dataset_problem(data_dir: str, field: str, split: str = "train", x_frame: in
             continue
         _heldout_from_split(p, held)
         p.heldout_split = other
+        p.heldout_source = f"all {held.trajectories} trajectories of the {other!r} split of {data_dir}"
         break
+    if p.heldout_split is None:
+        p.heldout_source = (f"{p.heldout_size} samples drawn from the {split!r} split, the data training draws "
+                            f"from: {data_dir} has no valid or test files")
+        warnings.warn(f"{data_dir} has no files in data/valid or data/test: the held-out evaluation draws "
+                      f"{p.heldout_size} samples from the {split!r} split the network trains on, so it does not "
+                      "measure generalisation; simulate more files (more --trajectories or fewer "
+                      "--trajectories-per-file) to get valid/test files", UserWarning, stacklevel=2)
     return p
 
 

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from phisim.checks import check_bool, check_device, check_int, check_seed
+from phisim.checks import check_bool, check_device, check_int, check_progress, check_seed
 from phisim.errors import FileFormatError, NonFiniteError, ParameterError
 from phisim.io import TrainingLog, recover_file
 from phisim.io.h5util import check_output_path
@@ -365,7 +365,7 @@ def train(
     out: str | os.PathLike | None = None,
     checkpoint_every: int = 0,
     resume: bool = False,
-    progress: bool = False,
+    progress: bool | None = None,
     callback: Callable[[int, dict], None] | None = None,
     distributed: bool | None = None,
     eval_every: int | None = None,
@@ -388,7 +388,8 @@ def train(
         checkpoint_every: Iterations between checkpoints (0: none).
         resume: Continue from the checkpoint next to ``out`` when there is one. A log of the method that
             already holds records needs its checkpoint (otherwise the run is refused).
-        progress: Show a tqdm progress bar.
+        progress: Show a tqdm progress bar on stderr (None: when stderr is a terminal, so interactive runs show
+            it and pipes, logs and batch jobs stay quiet).
         callback: Called as ``callback(iteration, record)`` after every iteration.
         distributed: Data-parallel training over the processes of a ``torch.distributed`` group: every
             process draws the same batch and trains on its share (samples ``rank::world_size``) of a
@@ -422,6 +423,12 @@ def train(
         return _train(**locals())
 
 
+def _heldout_source(problem) -> str:
+    """Where the problem's held-out samples come from: its ``heldout_source`` (e.g. a dataset's split), else its
+    seeded generator."""
+    return getattr(problem, "heldout_source", None) or f"{problem.heldout_size} samples, seed {problem.heldout_seed}"
+
+
 def _train(problem, method, *, iterations, batch_size, seed, device, out, checkpoint_every, resume, progress,
            callback, distributed, eval_every, tensorboard, overwrite) -> TrainResult:
     if isinstance(problem, str):
@@ -432,6 +439,7 @@ def _train(problem, method, *, iterations, batch_size, seed, device, out, checkp
     checkpoint_every = check_int(checkpoint_every, "checkpoint_every", minimum=0)
     seed = check_seed(seed, allow_none=False)
     resume, overwrite = check_bool(resume, "resume"), check_bool(overwrite, "overwrite")
+    progress = check_progress(progress)
     if (resume or checkpoint_every) and out is None:
         raise ParameterError("checkpoints and resume need an output file (out=...)")
     batch_size = problem.batch_size if batch_size is None else batch_size
@@ -517,8 +525,7 @@ def _train(problem, method, *, iterations, batch_size, seed, device, out, checkp
             "local_solver": type(method.local_solver).__name__ if method.local_solver is not None else "analytic",
             "loss_name": problem.loss_name, "metric_name": problem.metric_name,
             "loss_measured_on": "training batch, train mode, before the update",
-            "eval_measured_on": f"held-out set: {problem.heldout_size} samples, seed {problem.heldout_seed}, "
-                                "eval mode, after the update",
+            "eval_measured_on": f"held-out set: {_heldout_source(problem)}, eval mode, after the update",
             "heldout_size": problem.heldout_size, "heldout_seed": str(problem.heldout_seed),
         })
     curves: dict[str, list] = {k: [] for k in ("iteration", "loss", "metric", "eval_loss", "eval_metric",

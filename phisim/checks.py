@@ -17,6 +17,7 @@ paths and no new dependency.
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 import torch
@@ -26,7 +27,7 @@ from phisim.errors import NonFiniteError, ParameterError, ShapeError
 __all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
            "check_finite_number", "check_number", "check_int", "check_seed", "check_bool", "check_choice",
            "check_callable", "callable_name", "batch_size_of", "check_batch_compatible", "check_nonempty_batch",
-           "check_callable_output"]
+           "check_callable_output", "check_progress"]
 
 
 def check_dt(dt, name: str = "dt") -> float:
@@ -123,6 +124,8 @@ def check_device(device) -> torch.device:
     Raises:
         ParameterError: For a malformed name, or an accelerator this machine does not have.
     """
+    if isinstance(device, torch.device) and device.type == "cpu":
+        return device  # the common case, without a look at the accelerators
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError, ValueError) as exc:
@@ -390,3 +393,24 @@ def check_callable_output(out, expected_shape, fn, name: str, *, finite: bool = 
         bad = int((~torch.isfinite(out.detach())).sum())
         raise NonFiniteError(f"{who} returned {bad} NaN/Inf value(s) (shape {expected})")
     return out
+
+
+def check_progress(progress, name: str = "progress", stream=None) -> bool:
+    """Whether long work shows a progress bar: ``True``/``False`` as given; ``None`` (the default of the
+    functions that take ``progress=``) shows one when ``stream`` (default ``sys.stderr``, where the bar goes)
+    is a terminal, and stays quiet in pipes, log files, CI and batch jobs.
+
+    Raises:
+        ParameterError: Neither a bool nor None.
+    """
+    if progress is None:
+        stream = sys.stderr if stream is None else stream
+        isatty = getattr(stream, "isatty", None)
+        try:
+            return bool(isatty()) if isatty is not None else False
+        except (ValueError, OSError):  # a closed or detached stream
+            return False
+    if not isinstance(progress, (bool, np.bool_)):
+        raise ParameterError(f"{name} must be True, False or None (a bar when stderr is a terminal), got "
+                             f"{_short(progress)}")
+    return bool(progress)

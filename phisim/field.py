@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from phisim.boundary import Boundary, pad, pad_staggered_component, set_boundary_faces
-from phisim.checks import all_finite, check_batch_compatible, check_int, check_nonempty_batch
+from phisim.checks import all_finite, check_batch_compatible, check_device, check_int, check_nonempty_batch
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError
 from phisim.grid import Grid
 
@@ -36,6 +36,7 @@ def _as_float_tensor(values, dtype=None, device=None) -> torch.Tensor:
         raise ParameterError(f"field values must be a real numeric array, got numpy dtype {values.dtype}")
     if isinstance(values, (str, bytes)) or values is None:
         raise ParameterError(f"field values must be a tensor or array, got {values!r}")
+    device = None if device is None else check_device(device)
     try:
         if isinstance(values, np.ndarray) and values.dtype == np.float64 and dtype is None:
             t = torch.as_tensor(values)
@@ -253,6 +254,7 @@ class Field:
 
     def to(self, device=None, dtype: torch.dtype | None = None):
         """A copy with values moved to ``device`` and/or cast to ``dtype``."""
+        device = None if device is None else check_device(device)
         return self._map(lambda a: a.to(device=device or a.device, dtype=dtype or a.dtype))
 
 
@@ -311,6 +313,7 @@ class CenteredGrid(Field):
         if channels is not None:
             _check_count(channels, "channels")
         shape = (batch_size,) + (() if channels is None else (channels,)) + grid.resolution
+        device = None if device is None else check_device(device)  # a missing GPU is a ParameterError
         return cls(torch.zeros(shape, dtype=dtype or torch.get_default_dtype(), device=device), grid, boundary)
 
     @classmethod
@@ -506,6 +509,7 @@ class StaggeredGrid(Field):
         """A zero velocity field."""
         _check_count(batch_size, "batch_size")
         dtype = dtype or torch.get_default_dtype()
+        device = None if device is None else check_device(device)
         return cls(tuple(torch.zeros((batch_size, *grid.face_shape(i)), dtype=dtype, device=device)
                          for i in range(grid.rank)), grid, boundary)
 

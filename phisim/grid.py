@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from phisim.checks import check_device
 from phisim.errors import ParameterError
 
 __all__ = ["Grid", "AXIS_NAMES"]
@@ -155,12 +156,14 @@ class Grid:
         """Cell-centre coordinates along ``axis``, shape ``(resolution[axis],)``."""
         self._check_axis(axis)
         n, lo, d = self.resolution[axis], self.bounds[axis][0], self.dx[axis]
+        device = None if device is None else check_device(device)  # a missing GPU is a ParameterError
         return lo + (torch.arange(n, dtype=dtype or torch.get_default_dtype(), device=device) + 0.5) * d
 
     def face_coords(self, axis: int, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
         """Face coordinates along ``axis`` including both boundary faces, shape ``(resolution[axis] + 1,)``."""
         self._check_axis(axis)
         n, lo, d = self.resolution[axis], self.bounds[axis][0], self.dx[axis]
+        device = None if device is None else check_device(device)
         return lo + torch.arange(n + 1, dtype=dtype or torch.get_default_dtype(), device=device) * d
 
     def cell_centers(self, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:

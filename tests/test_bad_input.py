@@ -352,8 +352,8 @@ def test_bad_input_gives_typed_error(name, call, error, match):
 
 CLI_CASES = [
     ("info-missing", ["info", "missing.h5"], "does not exist"),
-    ("info-folder", ["info", "."], "directory"),
-    ("info-text", ["info", "notes.txt"], "not a readable HDF5"),
+    ("info-folder", ["info", "."], "file . is a folder, not a file"),
+    ("info-text", ["info", "notes.txt"], "file notes.txt is not an HDF5 file"),
     ("info-pipe", ["info", "pipe.h5"], "not a regular file"),
     ("train-unknown-problem", ["train", "nope", "adam", "--iterations", "1"], "problem"),
     ("train-unknown-method", ["train", "sine", "nope", "--iterations", "1"], "no method"),
@@ -361,12 +361,14 @@ CLI_CASES = [
     ("train-zero-batch", ["train", "sine", "adam", "--batch-size", "0"], "batch-size"),
     ("train-cuda-missing", ["train", "sine", "adam", "--iterations", "1", "--device", "cuda:99"], "CUDA|device"),
     ("train-bad-device", ["train", "sine", "adam", "--iterations", "1", "--device", "warp-drive"], "device"),
-    ("train-out-is-folder", ["train", "sine", "adam", "--iterations", "1", "--out", "."], "directory"),
+    ("train-out-is-folder", ["train", "sine", "adam", "--iterations", "1", "--out", "."],
+     "output file . is a folder, not a file"),
     ("train-out-not-hdf5", ["train", "sine", "adam", "--iterations", "1", "--out", "notes.txt"], "not an HDF5 file"),
     ("train-bad-resolution", ["train", "poisson", "pg", "--iterations", "1", "--resolution", "0", "4"],
      "resolution"),
     ("train-negative-checkpoint", ["train", "sine", "adam", "--checkpoint-every", "-1"], "checkpoint"),
-    ("compare-plot-folder", ["compare", "sine", "adam", "--iterations", "1", "--plot", "."], "directory"),
+    ("compare-plot-folder", ["compare", "sine", "adam", "--iterations", "1", "--plot", "."],
+     r"--plot file \. is a folder, not a file; give a file name such as curves.png"),
     ("compare-unknown-method", ["compare", "sine", "adam", "nope", "--iterations", "1"], "no method"),
 ]
 
@@ -399,12 +401,15 @@ def test_cli_checks_output_before_training(capsys, monkeypatch):
     assert calls == []
 
 
-def test_cli_unexpected_error_is_one_line(capsys, monkeypatch):
+def test_cli_unexpected_error_is_one_line(capsys, monkeypatch, tmp_path):
+    import h5py
+
     import inverse.cli as cli
 
     monkeypatch.delenv("PHISIM_DEBUG", raising=False)
     monkeypatch.setattr(cli, "describe_file", lambda p: (_ for _ in ()).throw(RuntimeError("boom")))
-    assert cli_main(["info", "x.h5"]) == 1
+    h5py.File(tmp_path / "x.h5", "w").close()  # passes the path checks; the command itself then fails
+    assert cli_main(["info", str(tmp_path / "x.h5")]) == 1
     err = capsys.readouterr().err
     assert "Traceback" not in err and "boom" in err and "PHISIM_DEBUG" in err
 

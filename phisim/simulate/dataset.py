@@ -38,6 +38,7 @@ import signal
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from phisim.checks import check_progress
 from phisim.errors import FileFormatError, ParameterError
 from phisim.io import SimulationWriter, write_statistics
 from phisim.io.interrupts import Interrupted, check_interrupt, interruptible, uninterrupted
@@ -53,7 +55,7 @@ from phisim.io.journal import journal_path
 from phisim.simulate.scenarios import COMMON_PARAMETERS, SCENARIOS, Scenario
 
 __all__ = ["ChunkPlan", "get_scenario", "resolve_config", "load_config_file", "plan_chunks", "simulate_chunk",
-           "simulate_dataset", "check_dataset_dir", "SPLITS"]
+           "simulate_dataset", "check_dataset_dir", "split_shortfall", "SPLITS"]
 
 SPLITS = ("train", "valid", "test")
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -219,6 +221,29 @@ def plan_chunks(cfg: Mapping[str, Any]) -> list[ChunkPlan]:
         size = min(per, total - i * per)
         chunks.append(ChunkPlan(i, split, size, f"data/{split}/{cfg['scenario']}_{i:05d}.h5"))
     return chunks
+
+
+def split_shortfall(cfg: Mapping[str, Any], chunks: Sequence[ChunkPlan] | None = None) -> str | None:
+    """What a run's plan leaves out of its splits, in words, or None when every split it asks for gets files.
+
+    Splits are made of whole files, and below three files no file goes to ``valid`` or ``test``: with the
+    defaults (8 trajectories, 4 per file) every file lands in ``train``. Training on such a dataset then has
+    no held-out data of its own.
+    """
+    chunks = plan_chunks(cfg) if chunks is None else chunks
+    missing = [sp for sp, frac in (("valid", cfg["valid_fraction"]), ("test", cfg["test_fraction"]))
+               if frac > 0 and not any(c.split == sp for c in chunks)]
+    if not missing:
+        return None
+    n, per, total = len(chunks), cfg["trajectories_per_file"], cfg["trajectories"]
+    empty = " and ".join(f"data/{m}" for m in missing)
+    if n < 3:
+        hint = (f"a split gets a file only from 3 files on: e.g. --trajectories {3 * per} or "
+                f"--trajectories-per-file {max(1, total // 3)}")
+    else:
+        hint = "raise valid_fraction / test_fraction or add trajectories"
+    return (f"{total} trajectories make {n} file(s) of up to {per}, and splits are whole files: {empty} "
+            f"stay(s) empty ({hint}); training on this dataset has no held-out data of its own")
 
 
 def _generator(seed: int, index: int) -> torch.Generator:
@@ -499,7 +524,7 @@ def simulate_dataset(
     cfg: Mapping[str, Any],
     *,
     workers: int = 1,
-    progress: bool = True,
+    progress: bool | None = None,
     overwrite: bool = False,
 ) -> dict:
     """Generate (or continue) a dataset folder for a resolved configuration.
@@ -508,11 +533,16 @@ def simulate_dataset(
         out: The dataset folder.
         cfg: Configuration from :func:`resolve_config`.
         workers: Parallel worker processes on this machine (each gets ``cpu_count // workers`` threads).
-        progress: Show a progress bar over trajectories.
+        progress: Show a progress bar over trajectories on stderr (None: when stderr is a terminal).
         overwrite: Replace a dataset with other settings in ``out``.
 
     Returns:
-        ``{'root', 'files', 'written', 'skipped', 'trajectories', 'stats'}``.
+        ``{'root', 'files', 'written', 'skipped', 'trajectories', 'stats', 'files_per_split'}``
+        (``files_per_split``: ``{'train': n, 'valid': n, 'test': n}``).
+
+    Warns:
+        UserWarning: The run is too small for its splits: ``valid_fraction`` or ``test_fraction`` asks for
+            files that fewer than three files cannot give (:func:`split_shortfall`), so the split stays empty.
 
     Raises:
         ParameterError: Bad ``workers``, or ``out`` holds another dataset.
@@ -522,6 +552,7 @@ def simulate_dataset(
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ParameterError(f"workers must be an integer >= 1, got {workers!r}")
+    progress = check_progress(progress)
     with interruptible():  # SIGTERM stops the run as Ctrl-C does
         return _simulate_dataset(out, cfg, workers, progress, overwrite)
 
@@ -534,6 +565,9 @@ def _simulate_dataset(out, cfg, workers: int, progress: bool, overwrite: bool) -
     if world > 1:
         _barrier()
     chunks = plan_chunks(cfg)
+    shortfall = split_shortfall(cfg, chunks)
+    if shortfall and rank == 0:
+        warnings.warn(shortfall, UserWarning, stacklevel=3)
     mine = [c for c in chunks if c.index % world == rank]
     todo = [c for c in mine if not (root / c.path).exists()]
     done_traj = sum(c.trajectories for c in mine) - sum(c.trajectories for c in todo)
@@ -564,7 +598,8 @@ def _simulate_dataset(out, cfg, workers: int, progress: bool, overwrite: bool) -
 
         dist.destroy_process_group()
     return {"root": root, "files": len(chunks), "written": len(todo), "skipped": len(mine) - len(todo),
-            "trajectories": cfg["trajectories"], "stats": stats}
+            "trajectories": cfg["trajectories"], "stats": stats,
+            "files_per_split": {sp: sum(c.split == sp for c in chunks) for sp in SPLITS}}
 
 
 def _barrier() -> None:
