@@ -11,7 +11,7 @@ The package is one folder per layer; each layer imports only the layers listed b
 ``phisim.fluid``    geometry, bodies, projection, viscosity, forces, the ``FluidStepper``
 ``phisim.pde``      spectral (ETDRK) steppers of semi-linear PDEs
 ``phisim.io``       HDF5 in The Well's layout, training logs, journal and recovery, statistics
-``phisim.viz``      pictures and animations
+``phisim.viz``      pictures and animations (``phisim.show``: one call, inline in Jupyter or to a file)
 ``phisim.simulate`` initial states, scenarios and the parallel dataset writer
 ==================  ==========================================================================================
 
@@ -115,7 +115,7 @@ __all__ = [
     "recover_file",
     "advect", "semi_lagrangian", "maccormack", "conservative",
     "spectral_noise", "rectangles", "random_rectangles", "gaussian_vortex", "uniform_velocity",
-    "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure",
+    "plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure", "show",
     "Obstacle", "obstacle_mask", "make_incompressible", "relative_divergence", "buoyancy", "diffuse_velocity",
     "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "navier_stokes_rk_step", "FluidState", "step",
     "compile", "rollout", "Trajectory",
@@ -124,13 +124,14 @@ __all__ = [
 
 _compat.install()
 
-_PLOT_NAMES = ("plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure")
+_PLOT_NAMES = ("plot_field", "plot_vector_field", "plot_curves", "animate", "save_figure", "show")
 
 
 def __getattr__(name):
-    """Import the plotting functions (and matplotlib) only when first used."""
+    """Import the pictures layer (and matplotlib) only when a plotting function is first used:
+    ``phisim.show(obj)`` draws fields, states, trajectories and files inline in Jupyter or to a file."""
     if name in _PLOT_NAMES:
-        from phisim.viz import plot
+        from phisim import viz
 
-        return getattr(plot, name)
+        return getattr(viz, name)
     raise AttributeError(f"module 'phisim' has no attribute {name!r}")

@@ -20,7 +20,7 @@ import math
 import os
 import shutil
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -39,7 +39,7 @@ from phisim.grid import Grid
 __all__ = [
     "new_figure", "plot_field", "plot_vector_field", "plot_curves", "animate", "make_animation", "save_figure",
     "ffmpeg_available", "draw_mask", "plot_training_curves", "AXIS_NAMES", "PLANES", "PROJECTIONS", "axis_index",
-    "volume_view", "mask_view", "plane_grid", "view_label", "panel_layout", "save_animation",
+    "volume_view", "mask_view", "plane_grid", "view_label", "panel_layout", "save_animation", "animation_figure",
 ]
 
 PathLike = str | os.PathLike
@@ -663,10 +663,9 @@ def _frames_to_arrays(frames, grid: Grid | None, component: int | None, axis=Non
     return arrays, g0, pg, names
 
 
-def make_animation(
+def animation_figure(
     frames,
     *,
-    fps: int = 10,
     grid: Grid | None = None,
     title: str | None = None,
     component: int | None = None,
@@ -681,24 +680,19 @@ def make_animation(
     projection: str | None = None,
     label: str | None = None,
     figsize: tuple[float, float] | None = None,
-) -> tuple[Figure, FuncAnimation]:
-    """An animation of 1-D, 2-D or 3-D scalar frames (a line, an image, a slice or projection of the volume).
+) -> tuple[Figure, Callable[[int], tuple], int]:
+    """The figure of an animation of 1-D, 2-D or 3-D scalar frames and the function that draws frame ``k``
+    (:func:`make_animation` makes the ``FuncAnimation`` of them).
 
-    The arguments are those of :func:`animate` without the path. Write the animation with
-    ``anim.save(path, writer=...)`` or :func:`animate`; show it in a notebook with ``anim.to_jshtml()`` or
-    :func:`phisim.viz.show`.
+    The arguments are those of :func:`animate` without the path and ``fps``.
 
     Returns:
-        ``(figure, animation)``: a ``matplotlib.animation.FuncAnimation`` of ``len(frames)`` frames, ``1000 / fps``
-        ms apart. The image (``figure.axes[0].images[0]``) or line (``figure.axes[0].lines[0]``) holds the frame
-        last drawn.
+        ``(figure, update, n_frames)``; the figure shows frame 0, ``update(k)`` draws frame ``k``.
 
     Raises:
-        ParameterError: For ``fps < 1``, no frames, an unknown axis or projection, a slice index out of range.
+        ParameterError: For no frames, an unknown axis or projection, a slice index out of range.
         ShapeError: For frames of different resolutions or more than 3 dimensions.
     """
-    if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
-        raise ParameterError(f"fps must be a positive int, got {fps!r}")
     arrays, g, pg, (hname, vname) = _frames_to_arrays(frames, grid, component, axis, index, projection)
     if times is not None:
         times = [float(t) for t in times]
@@ -744,8 +738,29 @@ def make_animation(
             heading.set_text(text(k))
         return (artist, heading)
 
-    anim = FuncAnimation(fig, update, frames=len(arrays), interval=1000.0 / int(fps), blit=False)
-    return fig, anim
+    return fig, update, len(arrays)
+
+
+def make_animation(frames, *, fps: int = 10, **kwargs) -> tuple[Figure, FuncAnimation]:
+    """An animation of 1-D, 2-D or 3-D scalar frames (a line, an image, a slice or projection of the volume).
+
+    The keyword arguments are those of :func:`animate` (without the path). Write the animation with
+    :func:`save_animation` or ``anim.save``; show it in a notebook with :func:`phisim.viz.show` or
+    ``anim.to_jshtml()``.
+
+    Returns:
+        ``(figure, animation)``: a ``matplotlib.animation.FuncAnimation`` of ``len(frames)`` frames, ``1000 / fps``
+        ms apart. The image (``figure.axes[0].images[0]``) or line (``figure.axes[0].lines[0]``) holds the frame
+        last drawn.
+
+    Raises:
+        ParameterError: For ``fps < 1`` and as :func:`animation_figure`.
+        ShapeError: As :func:`animation_figure`.
+    """
+    if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
+        raise ParameterError(f"fps must be a positive int, got {fps!r}")
+    fig, update, n = animation_figure(frames, **kwargs)
+    return fig, FuncAnimation(fig, update, frames=n, interval=1000.0 / int(fps), blit=False)
 
 
 def animate(

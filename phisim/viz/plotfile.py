@@ -46,7 +46,7 @@ from phisim.viz.plot import (
 )
 
 __all__ = ["DERIVED", "field_frames", "field_label", "obstacle_of", "plot_frames", "animate_file",
-           "plot_training_file", "plot_file", "default_out_dir", "file_animation"]
+           "plot_training_file", "plot_file", "default_out_dir", "default_field", "file_animation"]
 
 #: Quantities derived from a velocity field.
 DERIVED = ("speed", "vorticity")
@@ -344,6 +344,16 @@ def plot_training_file(path: str | Path, out: str | Path) -> Path:
     return save_figure(fig, out)
 
 
+def default_field(data) -> str:
+    """The field a picture of a simulation shows when none is named: the first scalar field other than a mask,
+    else the vector field of a 1-D file, else ``'speed'``."""
+    scal = [n for n, k in data.kinds.items() if k == "scalar" and n not in _MASK_NAMES]
+    vec = [n for n, k in data.kinds.items() if k != "scalar"]
+    if scal:
+        return scal[0]
+    return vec[0] if data.grid.rank == 1 and vec else "speed"
+
+
 def default_out_dir(path: str | Path) -> Path:
     """Where :func:`plot_file` puts the pictures of ``path`` when no folder is given: ``<root>/plots/<split>/``
     for a dataset file ``<root>/data/<split>/<name>.h5`` (pictures never land among the dataset's files),
@@ -420,9 +430,7 @@ def plot_file(path: str | Path, out: str | Path | None = None, *, field: str | N
             return written
         _check_view(data, axis, index, projection)
         if field is None:
-            scal = [n for n, k in data.kinds.items() if k == "scalar" and n not in _MASK_NAMES]
-            vec = [n for n, k in data.kinds.items() if k != "scalar"]
-            field = scal[0] if scal else vec[0] if data.grid.rank == 1 else "speed"
+            field = default_field(data)
         stem = f"{path.stem}_{field}{_view_suffix(data.grid.rank, axis, index, projection)}"
         view = {"axis": axis, "index": index, "projection": projection}
         written.append(plot_frames(data, field, out_dir / f"{stem}.png", sample=sample, frames=frames, **view))
