@@ -116,7 +116,8 @@ def heldout_source(problem) -> str:
     source = getattr(problem, "heldout_source", None)
     if source:
         return source
-    return f"{problem.heldout_size} samples drawn by the problem from a generator of their own"
+    return (f"{problem.heldout_size} held-out samples, seed {problem.heldout_seed} (drawn by the problem's own "
+            "generator, apart from the training stream)")
 
 
 def _train(args, problem, method):

@@ -100,20 +100,6 @@ def model_file(path, what: str = "model file", *, argument_order: str | None = N
     return p
 
 
-def _creatable(p: Path, what: str) -> None:
-    """Create the folder ``p`` (and its parents) or raise the common wording."""
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except FileExistsError as exc:
-        raise ParameterError(f"{what} {p} cannot be written: {exc.filename or p} is a file, not a folder") from exc
-    except OSError as exc:
-        raise ParameterError(f"{what} {p} cannot be written: {exc.strerror or exc}") from exc
-    if not p.is_dir():
-        raise ParameterError(f"{what} {p} cannot be written: it is a file, not a folder")
-    if not os.access(p, os.W_OK | os.X_OK):
-        raise ParameterError(f"{what} {p} cannot be written: permission denied")
-
-
 def _first_blocking_file(p: Path) -> Path | None:
     """The first existing non-folder on the way to ``p`` (``/dev/null`` for ``/dev/null/x``), if any."""
     for parent in reversed([p, *p.parents]):
@@ -122,27 +108,36 @@ def _first_blocking_file(p: Path) -> Path | None:
     return None
 
 
+def _check_can_create(p: Path, what: str) -> None:
+    """The folder ``p`` exists and is writable, or its nearest existing folder is (so it can be created)."""
+    existing = next(q for q in [p, *p.parents] if q.exists())
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ParameterError(f"{what} {p} cannot be written: {existing} is not writable")
+
+
 def writable_dir(path, what: str) -> Path:
-    """Create the output folder ``path`` (with its parents) and check that it is writable.
+    """Check that the output folder ``path`` can be written: it is a writable folder, or it can be created in
+    the nearest existing folder above it. Nothing is created (a command that fails later leaves no folder).
 
     Raises:
-        ParameterError: ``path`` or a folder on its way is a file, or it cannot be created or written.
+        ParameterError: ``path`` or a folder on its way is a file, or the folder is not writable.
     """
     p = Path(path)
     blocking = _first_blocking_file(p)
     if blocking is not None:
-        where = "it is a file" if blocking == p else f"{blocking} is a file, not a folder"
+        where = "it is a file, not a folder" if blocking == p else f"{blocking} is a file, not a folder"
         raise ParameterError(f"{what} {p} cannot be written: {where}")
-    _creatable(p, what)
+    _check_can_create(p, what)
     return p
 
 
 def writable_file(path, what: str, *, example: str = "out.h5") -> Path:
-    """Check that the output file ``path`` can be written (create its folder); an existing file stays as it is.
+    """Check that the output file ``path`` can be written (its folder exists or can be created, and is
+    writable; an existing file is writable). Nothing is created or changed.
 
     Raises:
-        ParameterError: ``path`` is a folder, a folder on its way is a file, the folder cannot be created or
-            written, or the file is read-only.
+        ParameterError: ``path`` is a folder, a folder on its way is a file, the folder is not writable, or the
+            file is read-only.
     """
     p = Path(path)
     if p.is_dir():
@@ -152,7 +147,9 @@ def writable_file(path, what: str, *, example: str = "out.h5") -> Path:
     blocking = _first_blocking_file(p.parent)
     if blocking is not None:
         raise ParameterError(f"{what} {p} cannot be written: {blocking} is a file, not a folder")
-    _creatable(p.parent, what)
+    existing = next(q for q in p.parents if q.exists())
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ParameterError(f"{what} {p} cannot be written: {existing} is not writable")
     if p.exists() and not os.access(p, os.W_OK):
         raise ParameterError(f"{what} {p} cannot be written: the file is read-only")
     return p

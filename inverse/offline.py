@@ -199,11 +199,12 @@ def dataset_problem(data_dir: str, field: str, split: str = "train", x_frame: in
             continue
         _heldout_from_split(p, held)
         p.heldout_split = other
-        p.heldout_source = f"all {held.trajectories} trajectories of the {other!r} split of {data_dir}"
+        p.heldout_source = (f"{held.trajectories} held-out samples: all trajectories of the {other!r} split of "
+                            f"{data_dir}")
         break
     if p.heldout_split is None:
-        p.heldout_source = (f"{p.heldout_size} samples drawn from the {split!r} split, the data training draws "
-                            f"from: {data_dir} has no valid or test files")
+        p.heldout_source = (f"{p.heldout_size} held-out samples drawn from the {split!r} split, the data training "
+                            f"draws from: {data_dir} has no valid or test files")
         warnings.warn(f"{data_dir} has no files in data/valid or data/test: the held-out evaluation draws "
                       f"{p.heldout_size} samples from the {split!r} split the network trains on, so it does not "
                       "measure generalisation; simulate more files (more --trajectories or fewer "
