@@ -174,16 +174,16 @@ def add_workflow_parsers(sub) -> None:
                     help="animation of every frame (mp4 needs ffmpeg)")
     pl.add_argument("--fps", type=int, default=10, help="frames per second of the animation")
     pl.add_argument("--axis", default=None,
-                    help="3-D fields: the axis normal to the slice or projection, x, y, z or 0, 1, 2 (default: "
-                         "the plotting function's, see phisim.viz.plotfile)")
+                    help="3-D fields: the axis normal to the slice or projection, x, y, z or 0, 1, 2 (default: z, "
+                         "an x-y picture with y up)")
     pl.add_argument("--index", type=int, default=None,
                     help="3-D fields: cell index of the slice along --axis (default: the middle)")
-    pl.add_argument("--projection", choices=("max", "mean"), default=None,
-                    help="3-D fields: project the whole volume along --axis (maximum or mean) instead of a "
-                         "slice (default: a slice)")
+    pl.add_argument("--projection", choices=("max", "mean", "min"), default=None,
+                    help="3-D fields: project the whole volume along --axis (maximum intensity, mean or minimum) "
+                         "instead of a slice (default: a slice)")
     pl.add_argument("--out", type=Path, default=None,
-                    help="output folder (default: the plotting function's folder for the file, printed "
-                         "with every picture)")
+                    help="output folder (default: <dataset>/plots/<split>/ for a file <dataset>/data/<split>/*.h5, "
+                         "else the file's folder; every picture's path is printed)")
 
     r = _sub(sub, "predict", "apply a trained model to an array of an HDF5 file",
              "Apply a trained model to an array of an HDF5 file; the array's trailing axes must fit the network, "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -36,7 +37,10 @@ def test_split_shortfall_names_the_empty_splits():
     small = resolve_config("heat", {})  # the defaults: 8 trajectories, 4 per file -> 2 files
     msg = split_shortfall(small)
     assert {c.split for c in plan_chunks(small)} == {"train"}
-    assert "data/valid and data/test stay(s) empty" in msg and "--trajectories 12" in msg
+    assert "data/valid and data/test stay empty" in msg and "--trajectories 12" in msg
+    assert "--trajectories-per-file 2" in msg  # 8 trajectories in 4 files: 2 per file
+    one = split_shortfall(resolve_config("heat", {"trajectories": 1, "test_fraction": 0}))
+    assert "data/valid stays empty" in one and "--trajectories-per-file" not in one
     assert split_shortfall(resolve_config("heat", {"trajectories": 12})) is None
     assert split_shortfall(resolve_config("heat", {"valid_fraction": 0, "test_fraction": 0})) is None
 
@@ -108,3 +112,19 @@ def test_plot_passes_the_slice_options_through(monkeypatch, tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(tmp_path / "f.h5"), "--axis", "w"]) == 2
     assert "--axis must be x, y, z or an axis number" in capsys.readouterr().err
+
+
+def test_plot_of_a_3d_dataset_file_slices_and_projects(tmp_path, capsys):
+    """The flags reach the pictures: a projection and a slice of another axis, in the dataset's plots folder."""
+    root = tmp_path / "d3"
+    assert main(["simulate", "smoke", "--dim", "3", "--resolution", "8", "--steps", "2", "--trajectories", "1",
+                 "--trajectories-per-file", "1", "--quiet", "--out", str(root)]) == 0
+    capsys.readouterr()
+    f = root / "data" / "train" / "smoke_00000.h5"
+    assert main(["plot", str(f), "--axis", "y", "--projection", "max", "--animation", "none"]) == 0
+    assert main(["plot", str(f), "--axis", "x", "--index", "2", "--animation", "none"]) == 0
+    names = sorted(Path(p).name for p in capsys.readouterr().out.split())
+    assert names == ["smoke_00000_density_max_y.png", "smoke_00000_density_x2.png"], names
+    assert all((root / "plots" / "train" / n).is_file() for n in names)
+    assert main(["plot", str(f), "--axis", "x", "--index", "20", "--animation", "none"]) == 2
+    assert "index 20 out of range" in capsys.readouterr().err

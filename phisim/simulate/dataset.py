@@ -236,14 +236,16 @@ def split_shortfall(cfg: Mapping[str, Any], chunks: Sequence[ChunkPlan] | None =
     if not missing:
         return None
     n, per, total = len(chunks), cfg["trajectories_per_file"], cfg["trajectories"]
-    empty = " and ".join(f"data/{m}" for m in missing)
-    if n < 3:
-        hint = (f"a split gets a file only from 3 files on: e.g. --trajectories {3 * per} or "
-                f"--trajectories-per-file {max(1, total // 3)}")
-    else:
+    empty = " and ".join(f"data/{m}" for m in missing) + (" stays" if len(missing) == 1 else " stay") + " empty"
+    if n >= 3:
         hint = "raise valid_fraction / test_fraction or add trajectories"
+    elif total >= 3:
+        hint = (f"a split gets a file only from 3 files on: e.g. --trajectories {3 * per} or "
+                f"--trajectories-per-file {total // 3}")
+    else:
+        hint = f"a split gets a file only from 3 files on: e.g. --trajectories {3 * per}"
     return (f"{total} trajectories make {n} file(s) of up to {per}, and splits are whole files: {empty} "
-            f"stay(s) empty ({hint}); training on this dataset has no held-out data of its own")
+            f"({hint}); training on this dataset has no held-out data of its own")
 
 
 def _generator(seed: int, index: int) -> torch.Generator:
