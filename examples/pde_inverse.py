@@ -52,6 +52,7 @@ import torch  # noqa: E402
 from inverse.models import load_model, model_path  # noqa: E402
 from inverse.problems import get_problem  # noqa: E402
 from inverse.train import train  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError, PhisimError  # noqa: E402
 from phisim.io import read_training  # noqa: E402
 
@@ -197,9 +198,9 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    p.add_argument("--iterations", type=int, default=1500)
-    p.add_argument("--max-iterations", nargs="*", default=["hig=300"], metavar="METHOD=N",
-                   help="per-method caps (default: hig=300)")
+    p.add_argument("--iterations", type=int, default=1000)
+    p.add_argument("--max-iterations", nargs="*", default=["hig=250"], metavar="METHOD=N",
+                   help="per-method caps (default: hig=250)")
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--eval-every", type=int, default=50)
     p.add_argument("--heldout-size", type=int, default=128)
@@ -213,8 +214,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--blocks", type=int, default=3)
     p.add_argument("--reference-iterations", type=int, default=10)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", default="cpu", help="torch device of the networks: cpu, cuda or cuda:N (the ETDRK "
+                   "physics runs on the CPU in float64)")
     p.add_argument("--out", type=Path, default=Path("out/pde_inverse"))
     args = p.parse_args(argv)
+    device = check_device(args.device)  # before anything is written
     torch.set_num_threads(args.threads)
     caps = _caps(args.max_iterations)
     settings = dict(steps=args.steps, eps=args.eps, rcond=args.rcond, lr=args.lr, hig_lr=args.hig_lr,
@@ -239,7 +243,7 @@ def main(argv: list[str] | None = None) -> dict:
             info = {"method": name, "seed": seed, "iterations": n, "diverged": None}
             try:
                 r = train(problem, method, iterations=n, seed=seed, out=h5, eval_every=args.eval_every,
-                          overwrite=True)
+                          overwrite=True, device=device)
                 info["heldout_metric"] = r.final_eval("metric")
             except PhisimError as exc:  # NaN/Inf: the curve up to the failure stays in the file
                 info["diverged"] = str(exc)
@@ -253,6 +257,7 @@ def main(argv: list[str] | None = None) -> dict:
                             "resolution": problem.resolution, "dt": problem.dt, "warmup_steps": problem.warmup_steps,
                             "iterations": args.iterations, "caps": caps, "seeds": args.seeds,
                             "eval_every": args.eval_every, "threads": args.threads, "common_iteration": common,
+                            "device": str(device),
                             "torch": torch.__version__},
                "references": refs, "table": table, "runs": runs,
                "seconds_total": time.perf_counter() - t0}

@@ -287,3 +287,31 @@ class TestBadInput:
             PDEOperator(stepper, 2, resolution=32)
         assert PDEOperator(stepper, 2).shape == (1, 16)
         assert PDEOperator(Diffusion(1, resolution=8, dtype=torch.float64), 1).transfer.dtype == torch.float64
+
+
+# ------------------------------------------------------------------------------------------ the example
+
+
+def test_example_tiny(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    import h5py
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "pde_inverse.py"
+    spec = importlib.util.spec_from_file_location("pde_inverse_example", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "run"
+    summary = mod.main(["--iterations", "4", "--max-iterations", "hig=2", "--seeds", "0", "1", "--heldout-size", "4",
+                        "--eval-every", "2", "--reference-iterations", "2", "--width", "4", "--blocks", "1",
+                        "--out", str(out), "--device", "cpu"])
+    assert summary["settings"]["device"] == "cpu" and summary["settings"]["common_iteration"] == 2
+    table = summary["table"]
+    assert set(table) == {"adam", "pg", "pg_linear", "pg_inverse_gradient", "hig"}
+    assert all(row["seeds"] == 2 and math.isfinite(row["mean_final"]) for row in table.values())
+    assert table["hig"]["iterations"] == 2 and table["adam"]["iterations"] == 4
+    assert summary["references"]["local_inverse_2"] < summary["references"]["identity"]
+    assert (out / "pde_inverse.png").stat().st_size > 0
+    with h5py.File(out / "pde_inverse.h5", "r") as f:
+        assert "adam_s1" in f["training"] and "json" in f["summary"].attrs
