@@ -307,8 +307,9 @@ class PDEOperator(PhysicsOperator):
         return x.to(x0.dtype)
 
     def __repr__(self) -> str:
+        solver = type(self.solver).__name__ if self.solver is not None else None
         return (f"PDEOperator({type(self.stepper).__name__}, steps={self.steps}, dt={self.stepper.dt}, eps={self.eps}, "
-                f"linear_iterations={self.linear_iterations}, solver={type(self.solver).__name__ if self.solver else None})")
+                f"linear_iterations={self.linear_iterations}, solver={solver})")
 
 
 class LinearPartSolver(LocalSolver):
