@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import torch
 
-from phisim.boundary import Boundary, pad
+from phisim.boundary import SCALAR, Boundary, pad
 from phisim.errors import ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
+from phisim.ops.stencil import laplace_fused
 
 __all__ = ["gradient", "divergence", "laplace", "curl", "velocity_from_stream_function"]
 
@@ -121,6 +122,30 @@ def _laplace_padded(p: torch.Tensor, dims_dx: list[tuple[int, float]], core_shap
     return out
 
 
+def _scalar_stencil(boundary: Boundary):
+    """``(kinds, sources)`` of a scalar field's ghost rules when every side is periodic or has a ghost rule with a
+    constant number (``('odd', v)``: ghost ``2v - u``; ``('even', g)``: ghost ``u + g dx``), else None (a tensor
+    or varying value: the padded path). ``sources`` lists ``(axis, side, f)`` for the non-zero values, ``f(dx)`` the
+    constant the value adds to the boundary cells (``2v/dx²`` or ``g/dx``)."""
+    kinds, sources = [], []
+    for a, pair in enumerate(boundary.sides):
+        kind = []
+        for side, cond in enumerate(pair):
+            rule = cond.rule(SCALAR, None)
+            if rule[0] == "periodic":
+                kind.append("periodic")
+                continue
+            v = rule[1] if len(rule) > 1 else None
+            if rule[0] not in ("odd", "even") or isinstance(v, bool) or not isinstance(v, (int, float)):
+                return None
+            kind.append("dirichlet" if rule[0] == "odd" else "neumann")
+            if v != 0:
+                sources.append((a, side, (lambda d, v=float(v): 2.0 * v / (d * d)) if rule[0] == "odd"
+                                else (lambda d, v=float(v): v / d)))
+        kinds.append(tuple(kind))
+    return tuple(kinds), sources
+
+
 def laplace(field: CenteredGrid | StaggeredGrid) -> CenteredGrid | StaggeredGrid:
     """The (2d+1)-point Laplacian, second order, with boundary ghosts.
 
@@ -148,6 +173,18 @@ def laplace(field: CenteredGrid | StaggeredGrid) -> CenteredGrid | StaggeredGrid
     if not isinstance(field, CenteredGrid):
         raise ShapeError(f"laplace needs a CenteredGrid or StaggeredGrid, got {type(field).__name__}")
     off = 2 if field.is_vector else 1
+    if not field.is_vector or field.values.shape[1] != rank:
+        plain = _scalar_stencil(field.boundary)
+        if plain is not None:  # ghost values folded into the stencil: no padded copy
+            kinds, sources = plain
+            values = field.values
+            if field.is_vector:  # generic multi-channel data: every channel as a scalar
+                values = values.reshape(values.shape[0] * values.shape[1], *field.grid.resolution)
+            lap = laplace_fused(values, tuple(float(d) for d in dx), kinds)
+            for a, side, source in sources:
+                n = lap.shape[1 + a]
+                lap.narrow(1 + a, 0 if side == 0 else n - 1, 1).add_(source(dx[a]))
+            return field.with_values(lap.reshape(field.values.shape))
     if field.is_vector and field.values.shape[1] != rank:
         # generic multi-channel data: every channel as a scalar
         b, c = field.values.shape[:2]

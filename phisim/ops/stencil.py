@@ -47,6 +47,13 @@ def normalize_kinds(kinds, rank: int) -> Kinds:
     Raises:
         BoundaryError: For unknown kinds, a wrong number of axes, or periodic on one side only.
     """
+    try:  # repeated specifications come from a small cache (an operator of a solve asks once per application)
+        return _normalize_kinds_cached(kinds, rank)
+    except TypeError:  # unhashable specification (a list): normalise without the cache
+        return _normalize_kinds(kinds, rank)
+
+
+def _normalize_kinds(kinds, rank: int) -> Kinds:
     if isinstance(kinds, str):
         kinds = (kinds,) * rank
     kinds = tuple(kinds)
@@ -67,7 +74,25 @@ def normalize_kinds(kinds, rank: int) -> Kinds:
     return tuple(out)
 
 
+@lru_cache(maxsize=64)
+def _normalize_kinds_cached(kinds, rank: int) -> Kinds:
+    return _normalize_kinds(kinds, rank)
+
+
 def normalize_dx(dx, rank: int) -> tuple[float, ...]:
+    """``dx`` as one positive float per axis (a number is used for every axis); floats and tuples of floats are
+    answered from a small cache."""
+    if type(dx) is float or (type(dx) is tuple and all(type(d) is float for d in dx)):
+        return _normalize_dx_cached(dx, rank)
+    return _normalize_dx(dx, rank)
+
+
+@lru_cache(maxsize=64)
+def _normalize_dx_cached(dx, rank: int) -> tuple[float, ...]:
+    return _normalize_dx(dx, rank)
+
+
+def _normalize_dx(dx, rank: int) -> tuple[float, ...]:
     if isinstance(dx, torch.Tensor) and dx.numel() == 1:
         dx = float(dx)
     if isinstance(dx, (int, float, np.number)) and not isinstance(dx, bool):
@@ -216,7 +241,8 @@ def stencil_laplacian(u: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
 
     Returns:
         ``Σ_axes (u_{i-1} - 2 u_i + u_{i+1}) / dx²`` with ghosts ``2v - u`` (Dirichlet), ``u + g dx``
-        (Neumann) or the periodic image; same shape as ``u``.
+        (Neumann) or the periodic image; same shape as ``u``. The zero-value part is the fused kernel
+        (:func:`laplace_fused`: one product with the diagonal, two shifted additions per axis).
 
     Raises:
         BoundaryError, ParameterError, ShapeError: For invalid kinds, dx, values or shapes.
@@ -224,9 +250,32 @@ def stencil_laplacian(u: torch.Tensor, dx, kinds, values=None) -> torch.Tensor:
     rank = check_rhs(u, "u")
     kinds = normalize_kinds(kinds, rank)
     dx = normalize_dx(dx, rank)
-    out = laplace_zero(u, dx, kinds)
+    out = laplace_fused(u, dx, kinds)
+    if values is None:
+        return out
     b = boundary_source(u, dx, kinds, values)
     return out if b is None else out + b
+
+
+def negative_laplacian(u: torch.Tensor, dx=1.0, kinds="dirichlet") -> torch.Tensor:
+    """``-∇²_h u`` with zero boundary values: the symmetric positive (semi-)definite operator of a Poisson solve
+    by :func:`phisim.solvers.linalg.cg`, in the fused form of :func:`laplace_fused` with the sign folded into its
+    coefficients (no separate negation pass).
+
+    Args:
+        u: Tensor ``(B, *resolution)``, float32 or float64.
+        dx: Spacing (float or one per axis).
+        kinds: Boundary kinds (see :func:`normalize_kinds`); ghost ``-u`` beside a Dirichlet side, ``u``
+            beside a Neumann side, the periodic image on a periodic axis.
+
+    Returns:
+        ``-stencil_laplacian(u, dx, kinds)`` to rounding; same shape and dtype as ``u``.
+
+    Raises:
+        BoundaryError, ParameterError, ShapeError: For invalid kinds, dx or shapes.
+    """
+    rank = check_rhs(u, "u")
+    return _fused(u, normalize_dx(dx, rank), normalize_kinds(kinds, rank), -1.0)
 
 
 @lru_cache(maxsize=64)
@@ -240,13 +289,36 @@ def stencil_diagonal(res: tuple[int, ...], dx: tuple[float, ...], kinds: Kinds, 
     return (-weighted_diagonal(ones, dx, kinds)[0]).to(dtype=dtype, device=device)
 
 
+@lru_cache(maxsize=64)
+def _negated_diagonal(res: tuple[int, ...], dx: tuple[float, ...], kinds: Kinds, dtype: torch.dtype,
+                      device: torch.device) -> torch.Tensor:
+    return -stencil_diagonal(res, dx, kinds, dtype, device)
+
+
 def laplace_fused(u: torch.Tensor, dx, kinds: Kinds) -> torch.Tensor:
-    """The zero-value stencil in fused form (:func:`coupled_sum` with unit weights): the same sums as the
-    face-flux form, in a quarter of the passes."""
+    """The zero-value stencil in fused form: one product with the diagonal and two shifted multiply-adds per
+    axis (plus two one-cell slabs per periodic axis), written into one output; the same sums as the face-flux
+    form in a quarter of the passes. ``dx`` and ``kinds`` are normalised (:func:`normalize_dx`,
+    :func:`normalize_kinds`)."""
+    return _fused(u, dx, kinds, 1.0)
+
+
+def _fused(u: torch.Tensor, dx, kinds: Kinds, sign: float) -> torch.Tensor:
+    """``sign * ∇²_h u`` (zero values): ``u * (sign * diag)`` plus ``sign / dx²`` times each neighbour."""
     res = tuple(u.shape[1:])
-    h = tuple(1.0 / d**2 for d in dx)
-    wrap = tuple(h[a] if lo == "periodic" else None for a, (lo, _) in enumerate(kinds))
-    return coupled_sum(u, stencil_diagonal(res, tuple(dx), kinds, u.dtype, u.device), h, wrap, 1.0)
+    dx = tuple(dx)
+    table = stencil_diagonal if sign > 0 else _negated_diagonal
+    out = u * table(res, dx, kinds, u.dtype, u.device)
+    for a, d in enumerate(dx):
+        dim, n = 1 + a, res[a]
+        w = sign / (d * d)
+        if n > 1:
+            out.narrow(dim, 0, n - 1).add_(u.narrow(dim, 1, n - 1), alpha=w)
+            out.narrow(dim, 1, n - 1).add_(u.narrow(dim, 0, n - 1), alpha=w)
+        if kinds[a][0] == "periodic":
+            out.narrow(dim, 0, 1).add_(u.narrow(dim, n - 1, 1), alpha=w)
+            out.narrow(dim, n - 1, 1).add_(u.narrow(dim, 0, 1), alpha=w)
+    return out
 
 
 def laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:
