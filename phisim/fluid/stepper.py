@@ -31,6 +31,7 @@ from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
 from phisim.fluid.integrators import INTEGRATORS, check_viscous_number, navier_stokes_rk_step, rk_advance
+from phisim.fluid.periodic import PeriodicStep
 from phisim.fluid.projection import check_balance, check_fits, check_velocity, project_box
 from phisim.fluid.step import (
     FluidState,
@@ -96,6 +97,11 @@ class FluidStepper:
             :class:`~phisim.errors.NonFiniteError`).
         compile: ``True``: the step runs through ``torch.compile`` (see :func:`phisim.compile`; without a working
             C++ compiler a one-line warning and eager steps).
+        fused: ``True`` (default): where the settings allow it (every axis periodic, no solids, ``'split'``
+            integrator, semi-Lagrangian or MacCormack advection, explicit or no viscosity, no buoyancy, marker
+            source or energy normalisation) states without a marker take the fused step of
+            :class:`~phisim.fluid.periodic.PeriodicStep` (the same computation in a few array passes, equal to
+            rounding); ``False``: always the general path.
 
     The step of a call (:meth:`advance`) reads nothing back to the host and branches on no tensor value: the
     settings, the balance of the prescribed boundary fluxes and the solids' coverage are checked here, once,
@@ -123,7 +129,7 @@ class FluidStepper:
                  buoyancy_direction: Sequence[float] | None = None, marker_source=None,
                  energy_normalization: bool = False, pressure: Solve | None = None, dt=None,
                  dtype: torch.dtype = torch.float32, device=None, direct: bool | str = "auto", check: int | None = None,
-                 compile: bool = False):
+                 compile: bool = False, fused: bool = True):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim.Grid, got {type(grid).__name__}")
         if dtype not in (torch.float32, torch.float64):
@@ -175,6 +181,15 @@ class FluidStepper:
                                                 for pair in self.boundary.sides for c in pair)
         #: Whether the step reads the state's pressure (the warm start of CG solves, imex2's incremental pressure).
         self.uses_pressure = self.obstacles is not None or integrator == "imex2"
+        if not isinstance(fused, bool):
+            raise ParameterError(f"fused must be True or False, got {fused!r}")
+        #: The fused step of an all-periodic set-up (:class:`~phisim.fluid.periodic.PeriodicStep`), or None.
+        self.fused = None
+        if fused and grid.rank in (2, 3) and PeriodicStep.applies(
+                self.boundary, obstacles=self.obstacles, advection=advection, viscosity_scheme=viscosity_scheme,
+                viscosity=self.viscosity, integrator=integrator, energy_normalization=energy_normalization,
+                buoyancy=self.buoyancy, marker_source=self.marker_source):
+            self.fused = PeriodicStep(grid, self.boundary, self.viscosity, advection, dtype, self.device)
         if self.dt is not None:  # one step at rest builds the caches a traced step then finds (no second graph)
             marker, rest = None, faces
             if self.buoyancy != 0 or self.marker_source is not None:
@@ -235,6 +250,9 @@ class FluidStepper:
     def advance(self, state: FluidState, dt: float) -> FluidState:
         """The step of a call on a validated state and ``dt`` (a number): no host read, no branch on tensor
         values; this is what :func:`torch.compile` traces (as one graph)."""
+        if self.fused is not None and state.marker is None:
+            v, p = self.fused(state.velocity, dt)
+            return replace(state, velocity=v, pressure=p, time=state.time + float(dt))
         return advance(state, dt, viscosity=self.viscosity, buoyancy_strength=self.buoyancy,
                        buoyancy_direction=self.buoyancy_direction, advection=self.advection,
                        viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
