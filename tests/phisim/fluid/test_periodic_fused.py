@@ -8,8 +8,8 @@ import torch
 
 from phisim import Grid, StaggeredGrid
 from phisim.errors import ParameterError
-from phisim.fluid import Body, FluidState, FluidStepper, Sphere
 from phisim.field import CenteredGrid
+from phisim.fluid import Body, FluidState, FluidStepper, Sphere
 from phisim.ops.stencil import face_divergence
 
 CASES = [((16, 12), [(0, 2), (0, 1.2)]), ((8, 10, 6), [(0, 1), (0, 1.25), (0, 0.9)])]
