@@ -156,6 +156,9 @@ def _check_args(args) -> None:
     if getattr(args, "device", None) is not None:
         check_device(args.device)
     if cmd in ("train", "compare"):
+        module = args.problem.rpartition(":")[0]
+        if module.endswith(".py") or "/" in module:  # a factory given by its file
+            cli_checks.existing_file(Path(module).expanduser(), "problem factory file")
         if args.out is not None:
             cli_checks.writable_file(args.out, "output file")
             check_output_path(args.out, append=True)  # an existing file must be HDF5 (runs are appended)

@@ -54,6 +54,7 @@ def _file_arguments(t, bad):
         (["predict", bad, t["inputs"], "--out", t["dir"] / "p.h5"], "model file"),
         (["predict", t["model"], bad, "--out", t["dir"] / "p.h5"], "input file"),
         (["simulate", "heat", "--config", bad, "--out", t["dir"] / "ds"], "config file"),
+        (["train", f"{bad}:factory", "adam", "--iterations", "1"], "problem factory file"),
     ]
 
 
@@ -71,7 +72,7 @@ def test_a_folder_instead_of_a_file_reads_the_same_in_every_command(trained, cap
 def test_a_file_of_another_format_reads_the_same_where_hdf5_is_read(trained, capsys, tmp_path):
     text = tmp_path / "notes.txt"
     text.write_text("not hdf5\n")
-    for argv, what in _file_arguments(trained, text)[:3]:
+    for argv, what in _file_arguments(trained, text)[:3]:  # info, plot, export
         assert _one_error_line(argv, capsys) == f"{what} {text} is not an HDF5 file (another format)", argv
 
 
