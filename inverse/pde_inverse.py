@@ -34,7 +34,9 @@ The same two stages are available separately as local solvers for :class:`~inver
 :class:`PDEProblem` (registered as ``"pde"``; ``phisim train pde pg``) trains a small periodic convolutional ResNet
 (:class:`ConvResNet`) to recover an earlier state ``x* = u(t0)`` of a 1-D or 2-D equation from a later one
 ``y* = u(t0 + n dt)``, with Adam through the solver, physical gradients (Wiener inverse of the linear part plus a
-generic nonlinear inverse), HIG and the variants listed in its docstring.
+generic nonlinear inverse), HIG and the variants listed in its docstring. For a problem of your own (other data,
+network or loss), :func:`inverse.custom.make_problem` takes ``physics=op.simulate`` and
+``local_inverse=op.local_inverse`` of a :class:`PDEOperator` ``op`` and trains every method with it, HIG included.
 """
 
 from __future__ import annotations
@@ -279,6 +281,23 @@ class PDEOperator(PhysicsOperator):
         if self._wave is not None:
             return self._apply_linear(u, inverse=False).to(device=x.device, dtype=x.dtype)
         return self.stepper.repeat(u, self.steps).to(device=x.device, dtype=x.dtype)
+
+    def simulate(self, x: torch.Tensor) -> torch.Tensor:
+        """The forward ``P(x)`` without the input checks of :meth:`forward` (no NaN test, no host reads).
+
+        Traceable by ``torch.func`` (``vmap``/``jacrev``: what HIG differentiates) and ``torch.compile``; the
+        ``physics`` to give :func:`inverse.custom.make_problem` (with ``local_inverse=op.local_inverse``).
+
+        Args:
+            x: ``(B, C, *resolution)``.
+
+        Returns:
+            ``P(x)``, same shape, device and dtype as ``x``.
+
+        Raises:
+            ShapeError: ``x`` is not a state of this operator.
+        """
+        return self._forward(x)
 
     def linear_step(self, y_target: torch.Tensor, x: torch.Tensor, y: torch.Tensor | None = None) -> torch.Tensor:
         """One fixed-point step ``x + W (y* − P(x))`` (no autograd history).
@@ -536,8 +555,7 @@ class PDEProblem(Problem):
         if self.linear_iterations == 0 and generic is None:
             raise ParameterError("pg needs linear_iterations >= 1 or a nonlinear_solver other than 'none'")
         self.methods = methods
-        raw = self._operator._forward
-        self.hig_physics = lambda out: raw(out)  # unchecked forward: traceable by torch.func (no host syncs)
+        self.hig_physics = self._operator.simulate  # unchecked forward: traceable by torch.func (no host syncs)
 
     def _stepper_settings(self) -> dict:
         settings = dict(self.equation_settings)

@@ -201,16 +201,16 @@ class TestProblem:
         assert math.isfinite(r.curves["eval_metric"][-1])
 
     def test_custom_route(self):
-        # a PDEOperator is a physics function and its local_inverse a local inverse for make_problem
+        # a PDEOperator's simulate is a physics function and its local_inverse a local inverse for make_problem
         op = _ks(steps=2, eps=1e-2)
-        op.check_inputs = False  # HIG differentiates the physics under torch.func (no host reads)
         stepper = op.stepper
 
         def data(batch_size, generator):
             noise = torch.randn((batch_size, 1, 32), generator=generator, dtype=torch.float64)
             return stepper.repeat(0.3 * noise, 10)
 
-        problem = make_problem("ks_custom", data=data, physics=op, local_inverse=op.local_inverse,
+        # simulate: the forward without host reads, which HIG differentiates under torch.func
+        problem = make_problem("ks_custom", data=data, physics=op.simulate, local_inverse=op.local_inverse,
                                network=lambda: ConvResNet(1, 1, width=4, blocks=1).double(), batch_size=4,
                                dtype=torch.float64)
         for method in ("pg", "hig"):
