@@ -31,6 +31,7 @@ from phisim.fluid.projection import (
     make_incompressible,
     net_boundary_flux,
     relative_divergence,
+    solid_flux,
 )
 from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, normalize_energy
 from phisim.fluid.stepper import FluidStepper, navier_stokes_step, step
@@ -41,7 +42,7 @@ __all__ = [
     "Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction",
     "Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks",
     "Projection", "ProjectionResult", "make_incompressible", "relative_divergence", "impose_solids",
-    "net_boundary_flux", "PRESSURE_SOLVE",
+    "net_boundary_flux", "solid_flux", "PRESSURE_SOLVE",
     "diffuse_velocity", "VISCOSITY_SCHEMES",
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure",

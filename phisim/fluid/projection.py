@@ -58,7 +58,7 @@ from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "check_fits", "project_box",
            "make_incompressible", "project_trusted", "check_balance", "relative_divergence", "impose_solids",
-           "net_boundary_flux"]
+           "net_boundary_flux", "solid_flux"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -269,7 +269,11 @@ class Projection:
 
 
 def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
-    """Impose the solids' velocity: ``theta u + (1 - theta) u_s`` (no-slip), ``u_s`` on closed faces (slip).
+    """Impose the solids' velocity ``u_s`` before a viscous step and a projection.
+
+    Blended no-slip solids store ``theta u + (1 - theta) u_s``; free-slip bodies and sharp no-slip bodies keep the
+    fluid velocity on faces with ``theta > 0`` (a sharp body: on faces whose centre lies in the fluid) and take
+    ``u_s`` on the others.
 
     Args:
         velocity: MAC velocity.
@@ -284,24 +288,63 @@ def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> Stagge
     return v.with_values(_blend(v.values, layout)).with_boundary_faces()
 
 
+def _solid(layout: SolidLayout, i: int, like: torch.Tensor):
+    return 0.0 if layout.solid_velocity is None else layout.solid_velocity[i].to(like.dtype)
+
+
 def _blend(values, layout: SolidLayout, corrected=None):
+    """The stored velocity: ``values`` imposed (``corrected`` None) or the projection's ``corrected`` velocity."""
     out = []
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
         c = u if corrected is None else corrected[i]
-        if layout.solid_velocity is None:  # bodies at rest
-            s = 0.0
-            noslip = th * c
-        else:
-            s = layout.solid_velocity[i].to(u.dtype)
-            noslip = th * c + (1 - th) * s
+        s = _solid(layout, i, u)
+        noslip = th * c if layout.solid_velocity is None else th * c + (1 - th) * s
         if layout.slip is None:
             out.append(noslip)
             continue
         sl = layout.slip[i].to(u.dtype)
-        free = torch.where(th > 0, c, torch.zeros_like(c) + s)
+        keep = th > 0
+        if corrected is None and layout.walls is not None and layout.walls[i] is not None:
+            keep = keep & ~layout.walls[i][0]  # sharp bodies: faces centred inside take the body's velocity
+        free = torch.where(keep, c, torch.zeros_like(c) + s)
         out.append((1 - sl) * noslip + sl * free)
     return tuple(out)
+
+
+def _flux(values, layout: SolidLayout):
+    """The volume flux ``theta u + (1 - theta) u_s`` per face of imposed velocities (the projection's right-hand side)."""
+    out = []
+    for i, u in enumerate(values):
+        th = layout.theta[i].to(u.dtype)
+        s = _solid(layout, i, u)
+        out.append(th * u if layout.solid_velocity is None else th * u + (1 - th) * s)
+    return tuple(out)
+
+
+def solid_flux(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
+    """The volume flux through each face of a projected velocity: its MAC divergence is the discrete continuity
+    residual of the flow past the solids, zero after a projection.
+
+    Faces of blended solids store the flux itself; faces of free-slip and sharp no-slip bodies store the fluid
+    velocity ``u``, whose flux is ``theta u + (1 - theta) u_s``.
+
+    Args:
+        velocity: MAC velocity (e.g. a projection's output).
+        layout: The rasterised solids (:func:`~phisim.fluid.bodies.solid_layout`), or None (the velocity itself).
+
+    Returns:
+        The flux as a StaggeredGrid on the velocity's grid.
+    """
+    check_velocity(velocity)
+    if layout is None:
+        return velocity
+    if layout.slip is None:
+        return velocity
+    values = velocity.values
+    flux = _flux(values, layout)
+    out = tuple(u + layout.slip[i].to(u.dtype) * (f - u) for i, (u, f) in enumerate(zip(values, flux)))
+    return velocity.with_values(out)
 
 
 def make_incompressible(
@@ -457,7 +500,7 @@ def _project(v, layout, solve, pressure_guess, trusted: bool = False) -> Project
     cell = layout.cell_fraction.detach()
     if not trusted and layout.bodies and bool((cell.flatten(1).max(1).values <= 0).any()):
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
-    flux = _blend(v.values, layout)
+    flux = _flux(v.values, layout)
     op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx)
     rhs = -op.divergence(flux)
     x0 = _guess_tensor(pressure_guess, v)

@@ -2,12 +2,15 @@
 
 Wall and inflow velocities enter through the ghost samples of the velocity boundary; bodies enter through
 :func:`phisim.fluid.projection.impose_solids`, applied before this step, which puts each body's velocity on
-the faces it covers, so the viscous stencil sees it at the body's surface. The work is done by
+the faces it covers, and (sharp no-slip bodies, ``solids=``) through the stencil of the faces next to them, which
+takes the body's velocity where each stencil arm crosses the surface (:class:`phisim.fluid.bodies.SolidLayout`). The work is done by
 :func:`phisim.solvers.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one DST/DCT/FFT pair per
 component (about the cost of an explicit step at small sizes; see ``docs/BENCHMARKS.md``).
 """
 
 from __future__ import annotations
+
+import torch
 
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import ParameterError
@@ -24,7 +27,7 @@ VISCOSITY_SCHEMES = ("explicit", "implicit", "crank_nicolson", "spectral")
 
 def diffuse_velocity(
     velocity: StaggeredGrid, dt, *, viscosity: float, scheme: str = "explicit", solve: Solve | None = None,
-    fixed=None,
+    fixed=None, solids=None,
 ) -> StaggeredGrid:
     """Viscous diffusion ``du/dt = viscosity * lap(u)`` of a MAC velocity over one step ``dt``.
 
@@ -43,6 +46,10 @@ def diffuse_velocity(
         solve: CG settings of the solve with ``fixed`` faces (unused otherwise).
         fixed: Optional per-component face masks held at their current value (bodies), see
             :func:`phisim.solvers.diffusion.diffuse_staggered`.
+        solids: The rasterised solids (:class:`~phisim.fluid.bodies.SolidLayout`, after
+            :func:`~phisim.fluid.projection.impose_solids`), or None. Faces they close are held, and sharp no-slip
+            bodies enter the stencil of the faces next to them at their true surface (``SolidLayout.walls``); the
+            direct capacitance solves of a persistent layout are kept on it.
 
     Returns:
         The diffused velocity with boundary faces re-imposed.
@@ -66,4 +73,12 @@ def diffuse_velocity(
                 f"explicit viscosity is unstable: viscosity * dt * sum(2/dx^2) = {number:.3g} > 1; reduce dt or "
                 "use scheme='implicit' or 'crank_nicolson'"
             )
-    return diffuse_staggered(velocity, dt, viscosity=viscosity, method=scheme, fixed=fixed, solve=solve)
+    walls, capacitance = None, None
+    if solids is not None and solids.walls is not None:
+        walls = solids.walls
+        held = tuple((th <= 0) for th in solids.theta)
+        fixed = held if fixed is None else tuple(
+            h if f is None else (torch.as_tensor(f, device=h.device) != 0) | h for f, h in zip(fixed, held))
+        capacitance = solids.solvers if solids.direct else None
+    return diffuse_staggered(velocity, dt, viscosity=viscosity, method=scheme, fixed=fixed, solve=solve,
+                             walls=walls, capacitance=capacitance)

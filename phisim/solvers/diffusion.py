@@ -271,6 +271,7 @@ def diffuse_staggered(
     solve=None,
     engine: str | None = None,
     capacitance: dict | None = None,
+    walls=None,
 ):
     """Viscous diffusion ``∂u/∂t = ν ∇²u`` of a MAC velocity over one step ``dt``, fast.
 
@@ -309,6 +310,9 @@ def diffuse_staggered(
         engine: FFT engine (see :func:`phisim.spectral.fft.resolve_engine`).
         capacitance: A dict owned by the caller in which direct solves for its ``fixed`` faces are kept (e.g.
             ``SolidLayout.solvers`` of a persistent layout); None: conjugate gradients.
+        walls: Optional sharp no-slip surfaces, one ``(cut, coef, source)`` or None per component
+            (:attr:`phisim.fluid.bodies.SolidLayout.walls`): the ``cut`` faces are held and their neighbours'
+            stencil takes the surface velocity at the true surface (see :mod:`phisim.solvers.mac_diffusion`).
 
     Returns:
         The diffused StaggeredGrid (same grid and boundary; boundary faces re-imposed); differentiable
@@ -321,7 +325,7 @@ def diffuse_staggered(
         SolveError: If the CG solve with ``fixed`` faces does not converge.
     """
     return _mac.diffuse_staggered(velocity, dt, viscosity=viscosity, method=method, fixed=fixed, solve=solve,
-                                  capacitance=capacitance, engine=engine)
+                                  capacitance=capacitance, engine=engine, walls=walls)
 
 
 def _slice_channel(v, c: int):

@@ -358,9 +358,40 @@ def _fixed_masks(fixed, velocity):
     return out
 
 
+def _walls(walls, velocity, masks):
+    """Validated sharp-wall stencils (``(cut, coef, source)`` per component or None) and the fixed masks with the
+    cut faces added."""
+    if walls is None:
+        return None, masks
+    if not isinstance(walls, (tuple, list)) or len(walls) != velocity.rank:
+        raise ShapeError(f"walls must hold one entry per component ({velocity.rank}), got {type(walls).__name__}")
+    masks = list(masks) if masks is not None else [None] * velocity.rank
+    out = []
+    for i, w in enumerate(walls):
+        if w is None:
+            out.append(None)
+            continue
+        cut, coef, source = w
+        shape = velocity.grid.face_shape(i)
+        for t in (cut, coef) + (() if source is None else (source,)):
+            if tuple(t.shape[1:]) != shape or t.shape[0] not in (1, velocity.batch_size):
+                raise ShapeError(f"walls[{i}] tensors must have shape (1 or B, *{shape}), got {tuple(t.shape)}")
+        cut = cut.to(device=velocity.device)
+        masks[i] = cut if masks[i] is None else (masks[i] | cut)
+        out.append((cut, coef.to(device=velocity.device), None if source is None else source.to(device=velocity.device)))
+    return out, masks
+
+
 def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixed=None, solve=None,
-                      capacitance: dict | None = None, engine: str | None = None):
-    """See :func:`phisim.solvers.diffusion.diffuse_staggered` (the public entry point)."""
+                      capacitance: dict | None = None, engine: str | None = None, walls=None):
+    """See :func:`phisim.solvers.diffusion.diffuse_staggered` (the public entry point).
+
+    ``walls``: per component None or ``(cut, coef, source)`` (see :class:`phisim.fluid.bodies.SolidLayout`): a sharp
+    no-slip surface. The ``cut`` faces are held (added to ``fixed``) and read as 0 by the stencil of their
+    neighbours, whose Laplacian becomes ``L_0 u - coef u + source``; every scheme uses this operator (the explicit
+    one treats ``coef`` point-implicitly, ``u' = (u + α (L_0 u + source)) / (1 + α coef)``, so that a surface close
+    to a face does not limit the step).
+    """
 
     if not isinstance(velocity, StaggeredGrid):
         raise ParameterError(f"diffuse_staggered expects a StaggeredGrid, got {type(velocity).__name__}")
@@ -369,6 +400,7 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
     dt = check_dt(dt)
     nu = check_nonnegative(viscosity, "viscosity")
     masks = _fixed_masks(fixed, velocity)
+    walls, masks = _walls(walls, velocity, masks)
     if masks is not None and method == "spectral" and any(m is not None for m in masks):
         raise ParameterError(
             "method='spectral' is exact only in a box; with fixed faces (bodies) use 'implicit' or 'crank_nicolson'"
@@ -389,6 +421,10 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
     for i, u in enumerate(velocity.values):
         comp = _component(grid, boundary, i)
         mask = None if masks is None else masks[i]
+        wall = None if walls is None else walls[i]
+        if wall is not None:
+            out.append(_sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, capacitance))
+            continue
         if method == "explicit":
             new = u + alpha * comp.laplace(u)
             if mask is not None:
@@ -458,6 +494,68 @@ def diffuse_staggered(velocity, dt, *, viscosity, method: str = "implicit", fixe
     result = velocity.with_values(tuple(out))
     # the solves embed their unknowns with the boundary faces already set (embed / solve_box)
     return result.with_boundary_faces() if method == "explicit" else result
+
+
+def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, capacitance):
+    """One component's viscous step with a sharp no-slip surface (``wall = (cut, coef, source)``)."""
+    cut, coef, source = wall
+    coef = coef.to(u.dtype)
+    source = None if source is None else source.to(u.dtype)
+    u0 = torch.where(cut, torch.zeros_like(u), u)  # the stencil reads 0 on cut faces
+
+    def sharp_lap(v0, v):  # L u = L_0 u - coef u + source on the full component
+        lap = comp.laplace(v0) - coef * v
+        return lap if source is None else lap + source
+
+    if method == "explicit":
+        num = u + alpha * comp.laplace(u0)
+        if source is not None:
+            num = num + alpha * source
+        return torch.where(mask, u, num / (1 + alpha * coef))
+    x = comp.restrict(u)
+    b = comp.source(u)
+    rhs = x
+    if theta < 1:
+        rhs = rhs + ((1 - theta) * alpha) * comp.restrict(sharp_lap(u0, u))
+        if b is not None:
+            rhs = rhs + (theta * alpha) * b
+        if source is not None:
+            rhs = rhs + (theta * alpha) * comp.restrict(source)
+    else:
+        if b is not None:
+            rhs = rhs + alpha * b
+        if source is not None:
+            rhs = rhs + alpha * comp.restrict(source)
+    inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
+    x0 = comp.restrict(u0)
+    d = comp.restrict(coef)
+    cap = _sharp_capacitance(comp, mask, cut, coef, theta * alpha, u.device, engine, capacitance)
+    if cap is not None:
+        return cap.solve(comp, rhs, x, x0, inverse, u, engine)
+    p = 1 - comp.restrict(mask).to(u.dtype)
+    w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
+    a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
+    v_fixed = (1 - p) * x0
+
+    def lap0(y):  # the stencil with zero boundary values, on unknowns
+        full = comp.restrict(comp.laplace(comp.embed(y, u)))
+        return full if b is None else full - b
+
+    def weighted(y):
+        return y if w is None else y * w
+
+    def operator(y, a, d):
+        return p * weighted(y - a * (lap0(p * y) - d * y)) + (1 - p) * y
+
+    def precond(r):
+        z = p * r if w is None else p * r / w
+        return p * comp.apply(z, inverse.detach().to(r.dtype), engine, prescaled=True) + (1 - p) * r
+
+    rhs_cg = p * weighted(rhs + a_t * lap0(v_fixed))
+    if solve is None:
+        solve = Solve(rtol=1e-10 if u.dtype == torch.float64 else 1e-6)
+    y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t, d))
+    return comp.embed(p * y + (1 - p) * x, u)
 
 
 def _phi1(z: torch.Tensor) -> torch.Tensor:
@@ -569,4 +667,74 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | N
     solver = False if surface.numel() > CAPACITANCE_MAX_FACES else _CapacitanceSolve(
         comp, surface, fixed, float(coef), device, engine)
     cache[key] = (mask.detach().clone(), solver)
+    return solver or None
+
+
+class _SharpCapacitanceSolve:
+    """Exact solve of ``(I - a (L₀ - C)) u = f`` on the free faces, ``u`` read as ``g`` on the held faces.
+
+    ``C`` is the diagonal ``coef`` of a sharp no-slip surface on the free faces ``N`` next to it. With the box
+    operator ``A = I - a L₀`` (inverted exactly by the transforms) the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources
+    ``σ`` on the held surface faces ``S`` and on ``N``: on ``S`` they make ``u_S = g_S``, on ``N`` they supply the
+    diagonal, ``σ_N = -a C u_N``. With ``G = A⁻¹`` restricted to ``S ∪ N``:
+    ``[[G_SS, G_SN], [a C G_NS, I + a C G_NN]] σ = [g_S - z_S, -a C z_N]``, ``z = A⁻¹ f`` (dense, LU-factored
+    once in float64; ``|S| + |N|`` box solves to build, two per call).
+    """
+
+    def __init__(self, comp, surface, near, dcoef, fixed, coef: float, device, engine):
+        self.surface, self.near = surface, near
+        self.fixed = fixed
+        self.index = torch.cat([surface, near])
+        shape = tuple(fixed.shape[1:])
+        n_all = math.prod(shape)
+        k = self.index.numel()
+        self.ad = (coef * dcoef).to(torch.float64)  # a C on the faces of N
+        mult = comp.inverse_multiplier(coef, torch.float64, device)
+        g = torch.empty(k, k, dtype=torch.float64, device=device)  # g[j] = (A⁻¹ e_j) on S ∪ N
+        chunk = max(1, (1 << 22) // n_all)
+        for start in range(0, k, chunk):
+            idx = self.index[start : start + chunk]
+            e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
+            e[torch.arange(idx.numel(), device=device), idx] = 1.0
+            z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
+            g[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, self.index]
+        m = g.T.clone()  # m[r, j] = G[index_r, index_j]
+        ns = surface.numel()
+        m[ns:] *= self.ad.unsqueeze(1)
+        m[ns:, ns:] += torch.eye(near.numel(), dtype=torch.float64, device=device)
+        self.lu, self.pivots = torch.linalg.lu_factor(m)
+
+    def solve(self, comp, rhs, x, x0, inverse, like, engine) -> torch.Tensor:
+        """The full component: free faces solved, held faces ``x`` (read as ``x0`` by the stencil)."""
+        z = comp.apply(rhs, inverse, engine, prescaled=True)
+        flat = z.flatten(1)
+        r_s = x0.flatten(1)[:, self.surface] - flat[:, self.surface]
+        r_n = -self.ad.to(flat.dtype) * flat[:, self.near]
+        resid = torch.cat([r_s, r_n], 1)
+        sigma = torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(z.dtype)
+        src = torch.zeros_like(flat).index_copy(1, self.index, sigma).reshape(z.shape)
+        z = z + comp.apply(src, inverse, engine, prescaled=True)
+        return comp.embed(torch.where(self.fixed, x, z), like)
+
+
+def _sharp_capacitance(comp, mask, cut, coef_full, coef, device, engine, cache):
+    """The capacitance solve of a sharp surface for this component and ``coef = θ ν dt``, kept in ``cache``; None
+    where the CG path is taken (no cache, gradients, per-sample layouts, too many faces)."""
+    if (cache is None or isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or coef_full.shape[0] != 1
+            or coef_full.requires_grad):
+        return None
+    key = ("sharp-capacitance", comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first,
+           comp.count, comp.odd, float(coef), str(device))
+    hit = cache.get(key)
+    if hit is not None and torch.equal(hit[0], mask) and torch.equal(hit[1], coef_full):
+        return hit[2] or None
+    fixed = comp.restrict(mask).detach()
+    surface = _surface(comp, fixed[0])
+    d = comp.restrict(coef_full.detach())[0].flatten()
+    near = (d != 0).nonzero().squeeze(1)
+    solver = False
+    if surface.numel() + near.numel() <= 2 * CAPACITANCE_MAX_FACES:
+        solver = _SharpCapacitanceSolve(comp, surface, near, d[near].to(torch.float64), fixed, float(coef), device,
+                                        engine)
+    cache[key] = (mask.detach().clone(), coef_full.detach().clone(), solver)
     return solver or None
