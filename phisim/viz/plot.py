@@ -301,10 +301,14 @@ def draw_mask(ax: Axes, mask, grid: Grid, *, color: str = "0.55", outline: str |
     rgba[..., :3] = to_rgb(color)
     rgba[..., 3] = m.T.astype(float)
     ax.imshow(rgba, origin="lower", extent=_extent(g2), interpolation="nearest", aspect="equal")
-    if outline is not None and m.any() and not m.all() and min(m.shape) >= 2:
-        xc = _np(g2.center_coords(0, torch.float64))
-        yc = _np(g2.center_coords(1, torch.float64))
-        ax.contour(xc, yc, m.T.astype(float), levels=[0.5], colors=outline, linewidths=1.0)
+    if outline is not None and m.any() and not m.all():
+        # the 0.5 contour of the mask refined f times per cell follows the cells' edges (to 1/(2f) of a cell)
+        f = max(1, min(4, 2048 // max(m.shape)))
+        fine = np.kron(m, np.ones((f, f))).T
+        (x0, x1), (y0, y1) = g2.bounds
+        xc = x0 + (np.arange(fine.shape[1]) + 0.5) * (x1 - x0) / fine.shape[1]
+        yc = y0 + (np.arange(fine.shape[0]) + 0.5) * (y1 - y0) / fine.shape[0]
+        ax.contour(xc, yc, fine, levels=[0.5], colors=outline, linewidths=1.0)
 
 
 def plot_field(
@@ -657,7 +661,7 @@ def _frames_to_arrays(frames, grid: Grid | None, component: int | None, axis=Non
             arrays.append(v)
             pg, names = g, ("x", "")
         else:
-            img, pg, hname, vname = _picture(v, g, axis, index, projection, "animate")
+            img, pg, hname, vname = _picture(v, g, axis, index, projection, "frames")
             arrays.append(img)
             names = (hname, vname)
     return arrays, g0, pg, names

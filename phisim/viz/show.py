@@ -388,7 +388,7 @@ def show(
     grid: Grid | None = None,
     title: str | None = None,
     label: str | None = None,
-    cmap: str = "viridis",
+    cmap: str | None = None,
     vmin: float | None = None,
     vmax: float | None = None,
     animate: bool | None = None,
@@ -422,7 +422,7 @@ def show(
         title: Title (of a single panel; of an animation, where ``{time}`` and ``{t}`` are replaced as in
             :func:`~phisim.viz.plot.animate`).
         label: Colour-bar label (default: the quantity's name).
-        cmap: Colormap.
+        cmap: Colormap (default ``'viridis'``; a file's vorticity: ``'RdBu_r'``, centred on zero).
         vmin: Lower colour limit (animations and frame panels: default the minimum over all frames).
         vmax: Upper colour limit.
         animate: For frames (trajectory, list, file): ``True`` / ``None`` an animation, ``False`` a still picture of
@@ -453,7 +453,6 @@ def show(
     if isinstance(obj, (str, os.PathLike)):
         obj = read_simulation(obj)
     view = {"axis": axis, "index": index, "projection": projection}
-    common = {"cmap": cmap, "vmin": vmin, "vmax": vmax, "columns": columns, "dpi": dpi}
 
     times = None
     file_mask = None
@@ -467,6 +466,11 @@ def show(
         qty = field_label(obj, name)
         if obj.grid.rank == 1 and (axis is not None or index is not None or projection is not None):
             raise ParameterError("axis=, index= and projection= choose views of 3-D fields; this file is 1-D")
+        finite = np.stack(seq)[np.isfinite(np.stack(seq))]
+        if name == "vorticity" and cmap is None and finite.size and finite.min() < 0 < finite.max():
+            top = float(np.abs(finite).max())  # signed (2-D): a diverging map centred on zero
+            cmap = "RdBu_r"
+            vmin, vmax = (-top if vmin is None else vmin), (top if vmax is None else vmax)
     elif isinstance(obj, Trajectory):
         seq, g, qty = _trajectory_frames(obj, field, batch, component)
         times = [float(t) for t in obj.times]
@@ -485,6 +489,8 @@ def show(
             seq, qty = [v for v, _ in pairs], label or ""
     else:
         seq = None
+    cmap = "viridis" if cmap is None else cmap
+    common = {"cmap": cmap, "vmin": vmin, "vmax": vmax, "columns": columns, "dpi": dpi}
     if seq is not None:  # frames: an animation, or a still picture of a few of them
         mask = _union(file_mask, _solid_mask(obstacles, g, batch))
         if len(seq) == 0:

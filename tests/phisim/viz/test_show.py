@@ -258,7 +258,7 @@ def test_phisim_show_is_lazy():
 def smoke3d(tmp_path_factory):
     from phisim.simulate import resolve_config, simulate_dataset
 
-    cfg = resolve_config("smoke", dim=3, trajectories=1, trajectories_per_file=1, steps=3, resolution=8,
+    cfg = resolve_config("smoke", dim=3, trajectories=1, trajectories_per_file=1, steps=3, resolution=12,
                          valid_fraction=0, test_fraction=0)
     root = simulate_dataset(tmp_path_factory.mktemp("sm3"), cfg, progress=False)["root"]
     return root, next((root / "data" / "train").glob("*.h5"))
@@ -273,8 +273,8 @@ def test_plot_file_views_and_default_folder(smoke3d, tmp_path):
     assert not list((root / "data" / "train").glob("*.png"))  # nothing written among the dataset's files
     paths = plot_file(f, tmp_path, axis="x", index=2)
     assert [p.name for p in paths] == [f"{f.stem}_density_x2.png", f"{f.stem}_density_x2.gif"]
-    with pytest.raises(ParameterError, match="index 9 out of range"):
-        plot_file(f, tmp_path, index=9)
+    with pytest.raises(ParameterError, match="index 12 out of range: 12 cells along z"):
+        plot_file(f, tmp_path, index=12)
     with pytest.raises(ParameterError, match="unknown projection"):
         plot_file(f, tmp_path, projection="sum")
 
@@ -304,3 +304,36 @@ def test_plot_frames_data_and_no_empty_panels(smoke3d, tmp_path, monkeypatch):
         np.testing.assert_allclose(np.asarray(ax.images[0].get_array()), arr[k].mean(axis=1).T)
         assert (ax.get_xlabel(), ax.get_ylabel()) == ("x", "z")
     assert fig.axes[-1].get_ylabel() == "density (mean along y)"
+
+
+def test_show_simulation_file(smoke3d):
+    from phisim.io import read_simulation
+    from phisim.viz import field_frames, obstacle_of
+
+    _, f = smoke3d
+    data = read_simulation(f)
+    pic = show(f, projection="max", html="jshtml")  # a path: the file's first scalar field, every frame
+    assert pic.is_animation and pic.n_frames == data.n_frames
+    ax = pic.axes[0]
+    np.testing.assert_allclose(_image(ax), field_frames(data, "density")[0].max(axis=2).T)  # frame 0 is drawn
+    shadow = obstacle_of(data).any(axis=2).T
+    assert shadow.any() and (ax.images[-1].get_array()[..., 3] == shadow).all()  # the stored obstacle, drawn
+    assert pic.figure.axes[-1].get_ylabel() == "density"
+    still = show(data, field="vorticity", animate=False, frames=[-1], axis="x")
+    image = _image(still.axes[0])
+    np.testing.assert_allclose(image, field_frames(data, "vorticity")[-1][data.grid.resolution[0] // 2])
+    assert still.axes[0].images[0].get_cmap().name == "viridis"  # |curl u| in 3-D: not signed
+    with pytest.raises(ParameterError, match="no field 'pressure'"):
+        show(data, field="pressure")
+
+
+def test_show_2d_vorticity_is_centred(tmp_path):
+    from phisim.simulate import resolve_config, simulate_dataset
+
+    cfg = resolve_config("taylor_green", trajectories=1, trajectories_per_file=1, steps=2, resolution=16,
+                         valid_fraction=0, test_fraction=0)
+    root = simulate_dataset(tmp_path / "tg", cfg, progress=False)["root"]
+    pic = show(next((root / "data" / "train").glob("*.h5")), field="vorticity", animate=False, frames=[0])
+    im = pic.axes[0].images[0]
+    lo, hi = im.get_clim()
+    assert im.get_cmap().name == "RdBu_r" and lo == pytest.approx(-hi) and hi > 0
