@@ -7,7 +7,7 @@ Examples::
     phisim compare heat adam pg --iterations 100 --out out/heat.h5 --plot out/heat.png
     phisim info out/poisson.h5
     phisim train examples/burgers_inverse.py:burgers_problem adam --setting resolution=16 --out out/b.h5
-    phisim train well pg --setting data_dir=data/heat --out out/well.h5
+    phisim train well supervised --setting data_dir=data/heat --setting field=temperature --out out/well.h5
     phisim simulate smoke --trajectories 16 --workers 2 --out data/smoke
     phisim plot data/smoke/data/train/smoke_00000.h5 --field vorticity
     phisim predict out/poisson.h5.pg.model.pt inputs.h5 --key inputs --out predictions.h5
