@@ -160,7 +160,13 @@ class Picture:
         if suffix not in (".gif", ".mp4", ".html"):
             raise ParameterError(f"cannot write {p.name}: an animation is written as .gif, .mp4 or .html; for a "
                                  "picture of a few frames use show(..., animate=False)")
-        return save_animation(self.animation, p, fps=fps or self.fps, dpi=dpi or self._dpi)
+        if suffix == ".mp4" and not ffmpeg_available():  # checked before the animation is made
+            raise ParameterError("writing MP4 needs ffmpeg on the PATH (matplotlib's animation.ffmpeg_path); "
+                                 "install ffmpeg or write a .gif")
+        fps = self.fps if fps is None else fps
+        if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or fps < 1:
+            raise ParameterError(f"fps must be a positive int, got {fps!r}")
+        return save_animation(self.animation, p, fps=fps, dpi=dpi or self._dpi)
 
 
 # ---- what to draw -------------------------------------------------------------------------------------------

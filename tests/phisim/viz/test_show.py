@@ -337,3 +337,19 @@ def test_show_2d_vorticity_is_centred(tmp_path):
     im = pic.axes[0].images[0]
     lo, hi = im.get_clim()
     assert im.get_cmap().name == "RdBu_r" and lo == pytest.approx(-hi) and hi > 0
+
+
+def test_show_video_and_mp4_need_ffmpeg(tmp_path):
+    from phisim.viz import ffmpeg_available
+
+    frames = [np.full((6, 4), float(k)) for k in range(3)]
+    if not ffmpeg_available():
+        with pytest.raises(ParameterError, match="ffmpeg"):
+            show(frames, html="video")
+        with pytest.raises(ParameterError, match="ffmpeg"):
+            show(frames, save=tmp_path / "a.mp4")
+        assert "<script" in show(frames)._repr_html_()  # the default without ffmpeg: the JavaScript player
+        pytest.skip("ffmpeg not installed; HTML5 video and MP4 not exercised")
+    pic = show(frames, save=tmp_path / "a.mp4")
+    assert pic.saved.stat().st_size > 0
+    assert "<video" in pic._repr_html_()  # the default with ffmpeg
