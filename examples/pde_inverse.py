@@ -21,7 +21,8 @@ reference lines without a network on the same held-out set: ``x = y*`` (what the
 
 Outputs in ``--out``: ``pde_inverse.h5`` (the curves, ``/training/<method>_s<seed>``, and ``/summary`` with the
 table as attributes), ``pde_inverse.png`` (held-out curves, mean and spread over the seeds; one reconstruction),
-``pde_inverse_summary.json`` and the trained networks (``pde_inverse.h5.<run>.model.pt``).
+``pde_inverse_modes.png`` (held-out error per Fourier mode), ``pde_inverse_summary.json`` and the trained networks
+(``pde_inverse.h5.<run>.model.pt``). ``--plot-only`` remakes the table and figures from the runs in ``--out``.
 
 Run (the documented experiment, ``docs/RESULTS_PDE.md``)::
 
@@ -186,6 +187,66 @@ def plot(path: Path, problem, curves: dict, methods: list[str], seeds: list[int]
     plt.close(fig)
 
 
+def mode_errors(problem, path: Path, methods: list[str], seeds: list[int]) -> dict:
+    """Held-out error per Fourier mode: the mean over samples (and seeds) of ``|x̂_m − x̂*_m|`` (amplitudes, ``rfft``
+    scaled by ``2/N``), for each trained method, for ``x = y*`` and for one application of the local inverse from
+    ``x = y*``; with the amplitude ``|x̂*_m|`` of the states and the linear part's factor ``|g_m|``.
+
+    Args:
+        problem: The problem.
+        path: The HDF5 results file (the model files lie beside it).
+        methods: Method names.
+        seeds: Seeds.
+
+    Returns:
+        ``{name: [value per mode]}``.
+    """
+    held = problem.heldout()
+    op = problem.operator()
+    xs = held.x_true.double()
+    y = held.y_target.double()
+    n = xs.shape[-1]
+
+    def spectrum(x):
+        return ((torch.fft.rfft(x.double() - xs, dim=-1).abs() * (2.0 / n)).mean(dim=(0, 1))).tolist()
+
+    out = {"signal": (torch.fft.rfft(xs, dim=-1).abs() * (2.0 / n)).mean(dim=(0, 1)).tolist(),
+           "transfer": op.transfer.abs()[0].tolist(), "identity": spectrum(y),
+           "local_inverse_1": spectrum(op.local_inverse(y, y))}
+    for m in methods:
+        per_seed = []
+        for seed in seeds:
+            f = model_path(path, f"{m}_s{seed}")
+            if Path(f).exists():
+                net = load_model(f)
+                with torch.no_grad():
+                    per_seed.append(spectrum(problem.predict(net, held)))
+        if per_seed:
+            out[m] = np.mean(np.asarray(per_seed), axis=0).tolist()
+    return out
+
+
+def plot_modes(modes: dict, methods: list[str], out: Path) -> None:
+    """The per-mode held-out errors of :func:`mode_errors` against the mode number, with ``|g|`` beside them."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    m = np.arange(len(modes["signal"]))
+    ax.semilogy(m, modes["signal"], "k-", lw=2, label="|x*| (the states)")
+    ax.semilogy(m, modes["identity"], "k:", label="error of x = y*")
+    ax.semilogy(m, modes["local_inverse_1"], "k-.", label="error of one local inverse from y* (no network)")
+    for name in methods:
+        if name in modes:
+            ax.semilogy(m, modes[name], label=f"error of {name}")
+    ax.semilogy(m, modes["transfer"], color="gray", lw=3, alpha=0.4, label="|g| (linear part over the horizon)")
+    ax.set_xlabel("mode m (wavenumber 2πm/L)")
+    ax.set_ylabel("mean amplitude")
+    ax.set_ylim(1e-6, 10)
+    ax.legend(fontsize=7)
+    ax.set_title("held-out error per Fourier mode (mean over samples and seeds)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Train every method for every seed, evaluate, write the HDF5 file, the summary and the figure.
 
@@ -217,6 +278,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--device", default="cpu", help="torch device of the networks: cpu, cuda or cuda:N (the ETDRK "
                    "physics runs on the CPU in float64)")
     p.add_argument("--out", type=Path, default=Path("out/pde_inverse"))
+    p.add_argument("--plot-only", action="store_true",
+                   help="no training: the table and figures from the runs already in --out")
     args = p.parse_args(argv)
     device = check_device(args.device)  # before anything is written
     torch.set_num_threads(args.threads)
@@ -233,8 +296,10 @@ def main(argv: list[str] | None = None) -> dict:
     t0 = time.perf_counter()
     refs = references(problem, args.reference_iterations)
     print(f"references (no network, held-out x L1 per sample): {json.dumps(refs)}", flush=True)
-    runs = {}
-    for seed in args.seeds:
+    summary_file = args.out / "pde_inverse_summary.json"
+    earlier = json.loads(summary_file.read_text()) if args.plot_only and summary_file.exists() else {}
+    runs = dict(earlier.get("runs", {}))
+    for seed in [] if args.plot_only else args.seeds:
         for name in args.methods:
             key = f"{name}_s{seed}"
             n = min(args.iterations, caps.get(name, args.iterations))
@@ -260,7 +325,8 @@ def main(argv: list[str] | None = None) -> dict:
                             "device": str(device),
                             "torch": torch.__version__},
                "references": refs, "table": table, "runs": runs,
-               "seconds_total": time.perf_counter() - t0}
+               "seconds_total": earlier.get("seconds_total", time.perf_counter() - t0)}
+    summary["mode_errors"] = mode_errors(problem, h5, args.methods, args.seeds)
     with h5py.File(h5, "a") as f:
         if "summary" in f:
             del f["summary"]
@@ -269,8 +335,9 @@ def main(argv: list[str] | None = None) -> dict:
         for m, row in table.items():
             for k in ("mean_final", "std_final", "mean_at_common", "std_at_common", "sec_per_it"):
                 g.attrs[f"{m}/{k}"] = row[k]
-    (args.out / "pde_inverse_summary.json").write_text(json.dumps(summary, indent=1))
+    summary_file.write_text(json.dumps(summary, indent=1))
     plot(h5, problem, curves, args.methods, args.seeds, refs, args.out / "pde_inverse.png")
+    plot_modes(summary["mode_errors"], args.methods, args.out / "pde_inverse_modes.png")
     print("method | iterations | held-out x L1 at the end | at iteration", common, "| s/it")
     for m, row in table.items():
         print(f"{m} | {row['iterations']} | {row['mean_final']:.3f} ± {row['std_final']:.3f} | "

@@ -312,6 +312,12 @@ def test_example_tiny(tmp_path):
     assert all(row["seeds"] == 2 and math.isfinite(row["mean_final"]) for row in table.values())
     assert table["hig"]["iterations"] == 2 and table["adam"]["iterations"] == 4
     assert summary["references"]["local_inverse_2"] < summary["references"]["identity"]
-    assert (out / "pde_inverse.png").stat().st_size > 0
+    assert (out / "pde_inverse.png").stat().st_size > 0 and (out / "pde_inverse_modes.png").stat().st_size > 0
+    modes = summary["mode_errors"]
+    assert len(modes["hig"]) == len(modes["signal"]) == 64 // 2 + 1
+    again = mod.main(["--iterations", "4", "--max-iterations", "hig=2", "--seeds", "0", "1", "--heldout-size", "4",
+                      "--eval-every", "2", "--reference-iterations", "2", "--width", "4", "--blocks", "1",
+                      "--out", str(out), "--plot-only"])
+    assert again["table"] == table and again["runs"] == summary["runs"]
     with h5py.File(out / "pde_inverse.h5", "r") as f:
         assert "adam_s1" in f["training"] and "json" in f["summary"].attrs
