@@ -11,10 +11,12 @@ to rounding — but organised for the machine:
 * the departure points of all components are one stacked array, wrapped into the period with ``floor``
   (cheaper than ``remainder``) and mapped to ``grid_sample``'s coordinates in the same pass, and every
   component is interpolated by one ``grid_sampler`` call (components folded into the batch);
-* explicit viscosity, the MAC divergence and the pressure gradient are shifted views of wrap-padded arrays;
-  the projection is one real FFT pair with a precomputed multiplier.
+* explicit viscosity, the MAC divergence and the pressure gradient are shifted views of wrap-padded arrays
+  (index tuples built once); the divergence is taken of the advected velocity and the viscous step's factor
+  on it, ``1 + nu dt lap`` per Fourier mode (the periodic difference operators commute), is part of the
+  pressure multiplier: one real FFT pair (``torch.fft``, a complex multiplier precomputed per time step).
 
-A 2-D step is about 35 ATen operations where the general path takes about 140; MacCormack adds the backward
+A 2-D step is about 40 calls into torch where the general path makes about 140; MacCormack adds the backward
 trace and the extrema clamp (about 20 more). Everything is precomputed per time step size (the coefficient
 tensors) and nothing is read back to the host, so the step traces as one graph for ``torch.compile``.
 
@@ -39,13 +41,6 @@ __all__ = ["PeriodicStep"]
 
 #: Self-advection schemes of the fused step.
 FUSED_SCHEMES = ("semi_lagrangian", "maccormack")
-
-
-def _narrow(x: torch.Tensor, starts: dict[int, int], lengths: tuple[int, ...]) -> torch.Tensor:
-    """``x`` narrowed along its spatial axes (dims ``2 + a``): ``starts[a]`` (default 1) for ``lengths[a]``."""
-    for a, n in enumerate(lengths):
-        x = x.narrow(2 + a, starts.get(a, 1), n)
-    return x
 
 
 class PeriodicStep:
@@ -92,7 +87,7 @@ class PeriodicStep:
         if hit is not None:
             return hit
         if len(self._consts) >= 16:
-            self._consts.clear()
+            self._consts = {k: v for k, v in self._consts.items() if isinstance(k, str)}
         d, res, dx = self.grid.rank, self.res, self.dx
         kw = dict(dtype=torch.float64, device=self.device)
         # coordinate c of grid_sample is array axis a = d - 1 - c; every array below is laid out
@@ -111,8 +106,13 @@ class PeriodicStep:
         stretch = torch.tensor([2.0 * res[a] / (res[a] + 1) for a in axes], **kw).reshape(view)
         shift = torch.tensor([2.0 / (res[a] + 1) - 1.0 for a in axes], **kw).reshape(view)
         rates = tuple(self.viscosity * dt / h ** 2 for h in dx)
+        # the pressure multiplier times the viscous step's symbol 1 + sum_a r_a (2 cos(2 pi f_a) - 2) per mode
+        freqs = [torch.fft.fftfreq(n, **kw) for n in res[:-1]] + [torch.fft.rfftfreq(res[-1], **kw)]
+        symbol = 1.0 + sum(r * (2.0 * torch.cos(2.0 * math.pi * f) - 2.0).reshape(
+            [-1 if b == a else 1 for b in range(d)]) for a, (r, f) in enumerate(zip(rates, freqs)))
+        multiplier = self.multiplier * symbol.to(self.multiplier.dtype)
         cast = dict(dtype=self.dtype, device=self.device)
-        hit = (base.to(**cast), scale.to(**cast), stretch.to(**cast), shift.to(**cast), rates)
+        hit = (base.to(**cast), scale.to(**cast), stretch.to(**cast), shift.to(**cast), rates, multiplier)
         if self.scheme == "maccormack":
             # the lower stencil corner of a padded index f n + 1: floor; flat index in the (n + 1)^d corner array
             sizes = [n + 1 for n in res]
@@ -125,11 +125,33 @@ class PeriodicStep:
         return hit
 
     # ---- the step -------------------------------------------------------------------------------------
+    def _slices(self):
+        """Index tuples of the shifted views, built once: for a ``(B, C, *(res + 2))`` wrap-padded array,
+        ``shifted[a][s]`` is the view shifted by ``s - 1`` cells along axis ``a``; ``pieces[i][c]`` the
+        velocity of coordinate ``c`` at component ``i``'s sample points (``None``: the component itself,
+        else ``(pair, index)`` into the box sums)."""
+        hit = self._consts.get("slices")
+        if hit is None:
+            d, res = self.grid.rank, self.res
+            all_ = slice(None)
+
+            def view(starts):
+                return (all_, all_) + tuple(slice(starts.get(a, 1), starts.get(a, 1) + n) for a, n in enumerate(res))
+
+            shifted = [[view({a: s}) for s in range(3)] for a in range(d)]
+            halves = [[(all_, all_) + (all_,) * a + (slice(s, s + res[a] + 1),) for s in range(2)] for a in range(d)]
+            pieces = [[None if a == i else ((min(i, a), max(i, a)), (all_, a) + view({i: 0, a: 1})[2:])
+                       for a in reversed(range(d))] for i in range(d)]
+            compact = [(all_,) * (1 + a) + (slice(0, res[a]),) for a in range(d)]
+            hit = self._consts["slices"] = (shifted, halves, pieces, compact)
+        return hit
+
     def __call__(self, velocity: StaggeredGrid, dt: float) -> tuple[StaggeredGrid, CenteredGrid]:
-        d, res, dx = self.grid.rank, self.res, self.dx
+        d, res = self.grid.rank, self.res
         consts = self._constants(float(dt))
-        base, scale, stretch, shift, rates = consts[:5]
-        v = torch.stack([c.narrow(1 + a, 0, res[a]) for a, c in enumerate(velocity.values)], dim=1)
+        base, scale, stretch, shift, rates, multiplier = consts[:6]
+        shifted, halves, pieces, compact = self._slices()
+        v = torch.stack([c[compact[a]] for a, c in enumerate(velocity.values)], dim=1)
         B = v.shape[0]
         wrap = (1, 1) * d
         p = F.pad(v, wrap, mode="circular")  # (B, d, *(res + 2))
@@ -138,52 +160,45 @@ class PeriodicStep:
         boxes = {}
         for i in range(d):
             for j in range(i + 1, d):
-                q = p.narrow(2 + i, 0, res[i] + 1) + p.narrow(2 + i, 1, res[i] + 1)
-                boxes[i, j] = q.narrow(2 + j, 0, res[j] + 1) + q.narrow(2 + j, 1, res[j] + 1)
-        pieces = []
-        for i in range(d):
-            for a in reversed(range(d)):
-                if a == i:
-                    pieces.append(v[:, i])
-                else:
-                    box = boxes[min(i, a), max(i, a)]
-                    pieces.append(_narrow(box, {i: 0, a: 1}, res)[:, a])
-        vel = torch.stack(pieces, dim=1).reshape(B, d, d, *res)
+                q = p[halves[i][0]] + p[halves[i][1]]
+                boxes[i, j] = q[halves[j][0]] + q[halves[j][1]]
+        vel = torch.stack([v[:, i] if pc is None else boxes[pc[0]][pc[1]] for i in range(d) for pc in pieces[i]],
+                          dim=1).reshape(B, d, d, *res)
         frac = torch.addcmul(base, vel, scale)
         frac = frac - torch.floor(frac)
         coords = torch.addcmul(shift, frac, stretch).reshape(B * d, d, *res).movedim(1, -1)
-        src = p.reshape(B * d, 1, *p.shape[2:])
-        a = torch.grid_sampler(src, coords, 0, 1, True).reshape(B, d, *res)
+        a = torch.grid_sampler(p.reshape(B * d, 1, *p.shape[2:]), coords, 0, 1, True).reshape(B, d, *res)
         if self.scheme == "maccormack":
             a = self._maccormack(v, p, a, vel, frac, consts)
-        if self.viscosity != 0:
-            pa = F.pad(a, wrap, mode="circular")
-            acc = a * (1.0 - 2.0 * sum(rates))
-            for ax in range(d):
-                acc = acc.add_(_narrow(pa, {ax: 0}, res) + _narrow(pa, {ax: 2}, res), alpha=rates[ax])
-            a = acc
-        # the MAC divergence (in units of 1/dx[0]) and the spectral pressure solve
-        pd = F.pad(a, (0, 1) * d, mode="circular")
+        # explicit viscosity and the MAC divergence from one wrap-padded array; the divergence is that of the
+        # advected velocity (in units of 1/dx[0]): the viscous step's factor on it, (1 + nu dt lap) per mode,
+        # is in the multiplier (the periodic difference operators commute)
+        pa = F.pad(a, wrap, mode="circular")
         div = None
         for ax in range(d):
-            diff = _narrow(pd[:, ax:ax + 1], {b: 0 for b in range(d)} | {ax: 1}, res) - _narrow(
-                pd[:, ax:ax + 1], {b: 0 for b in range(d)}, res)
-            div = diff if div is None else div.add_(diff, alpha=dx[0] / dx[ax])
+            diff = pa[:, ax:ax + 1][shifted[ax][2]] - pa[:, ax:ax + 1][shifted[ax][1]]
+            div = diff if div is None else div.add_(diff, alpha=self.dx[0] / self.dx[ax])
+        if self.viscosity != 0:
+            acc = a * (1.0 - 2.0 * sum(rates))
+            for ax in range(d):
+                acc = acc.add_(pa[shifted[ax][0]] + pa[shifted[ax][2]], alpha=rates[ax])
+            a = acc
         axes = tuple(range(1, d + 1))
-        pressure = torch.fft.irfftn(torch.fft.rfftn(div[:, 0], dim=axes) * self.multiplier, s=res, dim=axes)
-        pp = F.pad(pressure.unsqueeze(1), (1, 0) * d, mode="circular")
+        pressure = torch.fft.irfftn(torch.fft.rfftn(div[:, 0], dim=axes) * multiplier, s=res, dim=axes)
+        # the pressure gradient at the faces (face k between cells k - 1 and k); face n repeats face 0
+        pp = F.pad(pressure.unsqueeze(1), wrap, mode="circular")
         comps = []
         for ax in range(d):
-            grad = _narrow(pp, {ax: 1}, res) - _narrow(pp, {ax: 0}, res)
-            new = torch.add(a[:, ax:ax + 1], grad, alpha=-1.0 / dx[ax])[:, 0]
-            comps.append(torch.cat([new, new.narrow(1 + ax, 0, 1)], dim=1 + ax))
+            grad = pp[shifted[ax][1]] - pp[shifted[ax][0]]
+            new = torch.add(a[:, ax:ax + 1], grad, alpha=-1.0 / self.dx[ax])[:, 0]
+            comps.append(torch.cat([new, new[compact[ax][:-1] + (slice(0, 1),)]], dim=1 + ax))
         out = StaggeredGrid._trusted(tuple(comps), self.grid, self.boundary)
         return out, CenteredGrid._trusted(pressure, self.grid, self.pressure_boundary)
 
     def _maccormack(self, v, p, forward, vel, frac, consts):
         """Backward trace of the forward result, correction, and the clamp to the forward stencil's extrema."""
         d, res = self.grid.rank, self.res
-        base, scale, stretch, shift, _, counts, stride, upper = consts
+        base, scale, stretch, shift, _, _, counts, stride, upper = consts
         B = v.shape[0]
         back = torch.addcmul(base, vel, scale, value=-1.0)
         back = back - torch.floor(back)
