@@ -305,20 +305,26 @@ def laplace_fused(u: torch.Tensor, dx, kinds: Kinds) -> torch.Tensor:
 
 def _fused(u: torch.Tensor, dx, kinds: Kinds, sign: float) -> torch.Tensor:
     """``sign * ∇²_h u`` (zero values): ``u * (sign * diag)`` plus ``sign / dx²`` times each neighbour."""
-    res = tuple(u.shape[1:])
-    dx = tuple(dx)
-    table = stencil_diagonal if sign > 0 else _negated_diagonal
-    out = u * table(res, dx, kinds, u.dtype, u.device)
-    for a, d in enumerate(dx):
-        dim, n = 1 + a, res[a]
-        w = sign / (d * d)
+    diag, steps = _fused_plan(tuple(u.shape[1:]), tuple(dx), kinds, u.dtype, u.device, sign)
+    out = u * diag
+    for dim, n, w, periodic in steps:
         if n > 1:
             out.narrow(dim, 0, n - 1).add_(u.narrow(dim, 1, n - 1), alpha=w)
             out.narrow(dim, 1, n - 1).add_(u.narrow(dim, 0, n - 1), alpha=w)
-        if kinds[a][0] == "periodic":
+        if periodic:
             out.narrow(dim, 0, 1).add_(u.narrow(dim, n - 1, 1), alpha=w)
             out.narrow(dim, n - 1, 1).add_(u.narrow(dim, 0, 1), alpha=w)
     return out
+
+
+@lru_cache(maxsize=64)
+def _fused_plan(res: tuple[int, ...], dx: tuple[float, ...], kinds: Kinds, dtype: torch.dtype, device: torch.device,
+                sign: float):
+    """The diagonal of ``sign * ∇²_h`` and per axis ``(dim, n, sign / dx², periodic)``: what :func:`_fused` needs
+    besides the field, looked up once per call."""
+    diag = (stencil_diagonal if sign > 0 else _negated_diagonal)(res, dx, kinds, dtype, device)
+    steps = tuple((1 + a, res[a], sign / (d * d), kinds[a][0] == "periodic") for a, d in enumerate(dx))
+    return diag, steps
 
 
 def laplace_zero(u: torch.Tensor, dx, kinds: Kinds, open_faces=None) -> torch.Tensor:

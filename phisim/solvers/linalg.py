@@ -482,10 +482,14 @@ def _cg_single(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Proje
     rz = _dot1(r, z)
     p = z.clone(memory_format=torch.contiguous_format)
     spare = torch.empty_like(p)
+    # flat views for BLAS dots: r is updated in place; p alternates between two buffers (views of both kept)
+    blas = r.dtype in _BLAS_DTYPES and r.is_contiguous()
+    rf = r.view(-1) if blas else None
+    pf, spare_f = p.view(-1), spare.view(-1)
     best, last, k = rnorm, 0, 0
     while k < budget_:
         q = A(p)
-        pq = _dot1(p, q)
+        pq = float(torch.dot(pf, q.reshape(-1))) if blas and q.dtype == p.dtype else _dot1(p, q)
         if not pq > 0:  # p^T A p <= 0 (breakdown) or NaN
             return done(k, _BREAKDOWN if math.isfinite(pq) else _NONFINITE)
         alpha = rz / pq
@@ -494,9 +498,13 @@ def _cg_single(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Proje
         if P is not None:
             r.copy_(P(r))
         k += 1
-        z = M(r) if M is not None else r
-        rz_new = _dot1(r, z)
-        rnorm = float(_norm(r)[0]) if M is not None else math.sqrt(max(rz_new, 0.0))
+        if M is None:
+            rz_new = float(torch.dot(rf, rf)) if blas else _dot1(r, r)
+            rnorm = math.sqrt(max(rz_new, 0.0))
+        else:
+            z = M(r)
+            rz_new = _dot1(r, z)
+            rnorm = float(_norm(r)[0])
         if rnorm < 0.99 * best:
             best, last = rnorm, k
         if rnorm <= tol_:
@@ -508,6 +516,7 @@ def _cg_single(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Proje
         if k >= budget_:
             return done(k, _MAX_ITER)
         p, spare = torch.add(z, p, alpha=rz_new / rz, out=spare), p
+        pf, spare_f = spare_f, pf
         rz = rz_new
     return done(k, _MAX_ITER)
 
