@@ -67,8 +67,9 @@ class PeriodicStep:
         self.kinds = normalize_kinds("periodic", d)
         # the divergence is accumulated in units of 1/dx[0]; the multiplier carries the 1/dx[0]
         inv = solve_multiplier(self.res, self.dx, self.kinds, device, dtype)
-        # rfftn's layout (last axis halved), complex so that the product needs no conversion
-        self.multiplier = (inv / self.dx[0]).to(torch.complex64 if dtype == torch.float32 else torch.complex128)
+        # rfftn's layout (last axis halved), real: it multiplies the spectrum viewed as (re, im) pairs, one real
+        # pass that needs no complex arithmetic (which a compiler may not generate)
+        self.multiplier = inv / self.dx[0]
         self.pressure_boundary = boundary.for_pressure()
         self._consts: dict = {}
 
@@ -110,7 +111,7 @@ class PeriodicStep:
         freqs = [torch.fft.fftfreq(n, **kw) for n in res[:-1]] + [torch.fft.rfftfreq(res[-1], **kw)]
         symbol = 1.0 + sum(r * (2.0 * torch.cos(2.0 * math.pi * f) - 2.0).reshape(
             [-1 if b == a else 1 for b in range(d)]) for a, (r, f) in enumerate(zip(rates, freqs)))
-        multiplier = self.multiplier * symbol.to(self.multiplier.dtype)
+        multiplier = (self.multiplier * symbol.to(self.multiplier.dtype)).unsqueeze(-1)
         cast = dict(dtype=self.dtype, device=self.device)
         hit = (base.to(**cast), scale.to(**cast), stretch.to(**cast), shift.to(**cast), rates, multiplier)
         if self.scheme == "maccormack":
@@ -184,7 +185,8 @@ class PeriodicStep:
                 acc = acc.add_(pa[shifted[ax][0]] + pa[shifted[ax][2]], alpha=rates[ax])
             a = acc
         axes = tuple(range(1, d + 1))
-        pressure = torch.fft.irfftn(torch.fft.rfftn(div[:, 0], dim=axes) * multiplier, s=res, dim=axes)
+        spectrum = torch.view_as_complex(torch.view_as_real(torch.fft.rfftn(div[:, 0], dim=axes)) * multiplier)
+        pressure = torch.fft.irfftn(spectrum, s=res, dim=axes)
         # the pressure gradient at the faces (face k between cells k - 1 and k); face n repeats face 0
         pp = F.pad(pressure.unsqueeze(1), wrap, mode="circular")
         comps = []
