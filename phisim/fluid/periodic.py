@@ -141,7 +141,8 @@ class PeriodicStep:
 
             shifted = [[view({a: s}) for s in range(3)] for a in range(d)]
             halves = [[(all_, all_) + (all_,) * a + (slice(s, s + res[a] + 1),) for s in range(2)] for a in range(d)]
-            pieces = [[None if a == i else ((min(i, a), max(i, a)), (all_, a) + view({i: 0, a: 1})[2:])
+            # the box sum of pair (i, j) holds channels i and j only (positions 0 and 1)
+            pieces = [[None if a == i else ((min(i, a), max(i, a)), (all_, int(a > i)) + view({i: 0, a: 1})[2:])
                        for a in reversed(range(d))] for i in range(d)]
             compact = [(all_,) * (1 + a) + (slice(0, res[a]),) for a in range(d)]
             hit = self._consts["slices"] = (shifted, halves, pieces, compact)
@@ -161,7 +162,8 @@ class PeriodicStep:
         boxes = {}
         for i in range(d):
             for j in range(i + 1, d):
-                q = p[halves[i][0]] + p[halves[i][1]]
+                pair = p[:, i:j + 1:j - i]
+                q = pair[halves[i][0]] + pair[halves[i][1]]
                 boxes[i, j] = q[halves[j][0]] + q[halves[j][1]]
         vel = torch.stack([v[:, i] if pc is None else boxes[pc[0]][pc[1]] for i in range(d) for pc in pieces[i]],
                           dim=1).reshape(B, d, d, *res)
