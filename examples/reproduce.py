@@ -52,6 +52,7 @@ import numpy as np  # noqa: E402
 import scipy.optimize  # noqa: E402
 import torch  # noqa: E402
 
+from inverse.cli_checks import json_summary  # noqa: E402
 from inverse.local_solvers import GradientStepSolver  # noqa: E402
 from inverse.operators import Heat  # noqa: E402
 from inverse.problems import Problem, get_problem  # noqa: E402
@@ -478,8 +479,7 @@ def run_network_experiment(exp: str, args: argparse.Namespace) -> dict:
         if models:
             summary["reconstruction_mae"] = plot_reconstruction(exp, problem, models, min(batch_size, 16),
                                                                 out / f"{exp}_reconstruction.png")
-    with open(out / f"{exp}_summary.json", "w") as f:
-        json.dump(summary, f, indent=1)
+    (out / f"{exp}_summary.json").write_text(json_summary(summary, indent=1))  # strict JSON: NaN -> null
     return summary
 
 
@@ -506,9 +506,8 @@ def run_opt_experiment(args: argparse.Namespace) -> dict:
     ax.set_xscale("symlog", linthresh=1.0)
     ax.set_xlim(left=0)
     save_figure(fig, out / "e4-opt_curves.png")
-    with open(out / "e4-opt_summary.json", "w") as f:
-        json.dump({"experiment": "e4-opt", "samples": args.samples, "resolution": list(res),
-                   "methods": summary}, f, indent=1)
+    (out / "e4-opt_summary.json").write_text(json_summary(
+        {"experiment": "e4-opt", "samples": args.samples, "resolution": list(res), "methods": summary}, indent=1))
     return summary
 
 

@@ -30,6 +30,7 @@ from torch import nn
 
 from phisim.errors import FileFormatError, ParameterError, ShapeError
 
+from .cli_checks import dataset_key, hdf5_file, model_file
 from .custom import CustomProblem, is_factory_spec
 from .problems import PROBLEMS, get_problem
 
@@ -321,21 +322,13 @@ def predict_file(model: str | os.PathLike, inputs: str | os.PathLike, out: str |
     """
     import h5py
 
+    order = "predict_file(model, inputs, out)"
+    model_file(model, argument_order=order)  # the same checks and wording as `phisim predict`
+    inputs = hdf5_file(inputs, "input file", argument_order=order)
+    key = dataset_key(inputs, key, flag="key=")
     net = load_model(model, device=device)
     meta = net.phisim_model
-    inputs = Path(inputs)
-    try:
-        f = h5py.File(inputs, "r")
-    except OSError as exc:
-        raise FileFormatError(f"{inputs}: not a readable HDF5 file ({exc})") from exc
-    with f:
-        if key is None:
-            names = []
-            f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) else None)
-            key = names[0] if len(names) == 1 else "inputs"
-        key = key.lstrip("/")
-        if key not in f or not isinstance(f[key], h5py.Dataset):
-            raise FileFormatError(f"{inputs} has no dataset {key!r}; pass --key (e.g. t0_fields/<name>)")
+    with h5py.File(inputs, "r") as f:
         arr = np.asarray(f[key])
     x, lead = _inputs_from(arr, key, meta.get("input_shape"), inputs)
     y = predict(net, x, batch_size=batch_size)
