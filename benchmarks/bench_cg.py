@@ -157,9 +157,9 @@ _VIEWS = {"view", "_unsafe_view", "slice", "select", "narrow", "as_strided", "ex
           "unsqueeze", "squeeze", "t", "transpose", "lift_fresh", "detach", "_reshape_alias"}
 
 
-def _iteration_rhs(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+def _iteration_rhs(shape: tuple[int, ...], dtype: torch.dtype, batch: int = 1) -> torch.Tensor:
     g = torch.Generator().manual_seed(1)
-    return torch.randn((1, *shape), generator=g, dtype=torch.float64).to(dtype)
+    return torch.randn((batch, *shape), generator=g, dtype=torch.float64).to(dtype)
 
 
 def _e3_operator(u: torch.Tensor) -> torch.Tensor:
@@ -224,6 +224,37 @@ def _floor_cg(b: torch.Tensor, diag: torch.Tensor, iterations: int, tensor_coeff
     return x
 
 
+def _floor_cg_batched(b: torch.Tensor, diag: torch.Tensor, iterations: int, blas_dots: bool) -> torch.Tensor:
+    """The batched floor: per-sample coefficients ``(B, 1, ...)`` applied by ``addcmul_``, per-sample dots by one
+    product and a sum (``blas_dots=False``) or one ``torch.dot`` per sample (``True``); no convergence checks."""
+    B = b.shape[0]
+    shape = (B,) + (1,) * (b.ndim - 1)
+    x = torch.zeros_like(b)
+    r = b.clone()
+    p = r.clone()
+    spare = torch.empty_like(b)
+    q = torch.empty_like(b)
+    rows = [(r[i].view(-1), q[i].view(-1)) for i in range(B)]
+
+    def dots(u, v, flat_u, flat_v):
+        if blas_dots:
+            return torch.stack([torch.dot(a, c) for a, c in zip(flat_u, flat_v)])
+        return (u * v).flatten(1).sum(1)
+
+    r_rows = [a for a, _ in rows]
+    q_rows = [c for _, c in rows]
+    rz = dots(r, r, r_rows, r_rows)
+    for _ in range(iterations):
+        floor_laplacian(p, diag, q)
+        alpha = (rz / dots(p, q, [p[i].view(-1) for i in range(B)], q_rows)).view(shape)
+        x.addcmul_(alpha, p)
+        r.addcmul_(alpha, q, value=-1)
+        rz_new = dots(r, r, r_rows, r_rows)
+        p, spare = torch.addcmul(r, (rz_new / rz).view(shape), p, out=spare), p
+        rz = rz_new
+    return x
+
+
 def _numpy_cg(b: np.ndarray, diag: np.ndarray, iterations: int) -> np.ndarray:
     """The same loop in numpy: shifted slices for the stencil, ``np.dot``, scipy's BLAS ``axpy``/``scal``."""
     from scipy.linalg import blas
@@ -253,18 +284,19 @@ def _numpy_cg(b: np.ndarray, diag: np.ndarray, iterations: int) -> np.ndarray:
     return x
 
 
-def iteration_sides(shape: tuple[int, ...], dtype: str) -> dict:
+def iteration_sides(shape: tuple[int, ...], dtype: str, batch: int = 1) -> dict:
     """The sides of one case: name -> ``run(iterations)``.
 
     Args:
         shape: Grid resolution.
         dtype: ``'float32'`` or ``'float64'``.
+        batch: Samples solved together (above 1: the batched floors, no numpy side).
 
     Returns:
         A dict of callables that each run a CG of the given number of iterations (plus fixed costs).
     """
     dt = getattr(torch, dtype)
-    b = _iteration_rhs(shape, dt)
+    b = _iteration_rhs(shape, dt, batch)
     diag = _diagonal(shape, dt)
     b_np, diag_np = b[0].numpy().copy(), diag[0].numpy().copy()
 
@@ -278,6 +310,10 @@ def iteration_sides(shape: tuple[int, ...], dtype: str) -> dict:
     if hasattr(stencil, "negative_laplacian"):
         sides["phisim"] = phisim_cg(_phisim_operator)
     sides["phisim (E3 operator)"] = phisim_cg(_e3_operator)
+    if batch > 1:
+        sides["floor, per-sample coefficients, product-sum dots"] = lambda k: _floor_cg_batched(b, diag, k, False)
+        sides["floor, per-sample coefficients, one dot per sample"] = lambda k: _floor_cg_batched(b, diag, k, True)
+        return sides
     sides["floor, 0-d tensor coefficients"] = lambda k: _floor_cg(b, diag, k, True)
     sides["floor, number coefficients"] = lambda k: _floor_cg(b, diag, k, False)
     sides["numpy + BLAS"] = lambda k: _numpy_cg(b_np, diag_np, k)
@@ -367,7 +403,7 @@ class _Counter(torch.utils._python_dispatch.TorchDispatchMode):
         tensors = [t for t in list(args) + list((kwargs or {}).values()) + [out] if isinstance(t, torch.Tensor)]
         big = max((t.numel() for t in tensors), default=0) >= self.numel // 4
         self.counts["view" if name in _VIEWS else ("array" if big else "small")] += 1
-        self.counts["host read" if name == "_local_scalar_dense" else "_"] += 1
+        self.counts["host read" if name in ("_local_scalar_dense", "equal") else "_"] += 1
         return out
 
 
@@ -383,7 +419,7 @@ def op_counts(run, numel: int, k1: int = 5, k2: int = 15) -> dict:
 
 
 def run_iterations(shapes=ITERATION_SHAPES, dtypes=ITERATION_DTYPES, rounds: int = 7, k1: int = 10, k2: int = 40,
-                   laplacian: bool = False) -> list[dict]:
+                   laplacian: bool = False, batch: int = 1) -> list[dict]:
     """Interleaved rounds over every case and side; medians per side.
 
     Args:
@@ -392,6 +428,7 @@ def run_iterations(shapes=ITERATION_SHAPES, dtypes=ITERATION_DTYPES, rounds: int
         rounds: Rounds; in each, every case and side is timed once (sides in rotating order).
         k1, k2: The two iteration counts whose difference is timed.
         laplacian: Also time the Laplacian alone (``k2 - k1`` calls per sample).
+        batch: Samples per solve.
 
     Returns:
         One dict per (case, side): ``shape``, ``dtype``, ``kind`` (``'iteration'``/``'laplacian'``), ``side``,
@@ -400,7 +437,7 @@ def run_iterations(shapes=ITERATION_SHAPES, dtypes=ITERATION_DTYPES, rounds: int
     cases = []
     for shape in shapes:
         for dtype in dtypes:
-            cases.append((shape, dtype, "iteration", iteration_sides(shape, dtype)))
+            cases.append((shape, dtype, "iteration", iteration_sides(shape, dtype, batch)))
             if laplacian:
                 cases.append((shape, dtype, "laplacian", laplacian_sides(shape, dtype)))
     samples = {(i, name): ([], []) for i, (_, _, _, sides) in enumerate(cases) for name in sides}
@@ -424,10 +461,10 @@ def run_iterations(shapes=ITERATION_SHAPES, dtypes=ITERATION_DTYPES, rounds: int
                 samples[(i, name)][1].append(1e6 * wall)
     results = []
     for i, (shape, dtype, kind, sides) in enumerate(cases):
-        numel = int(np.prod(shape))
+        numel = int(np.prod(shape)) * (batch if kind == "iteration" else 1)
         for name, run in sides.items():
             cpu, wall = samples[(i, name)]
-            row = {"shape": list(shape), "dtype": dtype, "kind": kind, "side": name,
+            row = {"shape": list(shape), "dtype": dtype, "kind": kind, "side": name, "batch": batch,
                    "cpu_us": statistics.median(cpu), "wall_us": statistics.median(wall), "cpu_all": cpu,
                    "wall_all": wall}
             if kind == "iteration" and not name.startswith("numpy"):
@@ -491,6 +528,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--laplacian", action="store_true", help="with --iteration: the Laplacian alone too")
     ap.add_argument("--rounds", type=int, default=7, help="with --iteration: interleaved rounds")
     ap.add_argument("--shapes", nargs="+", default=None, help="with --iteration: e.g. 128x128 64x64x64")
+    ap.add_argument("--batch", type=int, default=1, help="with --iteration: samples per solve")
     ap.add_argument("--json", default=None, help="with --iteration: also write the results to this file")
     args = ap.parse_args(argv)
     check_device(args.device)
@@ -500,8 +538,9 @@ def main(argv: list[str] | None = None) -> None:
                                                                    for s in args.shapes)
         load = os.getloadavg()
         t0 = time.perf_counter()
-        results = run_iterations(shapes, rounds=args.rounds, laplacian=args.laplacian)
-        print(f"One CG iteration against its floor: face-Dirichlet -Laplacian, batch 1, threads={args.threads}, "
+        results = run_iterations(shapes, rounds=args.rounds, laplacian=args.laplacian, batch=args.batch)
+        print(f"One CG iteration against its floor: face-Dirichlet -Laplacian, batch {args.batch}, "
+              f"threads={args.threads}, "
               f"torch {torch.__version__}, median of {args.rounds} interleaved rounds, iteration = (t(40) - t(10)) / 30, "
               f"each t the lowest of 3 calls; "
               f"load average {load[0]:.2f} before, {os.getloadavg()[0]:.2f} after "

@@ -413,7 +413,11 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
     rz = _dot(r, z)
     p = z * _bcast(active.to(z.dtype), z)
     spare = torch.empty_like(p)
+    zero = torch.zeros((), dtype=x.dtype, device=dev)
     best = rnorm.clone()
+    # Every active sample has run all k iterations so far (a sample that stops leaves ``active`` for good), so the
+    # iteration number is the Python counter k; a sample's count is recorded when it stops (k, or k - 1 when
+    # that iteration broke down), and k for the samples still active at the end.
     last_improved = torch.zeros(B, dtype=torch.int64, device=dev)
     n_max = int(budget.max())
     k = 0
@@ -421,36 +425,38 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         q = A(p)
         pq = _dot(p, q)
         ok = active & (pq > 0)  # False for p^T A p <= 0 (breakdown) and for NaN
-        alpha = _bcast(torch.where(ok, rz / pq, 0.0), x)
+        alpha = _bcast(torch.where(ok, rz / pq, zero), x)
         x.addcmul_(alpha, p)
         r.addcmul_(alpha, q, value=-1)
         if P is not None:
             r.copy_(P(r))
-        iters += ok
+        k += 1
         z = M(r) if M is not None else r
         rz_new = _dot(r, z)
         rnorm = _norm(r) if M is not None else rz_new.clamp_min(0).sqrt()
         improved = rnorm < 0.99 * best
         best = torch.where(improved, rnorm, best)
-        last_improved = torch.where(improved, iters, last_improved)
+        last_improved = torch.where(improved, k, last_improved)
         # NaN fails every comparison: a non-finite residual stops the sample (its reason is set below)
-        going = ok & (rnorm > tol) & (iters - last_improved < window) & (iters < budget)
-        stopped = active & ~going
-        k += 1
-        if not on_cpu or bool(stopped.any()):
+        going = ok & (rnorm > tol) & (last_improved > k - window) & (budget > k)
+        # going implies active: some sample stopped iff the two differ (one host read on the CPU)
+        if not on_cpu or not torch.equal(going, active):
+            stopped = active & ~going
             reason = torch.where(
                 ~ok, torch.where(torch.isfinite(pq), _BREAKDOWN, _NONFINITE),
                 torch.where(rnorm <= tol, _CONVERGED,
                             torch.where(~torch.isfinite(rnorm), _NONFINITE,
-                                        torch.where(iters - last_improved >= window, _STAGNATED, _MAX_ITER))))
+                                        torch.where(k - last_improved >= window, _STAGNATED, _MAX_ITER))))
             status = torch.where(stopped, reason.to(torch.int8), status)
+            iters = torch.where(stopped, ok.to(torch.int64) + (k - 1), iters)
             active = going
             if (on_cpu or k % check_every == 0) and not bool(active.any()):
                 break
-        beta = _bcast(torch.where(going, rz_new / rz, 0.0), p)
+        beta = _bcast(torch.where(going, rz_new / rz, zero), p)
         # stopped samples get p = z, which alpha = 0 keeps from acting; written into the second buffer
         p, spare = torch.addcmul(z, beta, p, out=spare), p
         rz = rz_new
+    iters = torch.where(active, k, iters)
     status = torch.where(active, _MAX_ITER, status)
     return x, iters, status
 
