@@ -284,8 +284,9 @@ def _is_file_module(module: str) -> bool:
 def _import_module(module: str):
     if _is_file_module(module):
         path = Path(module).expanduser().resolve()
-        if not path.is_file():
-            raise ParameterError(f"problem factory file {module!r} does not exist")
+        if not path.is_file():  # the wording of the command line's file checks
+            state = "is a folder, not a file" if path.is_dir() else "does not exist"
+            raise ParameterError(f"problem factory file {module} {state}")
         mod_name = f"_phisim_user_{abs(hash(str(path)))}"
         if mod_name in sys.modules:
             return sys.modules[mod_name]

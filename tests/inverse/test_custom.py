@@ -249,3 +249,12 @@ def test_plot_file_vorticity_mask_and_curves(tmp_path):
     out = tmp_path / "t.h5"
     train(_linear_problem(), "adam", iterations=3, batch_size=2, out=out)
     assert plot_file(out, tmp_path / "pics")[0].name == "t_training.png"
+
+
+def test_factory_file_errors_use_the_command_lines_wording(tmp_path):
+    with pytest.raises(ParameterError, match=r"problem factory file .*nope\.py does not exist"):
+        load_problem(f"{tmp_path}/nope.py:make")
+    folder = tmp_path / "pkg.py"
+    folder.mkdir()
+    with pytest.raises(ParameterError, match=r"problem factory file .*pkg\.py is a folder, not a file"):
+        load_problem(f"{folder}:make")
