@@ -16,7 +16,7 @@ explicit viscosity) with semi-Lagrangian convection (``advection.advect_step_sem
 term ``(advected - u) / dt``) and the fast-diagonalisation pressure solve, on the periodic square
 ``[0, 2π)²``. Cases: ``mode`` ``"step"`` (one step), ``"rollout"`` (``steps`` steps under ``funcutils.repeated``),
 ``"grad"`` (gradient of the final energy w.r.t. the initial velocity through ``steps`` steps); ``batch`` > 1 uses
-``jax.vmap``.
+``jax.vmap``; ``dim`` 3 (default 2) is the periodic cube ``[0, 2π)³``.
 """
 
 from __future__ import annotations
@@ -31,12 +31,17 @@ import numpy as np
 TWO_PI = 2 * np.pi
 
 
-def initial_velocity(x: np.ndarray, y: np.ndarray, component: int, shift: float) -> np.ndarray:
-    """The analytic initial velocity shared with the phisim side (a Taylor-Green vortex plus two modes)."""
+def initial_velocity(x: np.ndarray, y: np.ndarray, component: int, shift: float, z: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """The analytic initial velocity shared with the phisim side (a Taylor-Green vortex plus a few modes; in 3-D
+    the vortex varies along z as ``cos z`` and the third component is ``0.2 sin(2x) cos y``)."""
     xs = x - shift
+    cz = 1.0 if z is None else np.cos(z)
     if component == 0:
-        return np.sin(xs) * np.cos(y) + 0.3 * np.sin(2 * y + 0.5)
-    return -np.cos(xs) * np.sin(y) + 0.2 * np.cos(3 * xs)
+        return np.sin(xs) * np.cos(y) * cz + 0.3 * np.sin(2 * y + 0.5)
+    if component == 1:
+        return -np.cos(xs) * np.sin(y) * cz + 0.2 * np.cos(3 * xs)
+    return 0.2 * np.sin(2 * xs) * np.cos(y)
 
 
 def build(case: dict):
@@ -47,8 +52,9 @@ def build(case: dict):
 
     dtype = jnp.float64 if case["dtype"] == "float64" else jnp.float32
     n, batch, dt, nu = case["n"], case["batch"], case["dt"], case["viscosity"]
-    grid = grids.Grid((n, n), domain=((0.0, TWO_PI), (0.0, TWO_PI)))
-    bc = boundaries.periodic_boundary_conditions(2)
+    dim = case.get("dim", 2)
+    grid = grids.Grid((n,) * dim, domain=((0.0, TWO_PI),) * dim)
+    bc = boundaries.periodic_boundary_conditions(dim)
 
     def convect(v):
         return tuple(grids.GridArray((advection.advect_step_semilagrangian(u, v, dt).data - u.data) / dt,
@@ -86,8 +92,9 @@ def build(case: dict):
     fn = jax.jit(fn)
     datas = []
     for c, off in enumerate(grid.cell_faces):
-        x, y = grid.mesh(off)
-        comps = [initial_velocity(np.asarray(x), np.asarray(y), c, b * TWO_PI / batch) for b in range(batch)]
+        mesh = [np.asarray(m) for m in grid.mesh(off)]
+        comps = [initial_velocity(mesh[0], mesh[1], c, b * TWO_PI / batch, mesh[2] if dim == 3 else None)
+                 for b in range(batch)]
         arr = np.stack(comps) if batch > 1 else comps[0]
         datas.append(jnp.asarray(arr, dtype=dtype))
     return fn, tuple(datas)
@@ -129,7 +136,8 @@ def main() -> None:
                 out = {"times": times, "compile_s": compile_s}
             elif cmd == "energy":
                 datas = fn(x)
-                axes = tuple(range(datas[0].ndim - 2, datas[0].ndim))
+                dim = case.get("dim", 2)
+                axes = tuple(range(datas[0].ndim - dim, datas[0].ndim))
                 e = sum(np.mean(np.asarray(d, dtype=np.float64) ** 2, axis=axes) for d in datas)
                 out = {"energy": np.atleast_1d(e).tolist()}
             else:

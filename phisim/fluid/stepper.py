@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import torch
 
+from phisim.allocator import keep_freed_memory
 from phisim.boundary import Boundary, Inflow
 from phisim.checks import check_dt, check_finite, check_finite_number, check_nonnegative
 from phisim.compiled import compile_function
@@ -138,6 +139,8 @@ class FluidStepper:
         self.grid: Grid = grid
         self.boundary: Boundary = template.boundary
         self.dtype, self.device = dtype, template.device
+        if self.device.type == "cpu":  # one step's freed arrays are reused by the next (phisim.allocator)
+            keep_freed_memory()
         marker_advection = _check_schemes(advection, marker_advection, viscosity_scheme, integrator)
         if pressure is not None and not isinstance(pressure, Solve):
             raise ParameterError(f"pressure must be a phisim.solvers.Solve, got {type(pressure).__name__}")
