@@ -211,12 +211,13 @@ class Burgers(ETDRKStepper):
                                                            for a in range(d)]))  # (d, *spec)
         b = self.convection
         if d == 1:
-            half_dx = (-0.5 * b) * self._grad[0]
+            factor = (-0.5 * b) * self._grad[0]  # N = -(b/2) i k F[u^2], the factor folded into the coefficients
 
             def nonlinear(u_hat, g):
                 u = g.to_physical(u_hat)
-                return half_dx * g.to_spectral(u * u)
+                return g.to_spectral(u * u)
         else:
+            factor = -b
             grad = self._grad
 
             def nonlinear(u_hat, g):
@@ -226,9 +227,10 @@ class Burgers(ETDRKStepper):
                 phys = g.to_physical(both)
                 u, du = phys[:, :d], phys[:, d:].unflatten(1, (d, d))
                 conv = (u[:, None] * du).sum(2)  # sum_j u_j d_j u_i
-                return -b * g.to_spectral(conv)
+                return g.to_spectral(conv)
         nu = self.viscosity
-        super().__init__(grid, dt, lambda g: nu * g.laplacian(), nonlinear, order=order, channels=d, dealias=dealias)
+        super().__init__(grid, dt, lambda g: nu * g.laplacian(), nonlinear, order=order, channels=d, dealias=dealias,
+                         nonlinear_factor=factor)
 
 
 class KortewegDeVries(ETDRKStepper):
@@ -269,9 +271,9 @@ class KortewegDeVries(ETDRKStepper):
 
         def nonlinear(u_hat, g):
             u = g.to_physical(u_hat)
-            return half_dx * g.to_spectral(u * u)
+            return g.to_spectral(u * u)
 
-        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias)
+        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias, nonlinear_factor=half_dx)
 
 
 class KuramotoSivashinsky(ETDRKStepper):
@@ -310,11 +312,11 @@ class KuramotoSivashinsky(ETDRKStepper):
         d = grid.ndim
         grads = [grid.derivative(a, grid.complex_dtype) for a in range(d)]
         if form == "conservative":
-            half_dx = -0.5 * grads[0]
+            factor = -0.5 * grads[0]  # N = -(1/2) i k F[u^2], the factor folded into the coefficients
 
             def nonlinear(u_hat, g):
                 u = g.to_physical(u_hat)
-                return half_dx * g.to_spectral(u * u)
+                return g.to_spectral(u * u)
         else:
             frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) \
                 and 0 < dealias <= 1 else 2.0 / 3.0
@@ -322,17 +324,18 @@ class KuramotoSivashinsky(ETDRKStepper):
             keep = torch.ones(grid.spectral_shape, dtype=grid.complex_dtype, device=grid.device)
             if remove_mean:
                 keep[(0,) * d] = 0.0
-            keep = -0.5 * keep
+            factor = -0.5 * keep
 
             def nonlinear(u_hat, g):
                 du = g.to_physical(grad * u_hat)  # (B, d, *res) since C == 1
-                return keep * g.to_spectral((du * du).sum(1, keepdim=True))
+                return g.to_spectral((du * du).sum(1, keepdim=True))
 
         def linear(g):
             k2 = g.wavenumber_squared()
             return k2 - k2 * k2
 
-        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias, prefiltered=form == "combustion")
+        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias, prefiltered=form == "combustion",
+                         nonlinear_factor=factor)
 
 
 class AllenCahn(ETDRKStepper):
@@ -381,13 +384,13 @@ class CahnHilliard(ETDRKStepper):
 
         def nonlinear(u_hat, g):
             u = g.to_physical(u_hat)
-            return lap * g.to_spectral(u * u * u)
+            return g.to_spectral(u * u * u)
 
         def linear(g):
             k2 = g.wavenumber_squared()
             return m * (k2 - gm * k2 * k2)
 
-        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias)
+        super().__init__(grid, dt, linear, nonlinear, order=order, dealias=dealias, nonlinear_factor=lap)
 
 
 class FisherKPP(ETDRKStepper):
@@ -517,7 +520,10 @@ class NavierStokesVorticity(ETDRKStepper):
         ops = torch.stack(torch.broadcast_tensors(dy * inv, -dx * inv, dx, dy))  # (4, *spec)
         frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) and 0 < dealias <= 1 \
             else 2.0 / 3.0
-        ops_in = ops * grid.dealias_mask(frac)  # the input truncation, folded into the operators
+        # the input truncation and the sign of -u . grad w, folded into the operators: (-u, -v, w_x, w_y)
+        sign = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64, device=grid.device).reshape(
+            (4,) + (1,) * grid.ndim)
+        ops_in = (ops * sign * grid.dealias_mask(frac)).to(cd)
         force_hat = None
         if forcing == "kolmogorov":
             _, y = grid.coordinates(torch.float64)
@@ -530,8 +536,8 @@ class NavierStokesVorticity(ETDRKStepper):
 
         def nonlinear(w_hat, g):
             phys = g.to_physical(ops_in * w_hat)  # (B, 4, *res) since C == 1
-            adv = phys[:, 0:1] * phys[:, 2:3] + phys[:, 1:2] * phys[:, 3:4]
-            out = -g.to_spectral(adv)
+            adv = (phys[:, 0:2] * phys[:, 2:4]).sum(1, keepdim=True)  # -u . grad w
+            out = g.to_spectral(adv)
             return out if force_hat is None else out + force_hat
 
         nu, al = self.viscosity, self.drag

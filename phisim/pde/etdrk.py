@@ -10,8 +10,11 @@ stepper's precision. This keeps the coefficients accurate where the closed formu
 (``|z|`` small).
 
 Nonlinear terms are dealiased with the 2/3 rule (by default): the spectrum is truncated before the nonlinear
-term is evaluated, and the nonlinear term's spectrum is truncated again (that second mask is folded into the
-precomputed coefficients).
+term is evaluated, and the nonlinear term's spectrum is truncated again. Both masks are folded into the
+precomputed coefficients: each step multiplies the state once by a stack of coefficients (giving the truncated
+state and the linear parts of every stage in one pass), so that a stage is one fused multiply-add per nonlinear
+term. A diagonal factor of the nonlinear term (``nonlinear_factor``, e.g. the ``-ik/2`` of ``-(u^2)_x / 2``) is
+folded into the coefficients as well.
 """
 
 from __future__ import annotations
@@ -144,6 +147,9 @@ class ETDRKStepper:
         prefiltered: If True, ``nonlinear`` receives the spectrum without the 2/3-rule truncation because it
             applies the mask itself (e.g. folded into its derivative operators, saving one pass over the spectrum;
             the mask is ``grid.dealias_mask(dealias)``). The output truncation is applied in any case.
+        nonlinear_factor: Optional diagonal factor ``D`` of the nonlinear term (a number or a tensor broadcastable to
+            ``(C, *spectral_shape)``): the nonlinear term is ``D * nonlinear(...)`` (or ``D * F[nonlinear_physical]``).
+            ``D`` is folded into the precomputed coefficients, which saves one pass over the spectrum per stage.
 
     Raises:
         ParameterError: Bad ``dt``/order/channels/dealias/contour settings, a non-finite ``L``, or a ``dt`` for which
@@ -155,7 +161,8 @@ class ETDRKStepper:
     def __init__(self, grid: SpectralGrid, dt: float, linear, nonlinear: SpectralNonlinear | None = None, *,
                  nonlinear_physical: PhysicalNonlinear | None = None, order: int = 4, channels: int = 1,
                  dealias: float = 2.0 / 3.0, contour_points: int = 64, contour_radius: float = 1.0,
-                 check_finite: bool = False, prefiltered: bool = False):
+                 check_finite: bool = False, prefiltered: bool = False,
+                 nonlinear_factor: torch.Tensor | float | None = None):
         if not isinstance(grid, SpectralGrid):
             raise ParameterError(f"grid must be a SpectralGrid, got {type(grid).__name__}")
         self.grid = grid
@@ -183,6 +190,7 @@ class ETDRKStepper:
         self._nonlinear = nonlinear
         self._nonlinear_physical = nonlinear_physical
         self.has_nonlinear = nonlinear is not None or nonlinear_physical is not None
+        self.nonlinear_factor = self._evaluate_factor(nonlinear_factor)
 
         lin = self._evaluate_linear(linear)
         self.linear_symbol = lin  # complex128 or float64, shape (C or 1, *spectral_shape)
@@ -228,20 +236,65 @@ class ETDRKStepper:
             lin = lin.real
         return lin.contiguous()
 
+    def _evaluate_factor(self, factor) -> torch.Tensor | None:
+        if factor is None:
+            return None
+        if isinstance(factor, bool) or not isinstance(factor, (int, float, complex, torch.Tensor)):
+            raise ParameterError(f"nonlinear_factor must be a number or a tensor, got {type(factor).__name__}")
+        f = torch.as_tensor(factor).to(self.grid.device)
+        f = f.to(torch.complex128) if f.is_complex() else f.to(torch.float64)
+        try:
+            torch.broadcast_shapes(f.shape, (self.channels,) + self.grid.spectral_shape)
+        except RuntimeError as exc:
+            raise ShapeError(f"nonlinear_factor of shape {tuple(f.shape)} does not broadcast to (C, *spectral_shape) "
+                             f"= {(self.channels,) + self.grid.spectral_shape}") from exc
+        if not bool(torch.isfinite(f).all()):
+            raise ParameterError("nonlinear_factor has non-finite entries")
+        if f.is_complex() and not self.grid.spectral_is_complex and float(f.imag.abs().max()) > 0:
+            raise BoundaryError("a complex nonlinear_factor needs a periodic axis; with walls on every axis the "
+                                "sine/cosine spectrum is real")
+        return f
+
     def _build_coefficients(self, lin: torch.Tensor, points: int, radius: float) -> None:
+        """Precompute the stacked state coefficients ``self._state_coef`` and the nonlinear coefficients.
+
+        With ``m`` the input truncation (1 where the nonlinear term masks its input itself or there is no
+        dealiasing) and ``M`` the output truncation, the schemes are rewritten so that every stage input is a
+        linear combination of ``u`` and earlier nonlinear terms (``n_x = D N_raw(x)``)::
+
+            order 1: out = e u + M dt phi1 n_u
+            order 2: a = m e u + M dt phi1 n_u;  out = e u + M dt (phi1 - phi2) n_u + M dt phi2 n_a
+            order 3: a = m e2 u + q n_u;  b = m e u - M dt phi1 n_u + 2 M dt phi1 n_a;
+                     out = e u + f1 n_u + 4 f2 n_a + f3 n_b
+            order 4: a = m e2 u + q n_u;  b = m e2 u + q n_a;  c = m e u + (e2 - 1) q n_u + 2 q n_b;
+                     out = e u + f1 n_u + f2 (n_a + n_b) + f3 n_c
+
+        (``e = exp(dt L)``, ``e2 = exp(dt L / 2)``, ``q = M dt/2 phi1(dt L / 2)``); ``D`` and ``M`` are folded into
+        every coefficient of a nonlinear term.
+        """
         grid, dt, order = self.grid, self.dt, self.order
         cdtype = grid.complex_dtype if (grid.spectral_is_complex or lin.is_complex()) else grid.dtype
         mask = grid.dealias_mask(self.dealias) if self.dealias < 1 else None
         # in the spectrum's dtype: a complex-by-complex product is about twice as fast as a mixed one
         spec_dtype = grid.complex_dtype if grid.spectral_is_complex else grid.dtype
         self.dealias_mask = None if mask is None else mask.to(spec_dtype)
+        mask_in = mask is not None and (self._nonlinear_physical is not None or not self.prefiltered)
+        self._mask_input = mask_in
+        factor = self.nonlinear_factor
+        if factor is not None and factor.is_complex():
+            cdtype = grid.complex_dtype
         z = dt * lin
 
-        def cast(t: torch.Tensor, name: str, masked: bool = False) -> torch.Tensor:
-            t = t if lin.is_complex() else t.real
-            if masked and mask is not None:
+        def cast(t: torch.Tensor, name: str, nonlinear: bool = False, masked_input: bool = False) -> torch.Tensor:
+            t = t if (lin.is_complex() or (factor is not None and factor.is_complex() and nonlinear)) else t.real
+            if nonlinear:
+                if factor is not None:
+                    t = t * factor
+                if mask is not None:
+                    t = t * mask
+            if masked_input and mask_in:
                 t = t * mask
-            out = t.to(cdtype).contiguous()
+            out = t.to(cdtype)
             if not bool(torch.isfinite(out).all()):
                 zmax = float(z.real.max())
                 raise ParameterError(f"the ETDRK coefficient {name} overflows {cdtype} at dt = {dt} (largest "
@@ -249,32 +302,55 @@ class ETDRKStepper:
                                      "reduce dt")
             return out
 
+        def stack(*coefs: torch.Tensor) -> torch.Tensor:
+            shape = torch.broadcast_shapes(*(c.shape for c in coefs))
+            return torch.stack([c.expand(shape) for c in coefs]).unsqueeze(1).contiguous()  # (k, 1, C, *spec)
+
+        one = torch.ones((), dtype=torch.float64, device=grid.device)
         with torch.no_grad():
             if order == 0:
-                self._coef = (cast(torch.exp(z.to(torch.complex128)), "exp(dt L)"),)
+                self._state_coef = cast(torch.exp(z.to(torch.complex128)), "exp(dt L)").contiguous()
+                self._coef = ()
                 return
             full = phi_functions(z, 3 if order >= 3 else order, points, radius)
             self._check_contour(z, full)
             e = full[0]
+            p1 = dt * full[1]
+            # the stacked coefficients of the state: (truncated u,) then the linear parts of the stages
+            state = []
+            if mask_in:
+                state.append(cast(one.expand(z.shape), "mask", masked_input=True))
             if order == 1:
-                self._coef = (cast(e, "exp(dt L)"), cast(dt * full[1], "dt phi1", True))
+                state.append(cast(e, "exp(dt L)"))
+                self._coef = (cast(p1, "dt phi1", True),)
             elif order == 2:
-                self._coef = (cast(e, "exp(dt L)"), cast(dt * full[1], "dt phi1", True),
-                              cast(dt * full[2], "dt phi2", True))
+                p2 = dt * full[2]
+                if mask_in:
+                    state.append(cast(e, "exp(dt L)", masked_input=True))
+                state.append(cast(e, "exp(dt L)"))
+                self._coef = (cast(p1, "dt phi1", True), cast(p1 - p2, "dt (phi1 - phi2)", True),
+                              cast(p2, "dt phi2", True))
             else:
                 half = phi_functions(z / 2, 1, points, radius)
                 self._check_contour(z / 2, half)
-                p1, p2, p3 = full[1], full[2], full[3]
-                f1 = dt * (p1 - 3 * p2 + 4 * p3)
-                f2 = dt * (p2 - 2 * p3)
-                f3 = dt * (4 * p3 - p2)
-                e2, q = cast(half[0], "exp(dt L / 2)"), cast(0.5 * dt * half[1], "dt/2 phi1(dt L / 2)", True)
+                ph1, ph2, ph3 = full[1], full[2], full[3]
+                e2, q = half[0], 0.5 * dt * half[1]
+                f1 = dt * (ph1 - 3 * ph2 + 4 * ph3)
+                f2 = dt * (ph2 - 2 * ph3)
+                f3 = dt * (4 * ph3 - ph2)
+                state.append(cast(e2, "exp(dt L / 2)", masked_input=True))
+                if mask_in:
+                    state.append(cast(e, "exp(dt L)", masked_input=True))
+                state.append(cast(e, "exp(dt L)"))
                 if order == 3:
-                    self._coef = (cast(e, "exp(dt L)"), e2, q, cast(dt * full[1], "dt phi1", True),
-                                  cast(f1, "f1", True), cast(4 * f2, "4 f2", True), cast(f3, "f3", True))
+                    self._coef = (cast(q, "dt/2 phi1(dt L / 2)", True), cast(-p1, "-dt phi1", True),
+                                  cast(2 * p1, "2 dt phi1", True), cast(f1, "f1", True), cast(4 * f2, "4 f2", True),
+                                  cast(f3, "f3", True))
                 else:
-                    self._coef = (cast(e, "exp(dt L)"), e2, q, cast(f1, "f1", True), cast(2 * f2, "2 f2", True),
-                                  cast(f3, "f3", True), cast(dt * half[1], "dt phi1(dt L / 2)", True))
+                    self._coef = (cast(q, "dt/2 phi1(dt L / 2)", True), cast((e2 - 1) * q, "(e2 - 1) q", True),
+                                  cast(2 * q, "dt phi1(dt L / 2)", True), cast(f1, "f1", True),
+                                  cast(2 * f2, "2 f2", True), cast(f3, "f3", True))
+            self._state_coef = stack(*state)
 
     def _check_contour(self, z: torch.Tensor, phis: torch.Tensor) -> None:
         """Compare the contour values with the closed formulas where those are well conditioned (|z| >= 2)."""
@@ -295,6 +371,12 @@ class ETDRKStepper:
                                  "operator is too large for this dt: reduce dt (or raise contour_points)")
 
     # ------------------------------------------------------------------ stepping
+    def _nonlinear_raw(self, u_hat: torch.Tensor) -> torch.Tensor:
+        """``N`` without its diagonal factor, on an already truncated spectrum."""
+        if self._nonlinear is not None:
+            return self._nonlinear(u_hat, self.grid)
+        return self.grid.to_spectral(self._nonlinear_physical(self.grid.to_physical(u_hat)))
+
     def nonlinear_spectral(self, u_hat: torch.Tensor) -> torch.Tensor:
         """``N`` on the spectrum, after the 2/3-rule truncation of ``u_hat`` (the output truncation is folded into
         the step's coefficients).
@@ -303,15 +385,14 @@ class ETDRKStepper:
             u_hat: Spectrum ``(B, C, *spectral_shape)``.
 
         Returns:
-            The spectrum of ``N(u)``.
+            The spectrum of ``N(u)`` (including ``nonlinear_factor``).
         """
-        if self._nonlinear is not None:
-            if self.dealias_mask is not None and not self.prefiltered:
-                u_hat = u_hat * self.dealias_mask
-            return self._nonlinear(u_hat, self.grid)
-        if self.dealias_mask is not None:
+        if self._mask_input:
             u_hat = u_hat * self.dealias_mask
-        return self.grid.to_spectral(self._nonlinear_physical(self.grid.to_physical(u_hat)))
+        out = self._nonlinear_raw(u_hat)
+        if self.nonlinear_factor is not None:
+            out = out * self.nonlinear_factor.to(out.dtype if out.is_complex() else self.grid.dtype)
+        return out
 
     def step_spectral(self, u_hat: torch.Tensor) -> torch.Tensor:
         """One step on the spectrum (no transforms, no input checks).
@@ -322,37 +403,36 @@ class ETDRKStepper:
         Returns:
             The spectrum one ``dt`` later.
         """
-        c = self._coef
-        nl = self.nonlinear_spectral
         if self.order == 0:
-            return c[0] * u_hat
+            return self._state_coef * u_hat
+        c = self._coef
+        nl = self._nonlinear_raw
+        # one pass: (truncated u,) and the linear part of every stage, stacked on a new first axis
+        lin = (self._state_coef * u_hat).unbind(0)
+        if self._mask_input:
+            u_in, lin = lin[0], lin[1:]
+        else:
+            u_in = u_hat
         if self.order == 1:
-            return c[0] * u_hat + c[1] * nl(u_hat)
+            return torch.addcmul(lin[-1], c[0], nl(u_in))
         if self.order == 2:
-            n_u = nl(u_hat)
-            a = c[0] * u_hat + c[1] * n_u
-            return a + c[2] * (nl(a) - n_u)
-        e, e2, q = c[0], c[1], c[2]
+            n_u = nl(u_in)
+            n_a = nl(torch.addcmul(lin[0], c[0], n_u))
+            return torch.addcmul(torch.addcmul(lin[-1], c[1], n_u), c[2], n_a)
+        e2u, eu = lin[0], lin[-1]
+        meu = lin[1] if len(lin) == 3 else eu
         if self.order == 3:
-            p1, f1, f2, f3 = c[3], c[4], c[5], c[6]
-            n_u = nl(u_hat)
-            a = torch.addcmul(e2 * u_hat, q, n_u)
-            n_a = nl(a)
-            eu = e * u_hat
-            b = torch.addcmul(eu, p1, 2 * n_a - n_u)
-            n_b = nl(b)
+            q, mp1, p1x2, f1, f2, f3 = c
+            n_u = nl(u_in)
+            n_a = nl(torch.addcmul(e2u, q, n_u))
+            n_b = nl(torch.addcmul(torch.addcmul(meu, mp1, n_u), p1x2, n_a))
             return torch.addcmul(torch.addcmul(torch.addcmul(eu, f1, n_u), f2, n_a), f3, n_b)
-        f1, f2, f3, q2 = c[3], c[4], c[5], c[6]
-        n_u = nl(u_hat)
-        e2u = e2 * u_hat
-        a = torch.addcmul(e2u, q, n_u)
-        n_a = nl(a)
-        b = torch.addcmul(e2u, q, n_a)
-        n_b = nl(b)
-        cc = torch.addcmul(torch.addcmul(e2 * a, q2, n_b), q, n_u, value=-1)
-        n_c = nl(cc)
-        out = torch.addcmul(e * u_hat, f1, n_u)
-        out = torch.addcmul(out, f2, n_a + n_b)
+        q, qc, q2, f1, f2, f3 = c
+        n_u = nl(u_in)
+        n_a = nl(torch.addcmul(e2u, q, n_u))
+        n_b = nl(torch.addcmul(e2u, q, n_a))
+        n_c = nl(torch.addcmul(torch.addcmul(meu, qc, n_u), q2, n_b))
+        out = torch.addcmul(torch.addcmul(eu, f1, n_u), f2, n_a + n_b)
         return torch.addcmul(out, f3, n_c)
 
     def check_state(self, u: torch.Tensor) -> None:

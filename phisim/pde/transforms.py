@@ -219,6 +219,10 @@ class SpectralGrid:
             modes.append((m.abs() / mmax).reshape(view))
         self.wavenumbers = tuple(ks)
         self._mode_fraction = tuple(modes)
+        # the periodic axes' transform arguments, built once (the transforms run once per stage of every step)
+        self._fft_dims = [a - ndim for a in self.periodic_axes]
+        self._fft_sizes = [res[a] for a in self.periodic_axes]
+        self._fft_1d = len(self.periodic_axes) == 1
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -326,8 +330,10 @@ class SpectralGrid:
             else:
                 x = dct2(x, self._twiddles[a])
             u = x.movedim(-1, dim)
-        if self.periodic_axes:
-            u = torch.fft.rfftn(u, dim=[a - d for a in self.periodic_axes])
+        if self._fft_1d:
+            return torch.fft.rfft(u, dim=self._fft_dims[0])
+        if self._fft_dims:
+            return torch.fft.rfftn(u, dim=self._fft_dims)
         return u
 
     def to_physical(self, u_hat: torch.Tensor) -> torch.Tensor:
@@ -339,10 +345,11 @@ class SpectralGrid:
         Returns:
             Real tensor ``(..., *resolution)``.
         """
+        if self._fft_1d:
+            u_hat = torch.fft.irfft(u_hat, n=self._fft_sizes[0], dim=self._fft_dims[0])
+        elif self._fft_dims:
+            u_hat = torch.fft.irfftn(u_hat, s=self._fft_sizes, dim=self._fft_dims)
         d = self.ndim
-        if self.periodic_axes:
-            dims = [a - d for a in self.periodic_axes]
-            u_hat = torch.fft.irfftn(u_hat, s=[self.resolution[a] for a in self.periodic_axes], dim=dims)
         for a in self.wall_axes:
             dim = a - d
             x = u_hat.movedim(dim, -1)

@@ -54,6 +54,30 @@ def test_custom_equation_in_a_few_lines_matches_builtin():
     assert torch.allclose(a, c, atol=1e-14) and torch.allclose(b, c, atol=1e-14)
 
 
+@pytest.mark.parametrize("order", [1, 2, 3, 4])
+@pytest.mark.parametrize("prefiltered", [False, True])
+def test_nonlinear_factor_is_the_same_as_applying_it_in_the_nonlinear_term(order, prefiltered):
+    # Burgers 1-D, N = -(1/2) i k F[u^2]: the factor folded into the coefficients vs applied on every evaluation
+    grid = SpectralGrid(domain=2 * math.pi, resolution=64, dtype=F64)
+    factor = -0.5 * grid.derivative(0)
+    mask = grid.dealias_mask().to(torch.complex128)
+
+    def square(u_hat, g):
+        u = g.to_physical(u_hat * mask if prefiltered else u_hat)
+        return g.to_spectral(u * u)
+
+    folded = ETDRKStepper(grid, 0.01, lambda g: 0.05 * g.laplacian(), square, order=order,
+                          prefiltered=prefiltered, nonlinear_factor=factor)
+    inside = ETDRKStepper(grid, 0.01, lambda g: 0.05 * g.laplacian(), lambda u_hat, g: factor * square(u_hat, g),
+                          order=order, prefiltered=prefiltered)
+    u0 = random_field(inside, 2, seed=3)
+    assert torch.allclose(folded.repeat(u0, 10), inside.repeat(u0, 10), rtol=0, atol=1e-13)
+    assert torch.allclose(folded.nonlinear_spectral(folded.grid.to_spectral(u0)),
+                          inside.nonlinear_spectral(inside.grid.to_spectral(u0)), rtol=0, atol=1e-12)
+    with pytest.raises(ShapeError, match="nonlinear_factor"):
+        ETDRKStepper(grid, 0.01, None, square, nonlinear_factor=torch.ones(5))
+
+
 def test_batch_samples_are_independent_and_rollout_shapes():
     s = KuramotoSivashinsky(ndim=2, domain=20.0, resolution=16, dt=0.05, dtype=F64)
     u0 = random_field(s, 3, seed=1)
