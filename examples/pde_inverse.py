@@ -131,7 +131,8 @@ def summarize(curves: dict, methods: list[str], seeds: list[int], common: int) -
         final = [float(np.asarray(c["eval_metric"], dtype=np.float64)[-1]) for c in runs]
         final_loss = [float(np.asarray(c["eval_loss"], dtype=np.float64)[-1]) for c in runs]
         at = [_value_at(c, common) for c in runs]
-        sec = [float(np.median(np.diff(np.asarray(c["time"], dtype=np.float64)))) for c in runs]
+        # seconds per iteration: the median step (the first record's time is that of the first iteration)
+        sec = [float(np.median(np.diff(np.asarray(c["time"], dtype=np.float64), prepend=0.0))) for c in runs]
         table[m] = {
             "seeds": len(runs), "iterations": int(len(runs[0]["iteration"])),
             "heldout_metric_final": final, "heldout_loss_final": final_loss, f"heldout_metric_at_{common}": at,
