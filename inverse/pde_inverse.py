@@ -432,6 +432,7 @@ class ConvResNet(nn.Module):
 # --------------------------------------------------------------------------------------------------
 
 _NONLINEAR_SOLVERS = ("inverse_gradient", "newton", "lbfgsb", "none")
+_NAVIER_STOKES = ("navier_stokes", "kolmogorov", "decaying_turbulence")  # 2-D only
 
 
 @dataclass
@@ -462,7 +463,7 @@ class PDEProblem(Problem):
 
     Attributes (settings, all keyword arguments of the constructor / ``--setting`` on the command line):
         equation: Equation name (:data:`phisim.pde.EQUATIONS`).
-        ndim: Spatial dimensions (1 or 2).
+        ndim: Spatial dimensions (1 or 2; None: 2 for the Navier–Stokes equations, else 1).
         domain: Domain length(s).
         resolution: Points per axis (an int, or one per axis).
         dt: Time step.
@@ -486,7 +487,7 @@ class PDEProblem(Problem):
     batch_size: int = 8
     reduction: str = "mean"
     equation: str = "kuramoto_sivashinsky"
-    ndim: int = 1
+    ndim: int | None = None
     domain: float | Sequence[float] = 22.0
     resolution: int | Sequence[int] = 64
     dt: float = 0.25
@@ -513,6 +514,8 @@ class PDEProblem(Problem):
             raise ParameterError(f"equation must be a name ({', '.join(sorted(EQUATIONS))}), got {self.equation!r}")
         self.equation = self.equation.strip().lower().replace("-", "_").replace(" ", "_")
         check_choice(self.reduction, "reduction", ("mean", "sum"))
+        if self.ndim is None:
+            self.ndim = 2 if self.equation in _NAVIER_STOKES else 1
         self.ndim = check_int(self.ndim, "ndim", minimum=1, maximum=2)
         res = self.resolution
         if isinstance(res, (list, tuple)):
@@ -564,7 +567,7 @@ class PDEProblem(Problem):
             if key in settings:
                 raise ParameterError(f"give {key} as a problem setting, not in equation_settings")
         grid = {"domain": self.domain, "resolution": self.resolution, "dt": self.dt}
-        if self.equation not in ("navier_stokes", "kolmogorov", "decaying_turbulence", "kdv"):
+        if self.equation not in _NAVIER_STOKES + ("kdv",):
             grid["ndim"] = self.ndim
         elif self.equation == "kdv" and self.ndim != 1 or self.equation != "kdv" and self.ndim != 2:
             raise ParameterError(f"{self.equation} is {'1' if self.equation == 'kdv' else '2'}-D; set ndim accordingly")

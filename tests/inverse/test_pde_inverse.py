@@ -200,6 +200,16 @@ class TestProblem:
         r = train(p, "pg_linear", iterations=2, seed=0, eval_every=0)
         assert math.isfinite(r.curves["eval_metric"][-1])
 
+    def test_two_d_equation(self):
+        p = get_problem("pde", equation="kolmogorov", resolution=16, domain=2 * math.pi, dt=0.01, warmup_steps=2,
+                        heldout_size=2, batch_size=2, width=4, blocks=1)
+        assert p.ndim == 2 and p.state_shape == (1, 16, 16)
+        for method in ("pg", "hig"):
+            r = train(p, method, iterations=1, seed=0, eval_every=0)
+            assert math.isfinite(r.curves["eval_metric"][-1]), method
+        with pytest.raises(ParameterError, match="2-D"):
+            get_problem("pde", equation="kolmogorov", ndim=1)
+
     def test_custom_route(self):
         # a PDEOperator's simulate is a physics function and its local_inverse a local inverse for make_problem
         op = _ks(steps=2, eps=1e-2)
