@@ -537,12 +537,11 @@ class PDEProblem(Problem):
             raise ParameterError(f"equation_settings must be a dict of the equation's parameters, got "
                                  f"{type(self.equation_settings).__name__}")
         generic = self._generic_solver(self.nonlinear_solver)
-        # the physics: float64 stepper; built here so that bad settings fail at once
+        # the physics: float64 stepper; built here so that bad settings fail at once (linear_iterations = 0 with
+        # nonlinear_solver = 'none' leaves pg without a local inverse: a ParameterError of PDEOperator)
         self._operator = PDEOperator(self.equation, self.steps, eps=self.eps,
                                      linear_iterations=self.linear_iterations, solver=generic,
                                      **self._stepper_settings())
-        self._operator.check_inputs = True
-        self._warmup = None
         lr = check_number(self.lr, "lr", minimum=0, min_open=True)
         methods = {
             "adam": Method("adam", "physics", lr=lr),
@@ -556,8 +555,6 @@ class PDEProblem(Problem):
             "hig": Method("hig", "hig", optimizer="hig", lr=self.hig_lr, rcond=self.hig_rcond),
             "supervised": Method("supervised", "supervised", lr=lr),
         }
-        if self.linear_iterations == 0 and generic is None:
-            raise ParameterError("pg needs linear_iterations >= 1 or a nonlinear_solver other than 'none'")
         self.methods = methods
         self.hig_physics = self._operator.simulate  # unchecked forward: traceable by torch.func (no host syncs)
 

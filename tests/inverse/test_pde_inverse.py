@@ -267,6 +267,8 @@ class TestBadInput:
             PDEOperator("allen_cahn", 10**6, dt=1.0, reactivity=10.0)
         with pytest.raises(ParameterError):
             get_problem("pde", nonlinear_solver="magic")
+        with pytest.raises(ParameterError, match="linear_iterations"):
+            get_problem("pde", linear_iterations=0, nonlinear_solver="none")
         with pytest.raises(ParameterError, match="viscosity"):
             get_problem("pde", equation="burgers", equation_settings={"viscosity": -1.0})
         with pytest.raises(ParameterError, match="resolution"):
