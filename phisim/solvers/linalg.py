@@ -296,11 +296,22 @@ def _all_finite(t: Tensor) -> bool:
 _BLAS_DTYPES = (torch.float32, torch.float64)
 
 
+#: Per-sample size from which a small batch takes one BLAS dot per sample instead of a product and a sum: the
+#: product's temporary of the batch's size then costs more than the extra calls (measured in benchmarks/bench_cg.py).
+_DOT_PER_SAMPLE_NUMEL = 1 << 16
+_DOT_PER_SAMPLE_BATCH = 8
+
+
 def _dot(u: Tensor, v: Tensor) -> Tensor:
-    """Per-sample inner products ``(B,)``: one BLAS dot (a single pass, no temporary) for a batch of one, else a
-    product and a sum."""
-    if u.shape[0] == 1 and u.dtype in _BLAS_DTYPES and u.dtype == v.dtype:
-        return torch.dot(u.reshape(-1), v.reshape(-1)).reshape(1)
+    """Per-sample inner products ``(B,)``: BLAS dots (a single pass, no temporary) for a batch of one and for a few
+    large samples, else a product and a sum."""
+    B = u.shape[0]
+    if u.dtype in _BLAS_DTYPES and u.dtype == v.dtype:
+        if B == 1:
+            return torch.dot(u.reshape(-1), v.reshape(-1)).reshape(1)
+        if B <= _DOT_PER_SAMPLE_BATCH and u[0].numel() >= _DOT_PER_SAMPLE_NUMEL:
+            uf, vf = u.reshape(B, -1), v.reshape(B, -1)
+            return torch.stack([torch.dot(uf[i], vf[i]) for i in range(B)])
     return (u * v).flatten(1).sum(1)
 
 
