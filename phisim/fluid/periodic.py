@@ -37,7 +37,63 @@ from phisim.grid import Grid
 from phisim.ops.stencil import normalize_kinds
 from phisim.solvers.box import solve_multiplier
 
-__all__ = ["PeriodicStep"]
+__all__ = ["PeriodicStep", "grid_sample_border"]
+
+
+@torch.library.custom_op("phisim::grid_sample_border", mutates_args=())
+def grid_sample_border(source: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """``torch.grid_sampler`` (bilinear/trilinear, border, ``align_corners=True``) as one opaque operation.
+
+    Inside ``torch.compile`` the compiler keeps this call as the library kernel instead of lowering it to
+    per-point gathers (measured several times slower on the CPU); the element-wise work around it is still
+    fused. Eager steps call ``torch.grid_sampler`` directly.
+    """
+    return torch.grid_sampler(source, coords, 0, 1, True)
+
+
+@grid_sample_border.register_fake
+def _grid_sample_border_fake(source, coords):
+    return source.new_empty((source.shape[0], source.shape[1], *coords.shape[1:-1]))
+
+
+def _grid_sample_border_context(ctx, inputs, output):
+    ctx.save_for_backward(*inputs)
+
+
+def _grid_sample_border_backward(ctx, grad):
+    source, coords = ctx.saved_tensors
+    backward = (torch.ops.aten.grid_sampler_2d_backward if source.dim() == 4 else
+                torch.ops.aten.grid_sampler_3d_backward)
+    g_source, g_coords = backward(grad.contiguous(), source, coords, 0, 1, True,
+                                  [ctx.needs_input_grad[0], ctx.needs_input_grad[1]])
+    return g_source, g_coords
+
+
+grid_sample_border.register_autograd(_grid_sample_border_backward, setup_context=_grid_sample_border_context)
+
+
+def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
+    """Periodic padding of the spatial axes of ``(B, C, *res)`` (``pads`` as ``F.pad``'s: last axis first).
+
+    Eager: ``F.pad(mode="circular")``; inside ``torch.compile``: one concatenation per axis, which the compiler
+    turns into plain copies (the circular pad becomes masked, nested index arithmetic there).
+    """
+    if not torch.compiler.is_compiling():
+        return F.pad(x, pads, mode="circular")
+    d = x.dim() - 2
+    for a in range(d):
+        before, after = pads[2 * (d - 1 - a)], pads[2 * (d - 1 - a) + 1]
+        dim, n = 2 + a, x.shape[2 + a]
+        parts = ([x.narrow(dim, n - before, before)] if before else []) + [x] + (
+            [x.narrow(dim, 0, after)] if after else [])
+        x = torch.cat(parts, dim=dim) if len(parts) > 1 else x
+    return x
+
+
+def _sample(source: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    if torch.compiler.is_compiling():
+        return grid_sample_border(source, coords)
+    return torch.grid_sampler(source, coords, 0, 1, True)
 
 #: Self-advection schemes of the fused step.
 FUSED_SCHEMES = ("semi_lagrangian", "maccormack")
@@ -156,7 +212,7 @@ class PeriodicStep:
         v = torch.stack([c[compact[a]] for a, c in enumerate(velocity.values)], dim=1)
         B = v.shape[0]
         wrap = (1, 1) * d
-        p = F.pad(v, wrap, mode="circular")  # (B, d, *(res + 2))
+        p = _wrap(v, wrap)  # (B, d, *(res + 2))
         # the velocity at every component's sample points, (B, d comps, d coords, *res), coordinate order of
         # grid_sample (last axis first): own component as it is, the others as box sums over two axes
         boxes = {}
@@ -170,13 +226,13 @@ class PeriodicStep:
         frac = torch.addcmul(base, vel, scale)
         frac = frac - torch.floor(frac)
         coords = torch.addcmul(shift, frac, stretch).reshape(B * d, d, *res).movedim(1, -1)
-        a = torch.grid_sampler(p.reshape(B * d, 1, *p.shape[2:]), coords, 0, 1, True).reshape(B, d, *res)
+        a = _sample(p.reshape(B * d, 1, *p.shape[2:]), coords).reshape(B, d, *res)
         if self.scheme == "maccormack":
             a = self._maccormack(v, p, a, vel, frac, consts)
         # explicit viscosity and the MAC divergence from one wrap-padded array; the divergence is that of the
         # advected velocity (in units of 1/dx[0]): the viscous step's factor on it, (1 + nu dt lap) per mode,
         # is in the multiplier (the periodic difference operators commute)
-        pa = F.pad(a, wrap, mode="circular")
+        pa = _wrap(a, wrap)
         div = None
         for ax in range(d):
             diff = pa[:, ax:ax + 1][shifted[ax][2]] - pa[:, ax:ax + 1][shifted[ax][1]]
@@ -190,7 +246,7 @@ class PeriodicStep:
         spectrum = torch.view_as_complex(torch.view_as_real(torch.fft.rfftn(div[:, 0], dim=axes)) * multiplier)
         pressure = torch.fft.irfftn(spectrum, s=res, dim=axes)
         # the pressure gradient at the faces (face k between cells k - 1 and k); face n repeats face 0
-        pp = F.pad(pressure.unsqueeze(1), wrap, mode="circular")
+        pp = _wrap(pressure.unsqueeze(1), wrap)
         comps = []
         for ax in range(d):
             grad = pp[shifted[ax][1]] - pp[shifted[ax][0]]
@@ -207,8 +263,8 @@ class PeriodicStep:
         back = torch.addcmul(base, vel, scale, value=-1.0)
         back = back - torch.floor(back)
         coords = torch.addcmul(shift, back, stretch).reshape(B * d, d, *res).movedim(1, -1)
-        pf = F.pad(forward, (1, 1) * d, mode="circular")
-        backward = torch.grid_sampler(pf.reshape(B * d, 1, *pf.shape[2:]), coords, 0, 1, True).reshape(B, d, *res)
+        pf = _wrap(forward, (1, 1) * d)
+        backward = _sample(pf.reshape(B * d, 1, *pf.shape[2:]), coords).reshape(B, d, *res)
         corrected = forward + (v - backward) * 0.5
         # extrema of the 2^d samples read at the forward departure point: running max/min over the stencil
         hi, lo = p, p
