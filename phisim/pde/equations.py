@@ -218,10 +218,14 @@ class Burgers(ETDRKStepper):
                 return g.to_spectral(u * u)
         else:
             factor = -b
-            grad = self._grad
+            frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) \
+                and 0 < dealias <= 1 else 2.0 / 3.0
+            cut = grid.dealias_cut(frac)  # u_hat arrives truncated: the transform reads the kept columns only
+            grad = self._grad[..., :cut].contiguous()
 
             def nonlinear(u_hat, g):
                 # channels: u_i (d) and d_j u_i (d*d) in one inverse transform
+                u_hat = u_hat[..., :cut]
                 du_hat = grad[None, None] * u_hat[:, :, None]  # (B, i, j, *spec)
                 both = torch.cat([u_hat, du_hat.flatten(1, 2)], dim=1)
                 phys = g.to_physical(both)
@@ -321,13 +325,15 @@ class KuramotoSivashinsky(ETDRKStepper):
             frac = dealias if isinstance(dealias, (int, float)) and not isinstance(dealias, bool) \
                 and 0 < dealias <= 1 else 2.0 / 3.0
             grad = torch.stack(torch.broadcast_tensors(*grads)) * grid.dealias_mask(frac)  # (d, *spec), masked
+            cut = grid.dealias_cut(frac)  # the inverse transform reads only the kept columns of the half spectrum
+            grad = grad[..., :cut].contiguous()
             keep = torch.ones(grid.spectral_shape, dtype=grid.complex_dtype, device=grid.device)
             if remove_mean:
                 keep[(0,) * d] = 0.0
             factor = -0.5 * keep
 
             def nonlinear(u_hat, g):
-                du = g.to_physical(grad * u_hat)  # (B, d, *res) since C == 1
+                du = g.to_physical(grad * u_hat[..., :cut])  # (B, d, *res) since C == 1
                 return g.to_spectral((du * du).sum(1, keepdim=True))
 
         def linear(g):
@@ -524,6 +530,8 @@ class NavierStokesVorticity(ETDRKStepper):
         sign = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=torch.float64, device=grid.device).reshape(
             (4,) + (1,) * grid.ndim)
         ops_in = (ops * sign * grid.dealias_mask(frac)).to(cd)
+        cut = grid.dealias_cut(frac)  # the transform reads only the kept columns of the half spectrum
+        ops_in = ops_in[..., :cut].contiguous()
         force_hat = None
         if forcing == "kolmogorov":
             _, y = grid.coordinates(torch.float64)
@@ -535,9 +543,9 @@ class NavierStokesVorticity(ETDRKStepper):
         self._force_hat = force_hat
 
         def nonlinear(w_hat, g):
-            phys = g.to_physical(ops_in * w_hat)  # (B, 4, *res) since C == 1
-            adv = (phys[:, 0:2] * phys[:, 2:4]).sum(1, keepdim=True)  # -u . grad w
-            out = g.to_spectral(adv)
+            phys = g.to_physical(ops_in * w_hat[..., :cut])  # (B, 4, *res) since C == 1
+            mu, mv, wx, wy = phys.split(1, dim=1)
+            out = g.to_spectral(torch.addcmul(mu * wx, mv, wy))  # -u . grad w
             return out if force_hat is None else out + force_hat
 
         nu, al = self.viscosity, self.drag

@@ -223,6 +223,7 @@ class SpectralGrid:
         self._fft_dims = [a - ndim for a in self.periodic_axes]
         self._fft_sizes = [res[a] for a in self.periodic_axes]
         self._fft_1d = len(self.periodic_axes) == 1
+        self._fft_2d = ndim == 2 and len(self.periodic_axes) == 2
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -295,6 +296,22 @@ class SpectralGrid:
             k = torch.where(self._mode_fraction[axis].to(k.device) == 1.0, torch.zeros_like(k), k)
         return (1j * k).to(dtype or torch.complex128)
 
+    def dealias_cut(self, fraction: float = 2.0 / 3.0) -> int:
+        """Number of entries of the last spectral axis that :meth:`dealias_mask` keeps (all axes periodic).
+
+        A spectrum truncated to ``[..., :dealias_cut(fraction)]`` holds every mode the mask keeps; such a truncated
+        spectrum is a valid input of :meth:`to_physical` on a periodic grid.
+
+        Args:
+            fraction: Kept fraction of the largest mode number (as for :meth:`dealias_mask`).
+
+        Returns:
+            The count.
+        """
+        if not (isinstance(fraction, (int, float)) and 0 < fraction <= 1):
+            raise ParameterError(f"dealias fraction must be in (0, 1], got {fraction!r}")
+        return int((self._mode_fraction[-1].reshape(-1) <= fraction + 1e-12).sum())
+
     def dealias_mask(self, fraction: float = 2.0 / 3.0) -> torch.Tensor:
         """Boolean mask of the modes kept by the dealiasing rule (``|m| <= fraction * m_max`` on every axis).
 
@@ -339,12 +356,18 @@ class SpectralGrid:
     def to_physical(self, u_hat: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`to_spectral`.
 
+        On a grid with periodic axes only, the last (half-spectrum) axis of ``u_hat`` may be shorter than in
+        ``spectral_shape``: the missing highest modes are taken as zero (e.g. a spectrum truncated to
+        :meth:`dealias_cut` entries, which saves part of the 2-D transform).
+
         Args:
             u_hat: Coefficients ``(..., *spectral_shape)``.
 
         Returns:
             Real tensor ``(..., *resolution)``.
         """
+        if self._fft_2d and u_hat.shape[-1] < self.spectral_shape[-1]:
+            return self._irfft2(u_hat)
         if self._fft_1d:
             u_hat = torch.fft.irfft(u_hat, n=self._fft_sizes[0], dim=self._fft_dims[0])
         elif self._fft_dims:
@@ -359,6 +382,23 @@ class SpectralGrid:
                 x = idct2(x, self._twiddles[a])
             u_hat = x.movedim(-1, dim)
         return u_hat
+
+    def _irfft2(self, u_hat: torch.Tensor) -> torch.Tensor:
+        """Inverse 2-D real FFT of a spectrum truncated along its last axis (see :meth:`to_physical`).
+
+        A complex inverse FFT along the first axis of the kept columns only, then a real one along the last axis.
+        Between the two, the intermediate is put into row order by one 2-D transposed copy of all batch entries
+        together (``.t().contiguous()`` of a column-ordered matrix, which torch copies in cache blocks), instead of
+        the per-element strided copy that ``irfftn`` makes on the CPU. The reshapes are views when the complex FFT
+        returns its output in column order (as the CPU backend does) and copies otherwise, so the result is the
+        same either way.
+        """
+        n0, n1 = self.resolution
+        y = torch.fft.ifft(u_hat, dim=-2)
+        lead, cols = y.shape[:-2], y.shape[-1]
+        t = y.transpose(-1, -2).reshape(-1, n0).t().contiguous()  # (n0, batch * cols), row order
+        t = t.reshape((n0,) + tuple(lead) + (cols,)).movedim(0, -2)
+        return torch.fft.irfft(t, n=n1, dim=-1)  # the zero padding to n1 // 2 + 1 entries restores the row order
 
     def __repr__(self) -> str:
         return (f"SpectralGrid(domain={self.domain}, resolution={self.resolution}, boundaries={self.boundaries}, "

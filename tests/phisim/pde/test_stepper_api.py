@@ -179,6 +179,8 @@ def test_unknown_equation_lists_the_known_ones():
     ("burgers", dict(ndim=2, resolution=8, dt=0.01, viscosity=0.05)),
     ("allen_cahn", dict(resolution=12, dt=0.05, boundaries="neumann", diffusivity=0.01)),
     ("gray_scott", dict(ndim=1, resolution=8, dt=0.5, boundaries="dirichlet")),
+    ("navier_stokes", dict(resolution=8, dt=0.01)),
+    ("kuramoto_sivashinsky", dict(ndim=2, domain=10.0, resolution=8, dt=0.05)),
 ])
 def test_gradcheck_one_step_float64(name, kwargs):
     s = make_stepper(name, dtype=F64, **kwargs)
