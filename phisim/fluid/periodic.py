@@ -40,18 +40,17 @@ from phisim.solvers.box import solve_multiplier
 __all__ = ["PeriodicStep", "grid_sample_border"]
 
 
-@torch.library.custom_op("phisim::grid_sample_border", mutates_args=())
 def grid_sample_border(source: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     """``torch.grid_sampler`` (bilinear/trilinear, border, ``align_corners=True``) as one opaque operation.
 
     Inside ``torch.compile`` the compiler keeps this call as the library kernel instead of lowering it to
     per-point gathers (measured several times slower on the CPU); the element-wise work around it is still
-    fused. Eager steps call ``torch.grid_sampler`` directly.
+    fused. Eager steps call ``torch.grid_sampler`` directly. (With a torch older than 2.4, which has no
+    ``torch.library.custom_op``, it is the plain call.)
     """
     return torch.grid_sampler(source, coords, 0, 1, True)
 
 
-@grid_sample_border.register_fake
 def _grid_sample_border_fake(source, coords):
     return source.new_empty((source.shape[0], source.shape[1], *coords.shape[1:-1]))
 
@@ -69,7 +68,12 @@ def _grid_sample_border_backward(ctx, grad):
     return g_source, g_coords
 
 
-grid_sample_border.register_autograd(_grid_sample_border_backward, setup_context=_grid_sample_border_context)
+if hasattr(torch.library, "custom_op"):
+    grid_sample_border = torch.library.custom_op("phisim::grid_sample_border", mutates_args=())(grid_sample_border)
+    grid_sample_border.register_fake(_grid_sample_border_fake)
+    grid_sample_border.register_autograd(_grid_sample_border_backward, setup_context=_grid_sample_border_context)
+
+_is_compiling = getattr(torch.compiler, "is_compiling", None) or torch._dynamo.is_compiling
 
 
 def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
@@ -78,7 +82,7 @@ def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
     Eager: ``F.pad(mode="circular")``; inside ``torch.compile``: one concatenation per axis, which the compiler
     turns into plain copies (the circular pad becomes masked, nested index arithmetic there).
     """
-    if not torch.compiler.is_compiling():
+    if not _is_compiling():
         return F.pad(x, pads, mode="circular")
     d = x.dim() - 2
     for a in range(d):
@@ -91,7 +95,7 @@ def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
 
 
 def _sample(source: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    if torch.compiler.is_compiling():
+    if _is_compiling():
         return grid_sample_border(source, coords)
     return torch.grid_sampler(source, coords, 0, 1, True)
 
