@@ -50,8 +50,11 @@ def bodies(sharp: bool = True):
     return [inner, outer]
 
 
-def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int = 400, dt_cells: float = 50.0):
-    """The steady Stokes flow on an ``n x n`` grid over ``[-1, 1]^2``; returns ``(velocity, steps)``."""
+def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int = 400, dt_cells: float = 50.0,
+                 scheme: str = "implicit"):
+    """The steady Stokes flow on an ``n x n`` grid over ``[-1, 1]^2`` by Stokes steps of ``dt = dt_cells dx^2 / nu``
+    with ``scheme`` viscosity, until the largest change of a step is below ``tol * omega R1``; returns
+    ``(velocity, steps)``."""
     grid = Grid((n, n), bounds=[(-1.0, 1.0), (-1.0, 1.0)])
     solids = bodies(sharp)
     v = StaggeredGrid.zeros(grid, "wall", dtype=torch.float64)
@@ -61,7 +64,7 @@ def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int 
     p = None
     for k in range(max_steps):
         w = impose_solids(v, layout)
-        w = diffuse_velocity(w, dt, viscosity=NU, scheme="implicit", solids=layout, solve=tight)
+        w = diffuse_velocity(w, dt, viscosity=NU, scheme=scheme, solids=layout, solve=tight)
         new, p = make_incompressible(w, layout, solve=tight, pressure_guess=p)
         change = max(float((a - b).abs().max()) for a, b in zip(new.values, v.values))
         v = new
@@ -111,10 +114,11 @@ def torque_error(v: StaggeredGrid) -> float:
     return abs(torque - ref) / abs(ref)
 
 
-def study(ns, sharp: bool = True) -> list[dict]:
+def study(ns, sharp: bool = True, **kw) -> list[dict]:
+    """:func:`solve_steady` on each grid, its errors and the observed orders between successive grids."""
     rows = []
     for n in ns:
-        v, steps = solve_steady(n, sharp)
+        v, steps = solve_steady(n, sharp, **kw)
         row = {"n": n, "cells_across_gap": (R2 - R1) * n / 2, "steps": steps, **errors(v), "torque": torque_error(v)}
         rows.append(row)
     for a, b in zip(rows, rows[1:]):
@@ -127,10 +131,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, nargs="+", default=[32, 64, 128])
     ap.add_argument("--blended", action="store_true", help="the blended (first-order) no-slip condition")
+    ap.add_argument("--scheme", default="implicit", help="viscosity scheme of the Stokes steps")
+    ap.add_argument("--dt-cells", type=float, default=50.0, help="time step in units of dx^2 / nu")
+    ap.add_argument("--tol", type=float, default=1e-11, help="steady when a step changes the velocity less")
+    ap.add_argument("--max-steps", type=int, default=400)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    for row in study(args.n, sharp=not args.blended):
+    for row in study(args.n, sharp=not args.blended, scheme=args.scheme, dt_cells=args.dt_cells, tol=args.tol,
+                     max_steps=args.max_steps):
         print(json.dumps(row), flush=True)
     return 0
 

@@ -33,7 +33,7 @@ import torch
 
 from phisim.boundary import Boundary, Inflow
 from phisim.errors import BoundaryError, ParameterError, ShapeError
-from phisim.fluid.geometry import Geometry, fluid_fraction, rotation_matrix
+from phisim.fluid.geometry import Geometry, cut_fractions, fluid_fraction, rotation_matrix
 from phisim.grid import Grid
 
 __all__ = ["Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks"]
@@ -346,6 +346,8 @@ class SolidLayout:
             solids' cut faces store the blend ``theta u + (1 - theta) u_s``.
         cell_fraction: Fluid fraction of each cell ``(1 or B, *res)``.
         bodies: The solids, in the order given.
+        sharp: Per component, the share of the solid part of each face that belongs to sharp no-slip bodies (None
+            without them).
         walls: Per component, the sharp no-slip condition of the viscous stencil (None without sharp no-slip
             bodies): ``(cut, coef, source)``, each ``(1 or B, *face_shape(i))``. ``cut`` marks the faces whose centre
             lies in a sharp body (``phi <= 0``): they are no unknowns of the viscous step, and the stencil of a fluid
@@ -356,6 +358,21 @@ class SolidLayout:
             ``coef = sum (1 / s - 1) / dx_a^2`` and ``source = sum u_w / (s dx_a^2)`` (``u_w`` the body's velocity
             at the crossing point; ``source`` None for resting bodies). Only the diagonal changes, so the
             operator stays symmetric.
+        extension: Per component, the smooth extension of the fluid velocity onto the faces centred inside sharp
+            no-slip bodies near their surface (None without sharp bodies): ``(index, corners, weights, factor,
+            base)``. Face ``index[k]`` (a flat index into the component) takes
+            ``base[k] + factor[k] * sum_j weights[k, j] u[corners[k, j]]``: the body's velocity there plus the
+            relative velocity ``u - u_s`` at a probe two cells out along the normal, scaled by the (negative)
+            distance ratio, i.e. the linear profile of the relative velocity continued through the surface (an
+            image-point ghost value, Mittal et al. 2008). These faces close the cells the body cuts with the
+            velocity the fluid would have there. It replaces the body's velocity ``u_s`` of the blend: a sharp
+            body's faces store ``theta (u - G p) + (1 - theta) u_x`` with ``u_x`` the extended velocity (on the fluid
+            faces the velocity itself), whose MAC divergence is zero, so the cut cells are closed with the velocity
+            the fluid would have there (second order) and the pressure keeps its fractional weights (the Neumann
+            condition at the true surface).
+            Two more entries, ``flux`` (the face's area, signed by the direction into the body, on the faces between a
+            cell with fluid and one without; else 0) and ``owner`` (the body), let the extension remove, per body,
+            the net flux into it (second order small): the fluid's mass is conserved exactly.
         solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
             its solves are iterative. A dict for a layout that is used again and again (a stepper's static
             bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
@@ -369,6 +386,8 @@ class SolidLayout:
     bodies: tuple
     solvers: dict | None = field(default=None, repr=False)
     walls: tuple | None = field(default=None, repr=False)
+    extension: tuple | None = field(default=None, repr=False)
+    sharp: tuple | None = field(default=None, repr=False)
 
     def persistent(self, direct: bool | str = "auto") -> SolidLayout:
         """This layout marked for reuse: solvers built for it are kept on it.
@@ -402,8 +421,11 @@ class SolidLayout:
 
         walls = None if self.walls is None else tuple(
             None if w is None else (w[0].to(device=device), cv(w[1]), cv(w[2])) for w in self.walls)
+        extension = None if self.extension is None else tuple(
+            None if e is None else (e[0].to(device=device), e[1].to(device=device), cv(e[2]), cv(e[3]), cv(e[4]))
+            for e in self.extension)
         out = SolidLayout(cvs(self.theta), cvs(self.solid_velocity), cvs(self.slip), cv(self.cell_fraction),
-                          self.bodies, walls=walls)
+                          self.bodies, walls=walls, extension=extension, sharp=cvs(self.sharp))
         return out if self.solvers is None else out.persistent(self.direct)
 
 
@@ -420,9 +442,27 @@ def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor
     return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float) -> torch.Tensor:
+def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: int | None = None) -> torch.Tensor:
+    """Fluid fraction at ``points``: for sharp no-slip bodies the exact fraction of a planar cut
+    (:func:`~phisim.fluid.geometry.cut_fractions`) of the square/cube of side ``dx`` (``axis`` None) or of the face
+    of side ``dx`` normal to ``axis`` (the wetted area of a MAC face); for the others the linear ramp of
+    :func:`~phisim.fluid.geometry.fluid_fraction` over the control volume of side ``dx``."""
     phi = body.sdf(points, t)
-    return fluid_fraction(phi, sdf_gradient(body, points, t, 1e-3 * dx).abs().sum(-1), dx)
+    grad = sdf_gradient(body, points, t, 1e-3 * dx)
+    if body.no_slip and body.sharp:
+        return cut_fractions(phi, face_normal(grad, axis), dx)[0]
+    return fluid_fraction(phi, grad.abs().sum(-1), dx)
+
+
+def face_normal(grad: torch.Tensor, axis: int | None) -> torch.Tensor:
+    """The unit normal ``grad / |grad|`` with its ``axis`` component zeroed (the distance does not vary over a face
+    normal to ``axis``; None: kept)."""
+    n = grad / grad.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    if axis is None:
+        return n
+    keep = torch.ones(n.shape[-1], dtype=n.dtype, device=n.device)
+    keep[axis] = 0
+    return n * keep
 
 
 #: Smallest fraction of a stencil arm between a fluid face and the surface in the sharp no-slip stencil: closer
@@ -444,6 +484,72 @@ def _place(part: torch.Tensor, axis: int, side: int) -> torch.Tensor:
     shape[axis] = 1
     z = part.new_zeros(shape)
     return torch.cat([part, z] if side > 0 else [z, part], axis)
+
+
+#: Distance of the extension's probe from the surface, in cells (its interpolation stencil stays in the fluid).
+PROBE_CELLS = 2.0
+
+
+def extension_stencil(bodies, grid: Grid, i: int, t: float, dtype, device, select: torch.Tensor):
+    """``(index, corners, weights, factor, base, owner, normal)`` of the probes of component ``i``'s faces in
+    ``select`` (see :class:`SolidLayout`), or None when ``select`` is empty."""
+    h = min(grid.dx)
+    x = grid.face_centers(i, dtype, device)
+    shape = x.shape[:-1]
+    phis = torch.stack([b.sdf(x, t) for b in bodies], 0)
+    phi = phis.min(0).values if len(bodies) > 1 else phis[0]
+    band = select
+    index = band.flatten().nonzero().squeeze(1)
+    if index.numel() == 0:
+        return None
+    xb = x.reshape(-1, grid.rank)[index]
+    pb = phi.reshape(-1)[index]
+    owner = phis.argmin(0).reshape(-1)[index] if len(bodies) > 1 else None
+    normal = torch.zeros_like(xb)
+    us_face = torch.zeros_like(pb)
+    us_probe = torch.zeros_like(pb)
+    d_p = PROBE_CELLS * h
+    probe = torch.zeros_like(xb)
+    for k, b in enumerate(bodies):
+        sel = slice(None) if owner is None else (owner == k)
+        xs = xb[sel]
+        n = unit_normal(b, xs, t, 1e-3 * h)
+        pt = xs + (d_p - pb[sel]).unsqueeze(-1) * n  # the surface point plus d_p along the normal
+        if owner is None:
+            normal, probe = n, pt
+        else:
+            normal = normal.index_put((sel.nonzero().squeeze(1),), n)
+            probe = probe.index_put((sel.nonzero().squeeze(1),), pt)
+        if not b.static:
+            uf, up = b.velocity_at(xs, t)[..., i], b.velocity_at(pt, t)[..., i]
+            if owner is None:
+                us_face, us_probe = uf, up
+            else:
+                us_face = us_face.index_put((sel.nonzero().squeeze(1),), uf)
+                us_probe = us_probe.index_put((sel.nonzero().squeeze(1),), up)
+    factor = pb / d_p
+    # multilinear interpolation of component i at the probes: faces along i, cell centres along the others
+    lo = torch.tensor([grid.bounds[a][0] for a in range(grid.rank)], dtype=dtype, device=device)
+    dxs = torch.tensor(grid.dx, dtype=dtype, device=device)
+    offset = torch.tensor([0.0 if a == i else 0.5 for a in range(grid.rank)], dtype=dtype, device=device)
+    frac = (probe - lo) / dxs - offset
+    sizes = torch.tensor(shape, device=device)
+    base_idx = frac.detach().floor().long().clamp(min=torch.zeros_like(sizes), max=sizes - 2)
+    f = frac - base_idx.to(dtype)
+    strides = [math.prod(shape[a + 1:]) for a in range(grid.rank)]
+    corners, weights = [], []
+    for bits in range(2 ** grid.rank):
+        idx = torch.zeros_like(index)
+        w = torch.ones_like(pb)
+        for a in range(grid.rank):
+            bit = (bits >> a) & 1
+            idx = idx + (base_idx[:, a] + bit) * strides[a]
+            w = w * (f[:, a] if bit else 1 - f[:, a])
+        corners.append(idx)
+        weights.append(w)
+    base = us_face - factor * us_probe
+    owner = torch.zeros_like(index) if owner is None else owner
+    return index, torch.stack(corners, 1), torch.stack(weights, 1), factor, base, owner, normal, us_probe
 
 
 def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
@@ -589,10 +695,10 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
     rank = grid.rank
     work = torch.float64 if dtype in (torch.float32, torch.float16, torch.bfloat16) else dtype
     h = min(grid.dx)
-    thetas, chis, vels, slips = [], [], [], []
+    thetas, chis, vels, slips, sharps = [], [], [], [], []
     cell = None
     any_moving = any(isinstance(s, Body) and not s.static for s in solids)
-    any_slip = any(isinstance(s, Body) and (not s.no_slip or s.sharp) for s in solids)
+    any_slip = any(isinstance(s, Body) and not s.no_slip for s in solids)
     for s in solids:
         if isinstance(s, Obstacle):
             solid = s.cell_mask(grid, device)
@@ -605,20 +711,27 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
             no_slip = True
         else:
             _check_placement(s, grid, boundary, t)
-            th = tuple(body_fraction(s, grid.face_centers(i, work, device), t, h)[None] for i in range(rank))
             cf = body_fraction(s, grid.cell_centers(work, device), t, h)[None]
+            th = tuple(body_fraction(s, grid.face_centers(i, work, device), t, h, i)[None] for i in range(rank))
             sv = None
             if not s.static:
                 sv = tuple(s.velocity_at(grid.face_centers(i, work, device), t)[..., i][None] for i in range(rank))
-            no_slip = s.no_slip and not s.sharp  # sharp no-slip bodies keep the fluid velocity on cut faces
+            no_slip = s.no_slip
         thetas.append(th)
         chis.append(tuple(1 - x for x in th))
         vels.append(sv)
         slips.append(no_slip)
+        sharps.append(isinstance(s, Body) and s.no_slip and s.sharp)
         cell = cf if cell is None else cell * cf
     theta = tuple(math.prod(th[i] for th in thetas) for i in range(rank)) if len(thetas) > 1 else thetas[0]
     solid_velocity = None
     slip = None
+    sharp_share = None
+    if any(sharps):
+        wsum = [sum(c[i] for c in chis) for i in range(rank)]
+        safe = [torch.where(w > 0, w, torch.ones_like(w)) for w in wsum]
+        sharp_share = tuple(torch.where(wsum[i] > 0, sum(c[i] * float(sh) for c, sh in zip(chis, sharps)) / safe[i],
+                                        torch.ones_like(wsum[i])) for i in range(rank))
     if any_moving or any_slip:
         wsum = [sum(c[i] for c in chis) for i in range(rank)]
         safe = [torch.where(w > 0, w, torch.ones_like(w)) for w in wsum]
@@ -641,15 +754,30 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
     def conv(ts):
         return None if ts is None else tuple(x.to(dtype) for x in ts)
 
-    walls = None
+    walls = extension = None
     sharp = [s for s in solids if isinstance(s, Body) and s.no_slip and s.sharp]
     if sharp:
-        walls = []
+        walls, extension = [], []
         for i in range(rank):
             cut, coef, source = wall_stencil(sharp, grid, i, t, work, device)
             walls.append((cut[None], coef[None].to(dtype), None if source is None else source[None].to(dtype)))
-        walls = tuple(walls)
-    return SolidLayout(conv(theta), conv(solid_velocity), conv(slip), cell.to(dtype), tuple(solids), walls=walls)
+            th_i = theta[i].detach()[0]
+            ext = extension_stencil(sharp, grid, i, t, work, device, (th_i > 0) & (th_i < 1))
+            if ext is None:
+                extension.append(None)
+                continue
+            # the flux through the wetted part of the face: the relative velocity grows linearly from the surface,
+            # w = g phi with g = w(probe) / d; its mean over the face is g E[phi_+] (cut_fractions), of which
+            # theta w_F = g theta phi_F is in the blend of a fluid face (nothing of a face centred inside): the rest
+            # is kappa w(probe)
+            pf = ext[3] * (PROBE_CELLS * h)  # phi at the faces
+            thf, mean = cut_fractions(pf, face_normal(ext[6], i), h)
+            kappa = (mean - thf * pf.clamp_min(0)) / (PROBE_CELLS * h)
+            ext = (ext[0], ext[1], ext[2], kappa, -kappa * ext[7], ext[5])
+            extension.append((ext[0], ext[1], ext[2].to(dtype), ext[3].to(dtype), ext[4].to(dtype)))
+        walls, extension = tuple(walls), tuple(extension)
+    return SolidLayout(conv(theta), conv(solid_velocity), conv(slip), cell.to(dtype), tuple(solids), walls=walls,
+                       extension=extension, sharp=conv(sharp_share))
 
 
 def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:

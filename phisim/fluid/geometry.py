@@ -19,7 +19,8 @@ import torch
 
 from phisim.errors import ParameterError, ShapeError
 
-__all__ = ["Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction", "rotation_matrix"]
+__all__ = ["Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction", "cut_fractions",
+           "rotation_matrix"]
 
 
 def _vector(value, name: str) -> torch.Tensor | tuple[float, ...]:
@@ -355,3 +356,38 @@ def fluid_fraction(phi: torch.Tensor, normal_l1: torch.Tensor, dx: float) -> tor
     """
     w = dx * normal_l1.clamp_min(1.0)
     return (0.5 + phi / w).clamp(0.0, 1.0)
+
+
+def cut_fractions(phi: torch.Tensor, normal: torch.Tensor, dx: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact fluid fraction and mean positive distance of a square/cube control volume of side ``dx`` cut by a plane.
+
+    The signed distance inside the control volume is ``d(x) = phi + n . (x - c)``: a sum of independent uniform
+    variables of widths ``dx |n_k|``, so the fraction ``P(d > 0)`` and the mean ``E[max(d, 0)]`` over the control
+    volume are iterated divided differences (one per axis) of ``x_+^m / m!`` with ``m = d`` and ``d + 1``
+    (``d`` the dimension): exact for a planar surface, second order for a curved one. Widths below ``1e-3 dx``
+    are raised to it (the answer changes by less than ``1e-6 dx``), which keeps the differences well conditioned.
+
+    Args:
+        phi: Signed distances at the control-volume centres, shape ``(...)``.
+        normal: Unit normals there, ``(..., d)``.
+        dx: Side of the control volume.
+
+    Returns:
+        ``(theta, mean)``: the fraction in ``[0, 1]`` and ``E[max(d, 0)]`` (a length), both of shape ``(...)``;
+        differentiable in ``phi`` and ``normal``.
+    """
+    rank = normal.shape[-1]
+    widths = (normal.abs() * dx).clamp_min(1e-3 * dx)
+    terms = [(phi, 1.0)]
+    for k in range(rank):
+        w = widths[..., k]
+        terms = [t for x, sg in terms for t in ((x + w / 2, sg), (x - w / 2, -sg))]
+    scale = widths.prod(-1)
+    theta = sum(sg * x.clamp_min(0) ** rank for x, sg in terms) / (math.factorial(rank) * scale)
+    mean = sum(sg * x.clamp_min(0) ** (rank + 1) for x, sg in terms) / (math.factorial(rank + 1) * scale)
+    # outside the cut band the answers are exact without the differences' rounding: 1 and phi, or 0 and 0
+    half = widths.sum(-1) / 2
+    inside, outside = phi <= -half, phi >= half
+    theta = torch.where(outside, torch.ones_like(theta), torch.where(inside, torch.zeros_like(theta), theta))
+    mean = torch.where(outside, phi, torch.where(inside, torch.zeros_like(mean), mean))
+    return theta.clamp(0.0, 1.0), mean.clamp_min(0.0)

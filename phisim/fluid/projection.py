@@ -292,59 +292,92 @@ def _solid(layout: SolidLayout, i: int, like: torch.Tensor):
     return 0.0 if layout.solid_velocity is None else layout.solid_velocity[i].to(like.dtype)
 
 
+def flux_correction(values, layout: SolidLayout):
+    """Per component, the flux that the blend ``theta u + (1 - theta) u_s`` misses on the faces cut by sharp no-slip
+    bodies (:attr:`~phisim.fluid.bodies.SolidLayout.extension`; zero elsewhere), or None without such bodies."""
+    if layout.extension is None:
+        return None
+    out = []
+    for u, ext in zip(values, layout.extension):
+        if ext is None:
+            out.append(None)
+            continue
+        index, corners, weights, kappa, base = ext
+        flat = u.reshape(u.shape[0], -1)
+        value = base.to(u.dtype) + kappa.to(u.dtype) * (flat[:, corners] * weights.to(u.dtype)).sum(-1)
+        out.append(torch.zeros_like(flat).index_copy(1, index, value).reshape(u.shape))
+    return tuple(out)
+
+
 def _blend(values, layout: SolidLayout, corrected=None):
-    """The stored velocity: ``values`` imposed (``corrected`` None) or the projection's ``corrected`` velocity."""
+    """The stored velocity: ``values`` imposed (``corrected`` None) or the projection's ``corrected`` velocity.
+
+    Blended no-slip solids store ``theta c + (1 - theta) u_s``; free-slip and sharp no-slip bodies keep ``c`` on the
+    faces with ``theta > 0`` (imposing, a sharp body gives the faces centred inside it its velocity) and ``u_s`` on
+    the others."""
     out = []
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
         c = u if corrected is None else corrected[i]
         s = _solid(layout, i, u)
         noslip = th * c if layout.solid_velocity is None else th * c + (1 - th) * s
-        if layout.slip is None:
+        share = [x[i].to(u.dtype) for x in (layout.slip, layout.sharp) if x is not None]
+        if not share:
             out.append(noslip)
             continue
-        sl = layout.slip[i].to(u.dtype)
+        sl = share[0] if len(share) == 1 else share[0] + share[1]
         keep = th > 0
         if corrected is None and layout.walls is not None and layout.walls[i] is not None:
-            keep = keep & ~layout.walls[i][0]  # sharp bodies: faces centred inside take the body's velocity
+            keep = keep & ~layout.walls[i][0]
         free = torch.where(keep, c, torch.zeros_like(c) + s)
         out.append((1 - sl) * noslip + sl * free)
     return tuple(out)
 
 
-def _flux(values, layout: SolidLayout):
-    """The volume flux ``theta u + (1 - theta) u_s`` per face of imposed velocities (the projection's right-hand side)."""
+def _flux(values, layout: SolidLayout, probes=None):
+    """The volume flux per face of imposed velocities (the projection's right-hand side): ``theta u + (1 - theta)
+    u_s``, plus the :func:`flux_correction` of sharp no-slip bodies (from ``probes``, default ``values``)."""
     out = []
+    corr = flux_correction(values if probes is None else probes, layout)
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
         s = _solid(layout, i, u)
-        out.append(th * u if layout.solid_velocity is None else th * u + (1 - th) * s)
+        f = th * u if layout.solid_velocity is None else th * u + (1 - th) * s
+        out.append(f if corr is None or corr[i] is None else f + corr[i])
     return tuple(out)
 
 
-def solid_flux(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
+def solid_flux(velocity: StaggeredGrid, layout: SolidLayout | None, before: StaggeredGrid | None = None
+               ) -> StaggeredGrid:
     """The volume flux through each face of a projected velocity: its MAC divergence is the discrete continuity
-    residual of the flow past the solids, zero after a projection.
+    residual of the flow past the solids, zero after a projection (to the solve's tolerance).
 
     Faces of blended solids store the flux itself; faces of free-slip and sharp no-slip bodies store the fluid
-    velocity ``u``, whose flux is ``theta u + (1 - theta) u_s``.
+    velocity ``u``, whose flux is ``theta u + (1 - theta) u_s``, plus, on the faces sharp bodies cut, the
+    :func:`flux_correction`. The projection takes that correction from the velocity it is given (the probes two
+    cells out, which the projection changes by the pressure gradient there): pass that velocity as ``before`` for the
+    exact residual; without it the correction of ``velocity`` itself is used (a residual of the order of the
+    projection's change at the probes).
 
     Args:
         velocity: MAC velocity (e.g. a projection's output).
         layout: The rasterised solids (:func:`~phisim.fluid.bodies.solid_layout`), or None (the velocity itself).
+        before: The velocity the projection was given (its boundary faces set), for the flux correction.
 
     Returns:
         The flux as a StaggeredGrid on the velocity's grid.
     """
     check_velocity(velocity)
-    if layout is None:
-        return velocity
-    if layout.slip is None:
+    if layout is None or (layout.slip is None and layout.sharp is None):
         return velocity
     values = velocity.values
-    flux = _flux(values, layout)
-    out = tuple(u + layout.slip[i].to(u.dtype) * (f - u) for i, (u, f) in enumerate(zip(values, flux)))
-    return velocity.with_values(out)
+    flux = _flux(values, layout, None if before is None else before.values)
+    out = []
+    for i, (u, f) in enumerate(zip(values, flux)):
+        share = [x[i].to(u.dtype) for x in (layout.slip, layout.sharp) if x is not None]
+        sl = share[0] if len(share) == 1 else share[0] + share[1]
+        out.append(u + sl * (f - u))
+    return velocity.with_values(tuple(out))
 
 
 def make_incompressible(
@@ -500,7 +533,8 @@ def _project(v, layout, solve, pressure_guess, trusted: bool = False) -> Project
     cell = layout.cell_fraction.detach()
     if not trusted and layout.bodies and bool((cell.flatten(1).max(1).values <= 0).any()):
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
-    flux = _flux(v.values, layout)
+    values = v.values
+    flux = _flux(values, layout)
     op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx)
     rhs = -op.divergence(flux)
     x0 = _guess_tensor(pressure_guess, v)
@@ -516,8 +550,9 @@ def _project(v, layout, solve, pressure_guess, trusted: bool = False) -> Project
     else:
         p, info = op.solve(rhs, solve=solve, x0=x0)
     grad = op.gradient(p)
-    corrected = tuple(u - g for u, g in zip(v.values, grad))
-    out = v.with_values(_blend(v.values, layout, corrected)).with_boundary_faces()
+    corrected = tuple(u - g for u, g in zip(values, grad))
+    stored = _blend(values, layout, corrected)
+    out = v.with_values(stored).with_boundary_faces()
     pressure = CenteredGrid(p, grid, p_boundary)
     return ProjectionResult(out, pressure, info)
 

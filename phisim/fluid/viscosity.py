@@ -16,10 +16,11 @@ from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import ParameterError
 from phisim.field import StaggeredGrid
 from phisim.fluid.projection import check_velocity
-from phisim.solvers.diffusion import diffuse_staggered
+from phisim.ops.differential import laplace
+from phisim.solvers.diffusion import diffuse_staggered, staggered_laplace
 from phisim.solvers.linalg import Solve
 
-__all__ = ["diffuse_velocity", "VISCOSITY_SCHEMES"]
+__all__ = ["diffuse_velocity", "body_laplace", "VISCOSITY_SCHEMES"]
 
 #: Schemes of :func:`diffuse_velocity` (the methods of :func:`phisim.solvers.diffusion.diffuse_staggered`).
 VISCOSITY_SCHEMES = ("explicit", "implicit", "crank_nicolson", "spectral")
@@ -82,3 +83,24 @@ def diffuse_velocity(
         capacitance = solids.solvers if solids.direct else None
     return diffuse_staggered(velocity, dt, viscosity=viscosity, method=scheme, fixed=fixed, solve=solve,
                              walls=walls, capacitance=capacitance)
+
+
+def body_laplace(velocity: StaggeredGrid, solids=None) -> StaggeredGrid:
+    """The vector Laplacian of a MAC velocity with the sharp no-slip bodies of ``solids`` at their true surface.
+
+    Without sharp bodies this is :func:`phisim.ops.differential.laplace`. With them, every component is
+    ``L_0 u - coef u + source`` on its free faces (the stencil of the viscous step, see
+    :class:`~phisim.fluid.bodies.SolidLayout` ``walls``) and 0 on faces centred inside a body: the explicit part of
+    a Crank-Nicolson or Runge-Kutta step that matches the implicit one.
+
+    Args:
+        velocity: MAC velocity.
+        solids: The rasterised solids (:class:`~phisim.fluid.bodies.SolidLayout`) or None.
+
+    Returns:
+        The Laplacian as a StaggeredGrid (values on fixed boundary faces are not meaningful).
+    """
+    check_velocity(velocity)
+    if solids is None or solids.walls is None:
+        return laplace(velocity)
+    return staggered_laplace(velocity, solids.walls)

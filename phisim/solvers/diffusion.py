@@ -43,6 +43,7 @@ __all__ = [
     "DIFFUSION_METHODS",
     "STAGGERED_METHODS",
     "diffuse_staggered",
+    "staggered_laplace",
     "explicit_stability_limit",
     "diffuse_values",
     "diffuse",
@@ -336,6 +337,21 @@ def _slice_channel(v, c: int):
 
 # ----------------------------------------------------------------------------------------------
 # the periodic heat operator of E4
+
+
+def staggered_laplace(velocity, walls=None):
+    """The Laplacian of each MAC component with the velocity boundary's ghost rules, and with the sharp no-slip
+    surfaces ``walls`` of :func:`diffuse_staggered` at their true position (``L_0 u - coef u + source`` on the free
+    faces, 0 on the cut faces): the operator whose implicit steps :func:`diffuse_staggered` takes.
+
+    Args:
+        velocity: MAC velocity.
+        walls: None, or one ``(cut, coef, source)`` or None per component.
+
+    Returns:
+        The Laplacian as a StaggeredGrid.
+    """
+    return _mac.staggered_laplace(velocity, walls)
 
 
 def fourier_k2(

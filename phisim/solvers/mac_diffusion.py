@@ -558,6 +558,26 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
     return comp.embed(p * y + (1 - p) * x, u)
 
 
+def staggered_laplace(velocity, walls=None):
+    """The (2d+1)-point Laplacian of each MAC component with the boundary's ghost rules, and with sharp no-slip
+    surfaces (``walls``, as for :func:`diffuse_staggered`): ``L_0 u - coef u + source`` on the free faces, 0 on the
+    cut faces."""
+    walls, _ = _walls(walls, velocity, None)
+    out = []
+    for i, u in enumerate(velocity.values):
+        comp = _component(velocity.grid, velocity.boundary, i)
+        wall = None if walls is None else walls[i]
+        if wall is None:
+            out.append(comp.laplace(u))
+            continue
+        cut, coef, source = wall
+        lap = comp.laplace(torch.where(cut, torch.zeros_like(u), u)) - coef.to(u.dtype) * u
+        if source is not None:
+            lap = lap + source.to(u.dtype)
+        out.append(torch.where(cut, torch.zeros_like(lap), lap))
+    return velocity.with_values(tuple(out))
+
+
 def _phi1(z: torch.Tensor) -> torch.Tensor:
     small = z.abs() < 1e-8
     safe = torch.where(small, torch.ones_like(z), z)
