@@ -17,7 +17,8 @@ explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equatio
   ``j ≠ i``); boundary ghosts follow the velocity boundary (walls, moving lids, open sides, periodic).
   For a discretely divergence-free field it conserves momentum and kinetic energy in a periodic box
   (Morinishi et al. 1998, J. Comput. Phys. 143).
-* ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.ops.differential.laplace`).
+* ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.fluid.viscosity.body_laplace`: sharp no-slip
+  bodies enter at their true surface).
 * ``f(t)`` is a body force (a StaggeredGrid, or a callable of time for time-dependent forcing).
 * obstacles: faces touching solid cells are set to zero before every projection (resting no-slip bodies).
 
@@ -71,7 +72,8 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
 from phisim.fluid.projection import impose_solids, make_incompressible, project_trusted
 from phisim.fluid.step import kinetic_energy, normalize_energy, rescale_energy, to_time
-from phisim.ops.differential import gradient, laplace
+from phisim.fluid.viscosity import body_laplace
+from phisim.ops.differential import gradient
 from phisim.solvers.diffusion import diffuse_staggered
 
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step", "rk_advance"]
@@ -237,10 +239,13 @@ def rk_advance(velocity: StaggeredGrid, dt, nu: float, integrator: str, force, t
     pressure = None
     b_last = 1.0
     stages = _SHU_OSHER[integrator]
+    layout = None  # the solids at the stage's time: their sharp no-slip surfaces enter the viscous term
+    if float(nu) != 0 and obstacles is not None:
+        layout = solid_layout(obstacles, u0.grid, u0.boundary, time, u0.dtype, u0.device)
     for k, (a, b, c) in enumerate(stages):
         rate = -convection(stage)
         if float(nu) != 0:
-            rate = rate + nu * laplace(stage)
+            rate = rate + nu * body_laplace(stage, layout)
         f = _force_at(force, time + c * float(dt), stage)
         if f is not None:
             rate = rate + f
@@ -272,7 +277,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     if layout is not None:  # faces entirely inside solids keep the solids' velocity in the viscous solve
         fixed = tuple((th <= 0).to(velocity.dtype) for th in layout.theta)
     u0 = velocity
-    half_lap = 0.5 * dt * nu * laplace(u0) if float(nu) != 0 else None
+    half_lap = 0.5 * dt * nu * body_laplace(u0, layout) if float(nu) != 0 else None
     explicit0 = -convection(u0)
     f0 = _force_at(force, time, u0)
     if f0 is not None:
@@ -296,7 +301,8 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         y = impose_solids(to_time(y, t_new), layout)
         if float(nu) != 0:
             y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve,
-                                  capacitance=layout.solvers if layout is not None and layout.direct else None)
+                                  capacitance=layout.solvers if layout is not None and layout.direct else None,
+                                  walls=None if layout is None else layout.walls)
         return project(y, layout, None if grad_q is None else torch.zeros_like(grad_q[0].values), t_new)
 
     u1, _ = stage(explicit0)
