@@ -29,7 +29,9 @@ time beside it. Sides, all on the face-Dirichlet ``-∇²_h`` (ghost ``-u``, dx 
   host read per dot), the faster of the two being the floor;
 * ``numpy + BLAS``: the same loop in numpy (shifted slices, ``np.dot``, scipy's BLAS ``axpy``/``scal``).
 
-``--laplacian`` adds the Laplacian alone (field ``laplace``, ``stencil_laplacian``, ``negative_laplacian``, the
+``--batch B`` solves B samples together: the floors are then per-sample coefficients applied by ``addcmul_`` with
+the dots as one product and a sum or one ``torch.dot`` per sample (no numpy side). ``--laplacian`` adds the
+Laplacian alone (field ``laplace``, ``stencil_laplacian``, ``negative_laplacian``, the
 floor kernel, ``F.pad`` + five shifted slices, ``conv2d``/``conv3d``, numpy slicing), and the op counts per
 iteration (ATen operators, by :class:`torch.utils._python_dispatch.TorchDispatchMode`) are printed for every
 side. ``PHISIM_BENCH_ROOT=<dir>`` imports phisim from another tree (e.g. an older commit exported by
@@ -408,7 +410,8 @@ class _Counter(torch.utils._python_dispatch.TorchDispatchMode):
 
 
 def op_counts(run, numel: int, k1: int = 5, k2: int = 15) -> dict:
-    """ATen operators per iteration of ``run`` (difference of two runs): ``array``, ``small``, ``view``, ``host read``."""
+    """ATen operators per iteration of ``run`` (difference of two runs): ``array``, ``small``, ``view`` and
+    ``host read``."""
     out = {}
     for k in (k1, k2):
         counter = _Counter(numel)
@@ -541,7 +544,8 @@ def main(argv: list[str] | None = None) -> None:
         results = run_iterations(shapes, rounds=args.rounds, laplacian=args.laplacian, batch=args.batch)
         print(f"One CG iteration against its floor: face-Dirichlet -Laplacian, batch {args.batch}, "
               f"threads={args.threads}, "
-              f"torch {torch.__version__}, median of {args.rounds} interleaved rounds, iteration = (t(40) - t(10)) / 30, "
+              f"torch {torch.__version__}, median of {args.rounds} interleaved rounds, "
+              f"iteration = (t(40) - t(10)) / 30, "
               f"each t the lowest of 3 calls; "
               f"load average {load[0]:.2f} before, {os.getloadavg()[0]:.2f} after "
               f"{time.perf_counter() - t0:.0f} s\n")

@@ -117,7 +117,7 @@ def test_exact_on_quadratics_everywhere_with_their_neumann_fluxes(res):
         slab = [1] + list(res)
         slab[1 + a] = 1
 
-        def deriv(face, a=a):
+        def deriv(face, a=a, slab=slab):
             xs = x.narrow(a, 0, 1).clone()
             xs[..., a] = face
             return (2 * coef[a] * (xs[..., a] - 0.2 * a) + 0.5).reshape(slab)
