@@ -11,7 +11,10 @@ On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU
 bracketed by CUDA synchronisations.
 
 Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--device cpu] [--wake]
-      [--json out.json]
+      [--sharp] [--json out.json]
+
+``--sharp`` times whole steps of the wake (implicit and explicit viscosity) and the plume with sharp and with
+blended no-slip bodies instead (direct pressure solve, interleaved, best of ``--repeat``).
 """
 
 from __future__ import annotations
@@ -131,10 +134,12 @@ def _median_step_ms(step, state, steps: int) -> float:
     return 1e3 * statistics.median(times[steps // 2:])
 
 
-def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
+def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = True,
+                 viscosity_scheme: str = "implicit") -> float:
     """Median ms per split step (implicit viscosity) of a cylinder wake on ``n x n`` cells over the last half
     of ``steps`` steps: inflow 0.5 on the left, open right side, walls, a disc of radius 0.06 n, Re 100 (the
-    wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve."""
+    wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve; ``sharp``:
+    the sharp no-slip disc (default) or the blended one."""
     from phisim import Open, StaggeredGrid
     from phisim.boundary import Inflow
 
@@ -143,15 +148,16 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], u),
                                                            torch.zeros_like(x[..., 0])], -1),
                                     grid, {"x": (Inflow((u, 0.0)), Open()), "y": "wall"}, dtype=dtype)
-    body = Body(Sphere((0.25 * n, 0.52 * n), 0.06 * n))
-
-    stepper = FluidStepper(grid, v.boundary, obstacles=body, viscosity=u * 0.12 * n / 100,
-                           advection="semi_lagrangian", viscosity_scheme="implicit", dt=1.0, dtype=dtype,
+    body = Body(Sphere((0.25 * n, 0.52 * n), 0.06 * n), sharp=sharp)
+    nu = u * 0.12 * n / 100
+    dt = 1.0 if viscosity_scheme != "explicit" else min(1.0, 0.45 / (4 * nu))
+    stepper = FluidStepper(grid, v.boundary, obstacles=body, viscosity=nu,
+                           advection="semi_lagrangian", viscosity_scheme=viscosity_scheme, dt=dt, dtype=dtype,
                            direct="auto" if direct else False)
     return _median_step_ms(lambda state, k: stepper(state), FluidState(v), steps)
 
 
-def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
+def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = True) -> float:
     """Median ms per step of a smoke plume in a closed box with two box bodies (the ``plume_boxes`` scene of
     ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
@@ -167,7 +173,7 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160) -> float:
     v = StaggeredGrid(tuple(torch.zeros(1, *grid.face_shape(i), dtype=dtype) for i in range(2)), grid, "wall")
     boxes = [((round(0.35 * n), round(0.45 * n)), (round(0.55 * n), round(0.52 * n))),
              ((round(0.55 * n), round(0.68 * n)), (round(0.80 * n), round(0.74 * n)))]
-    bodies = [Body(Box(lo, hi)) for lo, hi in boxes]
+    bodies = [Body(Box(lo, hi), sharp=sharp) for lo, hi in boxes]
     project = Projection(grid, v.boundary, bodies, dtype=dtype, direct="auto" if direct else False)
 
     def step(state, k):
@@ -194,10 +200,31 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     ap.add_argument("--wake", action="store_true",
                     help="also time wake and plume steps with PCG and with the direct solve")
+    ap.add_argument("--sharp", action="store_true",
+                    help="only time whole steps (direct pressure) with sharp and with blended no-slip bodies")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
     rows = []
+    if args.sharp:
+        for n in args.sizes:
+            for dtype in (torch.float64, torch.float32):
+                for scene, fn in (("wake implicit", lambda s: wake_step_ms(n, dtype, True, sharp=s)),
+                                  ("wake explicit", lambda s: wake_step_ms(n, dtype, True, sharp=s,
+                                                                           viscosity_scheme="explicit")),
+                                  ("plume", lambda s: plume_step_ms(n, dtype, True, sharp=s))):
+                    times = {False: [], True: []}
+                    for _ in range(args.repeat):  # interleaved
+                        for s in (False, True):
+                            times[s].append(fn(s))
+                    a, b = min(times[False]), min(times[True])
+                    rows.append({"scene": scene, "n": n, "dtype": str(dtype).replace("torch.", ""), "blended_ms": a,
+                                 "sharp_ms": b})
+                    print(f"{scene:14s} {n:4d}^2 {rows[-1]['dtype']:8s} blended {a:.2f} ms, sharp {b:.2f} ms "
+                          f"({b / a:.2f}x)", flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        return 0
     for n in args.sizes:
         for dtype in (torch.float64, torch.float32):
             r = measure(n, dtype, args.repeat, device)

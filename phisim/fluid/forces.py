@@ -133,35 +133,11 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
     p = _pressure_values(pressure, velocity) * (density / dt)
     grid = velocity.grid
     vec = _surface(body, grid, float(time), p)
-    if SURFACE_PRESSURE:
-        fp = _pressure_force(pressure, body, vec, float(time), density / dt)
-    else:
-        fp = -(p.unsqueeze(-1) * vec.unsqueeze(0)).flatten(1, -2).sum(1)
+    fp = -(p.unsqueeze(-1) * vec.unsqueeze(0)).flatten(1, -2).sum(1)
     fv = torch.zeros_like(fp)
     if body.no_slip and float(viscosity) != 0:
         fv = _viscous(velocity, body, vec, float(time), probe_distance) * (density * float(viscosity))
     return BodyForces(fp, fv)
-
-
-SURFACE_PRESSURE = False
-
-
-def _pressure_force(pressure: CenteredGrid, body: Body, vec: torch.Tensor, t: float, scale: float) -> torch.Tensor:
-    """``-sum_c p(x_s,c) (int n dS)_c`` with the pressure at each cut cell's surface point ``x_s = x_c - phi n``
-    extrapolated linearly along the normal from 1.5 and 2.5 cells outside (as :func:`probe_pressure`)."""
-    grid = pressure.grid
-    h = min(grid.dx)
-    mag = vec.norm(dim=-1)
-    cut = mag > 1e-9 * mag.max().clamp_min(torch.finfo(mag.dtype).tiny)
-    xc = grid.cell_centers(vec.dtype, vec.device)[cut]
-    phi = body.sdf(xc, t)
-    n = unit_normal(body, xc, t, 1e-3 * h)
-    xs = xc - phi.unsqueeze(-1) * n
-    q1 = xs + 1.5 * h * n
-    q2 = q1 + h * n
-    v1, v2 = pressure.sample(q1.to(pressure.dtype)), pressure.sample(q2.to(pressure.dtype))  # (B, S)
-    ps = (v1 + 1.5 * (v1 - v2)) * scale
-    return -(ps.unsqueeze(-1) * vec[cut].to(ps.dtype).unsqueeze(0)).sum(1)
 
 
 def _viscous(velocity: StaggeredGrid, body: Body, vec: torch.Tensor, t: float, probe: float) -> torch.Tensor:
