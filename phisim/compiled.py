@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import builtins
 import functools
+import itertools
+import types
 import warnings
 
 import torch
@@ -55,7 +57,31 @@ def compile_function(fn, *, device_type: str = "cpu", mode: str | None = None):
         return fn
     if mode is None and device_type == "cuda":
         mode = "reduce-overhead"
-    return torch.compile(fn, fullgraph=True, dynamic=False, mode=mode)
+    return torch.compile(_own_code(fn), fullgraph=True, dynamic=False, mode=mode)
+
+
+_serial = itertools.count()
+
+
+def _own_code(fn):
+    """``fn`` (a function or bound method) with a code object of its own.
+
+    ``torch.compile`` keeps its graphs per code object, with a limit on how many (``recompile_limit``, 8) before a
+    ``fullgraph`` compile fails. Every stepper's ``advance`` is the same code: without a copy, the ninth stepper
+    compiled in a process (another resolution, dtype or setting) would fail. A copy per compiled step gives each
+    its own graphs and its own limit.
+    """
+    func, owner = (fn.__func__, fn.__self__) if isinstance(fn, types.MethodType) else (fn, None)
+    if not isinstance(func, types.FunctionType):
+        return fn
+    name = f"{func.__name__}_compiled_{next(_serial)}"
+    code = func.__code__.replace(co_name=name, co_qualname=name) if hasattr(func.__code__, "co_qualname") else (
+        func.__code__.replace(co_name=name))
+    copy = types.FunctionType(code, func.__globals__, name, func.__defaults__, func.__closure__)
+    copy.__kwdefaults__ = func.__kwdefaults__
+    copy.__dict__.update(func.__dict__)
+    copy.__doc__ = func.__doc__
+    return copy if owner is None else types.MethodType(copy, owner)
 
 
 def compile(stepper, *, mode: str | None = None):  # noqa: A001 - phisim.compile mirrors torch.compile
