@@ -19,9 +19,11 @@ batch 1 and 32, one step and a 100-step rollout (final state only). exponax runs
 jit-compiled and vmapped over the batch, warmed up, timed with ``block_until_ready``; phisim runs in this process
 with ``torch.set_num_threads(1)``. Each round times every case on both sides in turn. Each repetition is timed
 twice: wall time and CPU time of the process (``time.process_time``, all threads; on a machine shared with other
-jobs it leaves out the time the process waits for a core). The table reports the ratio phisim / exponax of the
-best CPU times (minimum over all repetitions and rounds; the headline figure), of the best wall times and of the
-medians over rounds of the per-round median wall times (below 1: phisim faster). "FFT floor" rows time one forward
+jobs it leaves out the time the process waits for a core). The table reports each side's best wall time (minimum
+over all repetitions and rounds) and the ratios phisim / exponax (below 1: phisim faster) of the best wall times,
+of the CPU times (per-round mean over the repetitions, best round: the kernel books a worker thread's CPU time
+late, so single repetitions of the JAX side can read too low, their sum over a round does not) and of the medians
+over rounds of the per-round median wall times. ``--from-json`` rebuilds the table from a results file. "FFT floor" rows time one forward
 and one inverse real FFT of the same state on both sides. One-step outputs of both are compared (max difference
 relative to the max of the state; exponax's vorticity has the opposite sign convention, which the comparison
 accounts for).
@@ -186,6 +188,47 @@ def label(case: dict) -> str:
     return f"{name} | {size} | {case['batch']} | {what}"
 
 
+def summary(row: dict) -> dict:
+    """The figures of one case from its per-repetition timings (milliseconds).
+
+    Args:
+        row: A result row with ``phisim_rounds_ms``, ``exponax_rounds_ms`` (wall) and ``phisim_cpu_rounds_ms``,
+            ``exponax_cpu_rounds_ms`` (CPU), each a list of rounds of repetitions.
+
+    Returns:
+        Best wall times, their ratio, the ratio of the best per-round mean CPU times and of the median wall times.
+    """
+    def best(rounds):
+        return min(min(r) for r in rounds)
+
+    def best_mean(rounds):
+        return min(sum(r) / len(r) for r in rounds)
+
+    def median(rounds):
+        return statistics.median(statistics.median(r) for r in rounds)
+
+    ours, theirs = row["phisim_rounds_ms"], row["exponax_rounds_ms"]
+    ours_cpu, theirs_cpu = row["phisim_cpu_rounds_ms"], row["exponax_cpu_rounds_ms"]
+    return dict(phisim_best_ms=best(ours), exponax_best_ms=best(theirs), ratio_best=best(ours) / best(theirs),
+                phisim_cpu_ms=best_mean(ours_cpu), exponax_cpu_ms=best_mean(theirs_cpu),
+                ratio_cpu=best_mean(ours_cpu) / best_mean(theirs_cpu),
+                phisim_median_ms=median(ours), exponax_median_ms=median(theirs),
+                ratio_median=median(ours) / median(theirs))
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """The Markdown table of result rows (see :func:`summary`)."""
+    lines = ["| case | N | batch | work | phisim best ms | exponax best ms | ratio best | ratio CPU | ratio median | "
+             "one-step agreement |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        f = summary(row)
+        agree = row.get("agreement")
+        lines.append(f"| {label(row['case'])} | {f['phisim_best_ms']:.3f} | {f['exponax_best_ms']:.3f} | "
+                     f"{f['ratio_best']:.2f} | {f['ratio_cpu']:.2f} | {f['ratio_median']:.2f} | "
+                     f"{'' if agree is None else f'{agree:.1e}'} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     """Run the benchmark, print the Markdown table, write the JSON results and the table.
 
@@ -203,7 +246,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--peer-venv", default=str(HERE / ".venv-jax"))
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/etdrk[_float64].json)")
     ap.add_argument("--device", default="cpu", help="torch device of the phisim side (the comparison is on the CPU)")
+    ap.add_argument("--from-json", default=None, help="print the table of an earlier results file and exit")
     args = ap.parse_args(argv)
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        print(markdown_table(saved["rows"]))
+        return saved["rows"]
     if check_device(args.device).type != "cpu":
         raise ParameterError("the ETDRK benchmark compares with exponax on the CPU; use --device cpu")
     only = tuple(e.strip() for e in args.only.split(",") if e.strip())
@@ -253,27 +301,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     peer.close()
     load_after = os.getloadavg()
     rows = []
-    lines = ["| case | N | batch | work | phisim best CPU ms | exponax best CPU ms | ratio best CPU | ratio best wall | "
-             "ratio median wall | one-step agreement |", "|---|---|---|---|---|---|---|---|---|---|"]
     for i, case in enumerate(cases):
-        ours_best = min(min(r) for r in ours_cpu[i]) * 1e3
-        theirs_best = min(min(r) for r in theirs_cpu[i]) * 1e3
-        ours_wall = min(min(r) for r in ours_rounds[i]) * 1e3
-        theirs_wall = min(min(r) for r in theirs_rounds[i]) * 1e3
-        ours_med = statistics.median(statistics.median(r) for r in ours_rounds[i]) * 1e3
-        theirs_med = statistics.median(statistics.median(r) for r in theirs_rounds[i]) * 1e3
-        agree = agreement.get(i)
-        rows.append(dict(case=case, phisim_best_cpu_ms=ours_best, exponax_best_cpu_ms=theirs_best,
-                         ratio_best_cpu=ours_best / theirs_best, phisim_best_ms=ours_wall, exponax_best_ms=theirs_wall,
-                         ratio_best=ours_wall / theirs_wall, phisim_median_ms=ours_med, exponax_median_ms=theirs_med,
-                         ratio_median=ours_med / theirs_med, agreement=agree,
+        rows.append(dict(case=case, agreement=agreement.get(i),
                          phisim_rounds_ms=[[t * 1e3 for t in r] for r in ours_rounds[i]],
                          exponax_rounds_ms=[[t * 1e3 for t in r] for r in theirs_rounds[i]],
                          phisim_cpu_rounds_ms=[[t * 1e3 for t in r] for r in ours_cpu[i]],
                          exponax_cpu_rounds_ms=[[t * 1e3 for t in r] for r in theirs_cpu[i]]))
-        lines.append(f"| {label(case)} | {ours_best:.3f} | {theirs_best:.3f} | {ours_best / theirs_best:.2f} | "
-                     f"{ours_wall / theirs_wall:.2f} | {ours_med / theirs_med:.2f} | "
-                     f"{'' if agree is None else f'{agree:.1e}'} |")
+        rows[-1].update(summary(rows[-1]))
+    lines = [markdown_table(rows)]
     meta = dict(command="python " + " ".join([str(Path(__file__).relative_to(HERE.parent))] + (argv or sys.argv[1:])),
                 rounds=args.rounds, dtype=args.dtype, elapsed_s=elapsed, loadavg_before=load_before,
                 loadavg_after=load_after, cpu=platform.processor() or platform.machine(), cores=os.cpu_count(),
