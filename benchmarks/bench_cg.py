@@ -29,6 +29,9 @@ time beside it. Sides, all on the face-Dirichlet ``-∇²_h`` (ghost ``-u``, dx 
   host read per dot), the faster of the two being the floor;
 * ``numpy + BLAS``: the same loop in numpy (shifted slices, ``np.dot``, scipy's BLAS ``axpy``/``scal``).
 
+``--peer`` times instead phisim's whole CG solve against PhiFlow's (the runner's ``poisson_cg`` case on both
+sides, float64, PhiFlow in ``benchmarks/.phiflow-venv``) in ``--rounds`` interleaved rounds.
+
 ``--batch B`` solves B samples together: the floors are then per-sample coefficients applied by ``addcmul_`` with
 the dots as one product and a sum or one ``torch.dot`` per sample (no numpy side). ``--laplacian`` adds the
 Laplacian alone (field ``laplace``, ``stencil_laplacian``, ``negative_laplacian``, the
@@ -516,6 +519,42 @@ def iteration_table(results: list[dict]) -> str:
     return "\n".join(rows) + "\n\nATen operators per iteration:\n\n" + "\n".join(ops)
 
 
+def run_peer(sizes=("128^2", "256^2", "512^2", "64^3"), dtype: str = "float64", rounds: int = 3,
+             repeats: int = 3) -> list[dict]:
+    """phisim's CG solve against PhiFlow's in interleaved rounds (the runner's ``poisson_cg`` case on both sides).
+
+    Args:
+        sizes: Grid sizes in the runner's notation (``'128^2'``).
+        dtype: ``'float64'`` (PhiFlow's float32 CG does not reach rtol 1e-5 from 128^2 up).
+        rounds: Rounds; each times both sides once per size, phisim first.
+        repeats: Solves per side and round (median).
+
+    Returns:
+        One dict per size: ``phisim_ms``/``phiflow_ms`` (medians over rounds), ``ratios`` (PhiFlow / phisim per
+        round), ``iterations`` (phisim, PhiFlow) and ``loads`` (load average before each pair).
+    """
+    bench = os.path.dirname(os.path.abspath(__file__))
+    sys.path.insert(0, bench)
+    import cases_phisim
+    import peer_phiflow
+
+    python = os.path.join(bench, ".phiflow-venv", "bin", "python")
+    rows = {size: {"phisim": [], "phiflow": [], "loads": []} for size in sizes}
+    for _ in range(rounds):
+        for size in sizes:
+            rows[size]["loads"].append(os.getloadavg()[0])
+            a = cases_phisim.run_case("poisson_cg", size, dtype, repeats=repeats)
+            b = peer_phiflow.drive("poisson_cg", size, dtype, python=python, threads=1, repeats=repeats)
+            if a.get("error") or b.get("error"):
+                raise SystemExit(f"{size}: phisim {a.get('error')}, PhiFlow {b.get('error')}")
+            rows[size]["phisim"].append(1e3 * a["median_s"])
+            rows[size]["phiflow"].append(1e3 * b["median_s"])
+            rows[size]["iterations"] = (a.get("iterations"), b.get("iterations"))
+    return [{"size": size, "phisim_ms": statistics.median(r["phisim"]), "phiflow_ms": statistics.median(r["phiflow"]),
+             "ratios": [f / p for p, f in zip(r["phisim"], r["phiflow"])], "iterations": r["iterations"],
+             "loads": r["loads"]} for size, r in rows.items()]
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run the cases and print the table.
 
@@ -532,10 +571,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rounds", type=int, default=7, help="with --iteration: interleaved rounds")
     ap.add_argument("--shapes", nargs="+", default=None, help="with --iteration: e.g. 128x128 64x64x64")
     ap.add_argument("--batch", type=int, default=1, help="with --iteration: samples per solve")
+    ap.add_argument("--peer", action="store_true",
+                    help="phisim's CG solve against PhiFlow's (benchmarks/.phiflow-venv), float64, interleaved")
     ap.add_argument("--json", default=None, help="with --iteration: also write the results to this file")
     args = ap.parse_args(argv)
     check_device(args.device)
     torch.set_num_threads(args.threads)
+    if args.peer:
+        rows = run_peer(rounds=args.rounds)
+        print("| size | phisim | PhiFlow | PhiFlow / phisim (median of rounds) | per round "
+              "| iterations (phisim / PhiFlow) | load average |\n|---|---:|---:|---:|---|---|---|")
+        for r in rows:
+            print(f"| {r['size']} | {r['phisim_ms']:.1f} ms | {r['phiflow_ms']:.1f} ms | "
+                  f"{statistics.median(r['ratios']):.2f}x | {', '.join(f'{v:.2f}' for v in r['ratios'])} | "
+                  f"{r['iterations'][0]} / {r['iterations'][1]} | {', '.join(f'{v:.1f}' for v in r['loads'])} |")
+        return
     if args.iteration:
         shapes = ITERATION_SHAPES if args.shapes is None else tuple(tuple(int(v) for v in s.split("x"))
                                                                    for s in args.shapes)
