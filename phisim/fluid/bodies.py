@@ -14,9 +14,11 @@ Two kinds of solid exist:
 
 How the fractions enter the fluid solver (:mod:`phisim.fluid.projection`): the projection enforces
 ``D(theta u + (1 - theta) u_s) = 0`` with the weighted pressure operator ``D(theta G p)`` (Batty, Bertails &
-Bridson 2007); a no-slip body then stores ``theta u + (1 - theta) u_s`` on every face (the body velocity
-``u_s`` is imposed inside the body and blended across the cut faces, so viscosity sees the body's
-velocity at its surface); a free-slip body only closes the flux and keeps the fluid velocity on cut faces.
+Bridson 2007; Ng, Min & Gibou 2009). A no-slip body (``sharp=True``, the default) keeps the fluid velocity on the
+faces it cuts, uses the exact wetted area of each face as ``theta``, adds the flux of the linear wall profile that
+the blend misses (``extension``) and enters the viscous stencil at its true surface (``walls``): second order. A
+blended no-slip body (``sharp=False``) stores ``theta u + (1 - theta) u_s`` on every face (first order); a
+free-slip body only closes the flux and keeps the fluid velocity on cut faces.
 
 :func:`solid_layout` rasterises a set of solids once per grid (and per time for moving bodies) into a
 :class:`SolidLayout`; static layouts are cached.
@@ -358,21 +360,13 @@ class SolidLayout:
             ``coef = sum (1 / s - 1) / dx_a^2`` and ``source = sum u_w / (s dx_a^2)`` (``u_w`` the body's velocity
             at the crossing point; ``source`` None for resting bodies). Only the diagonal changes, so the
             operator stays symmetric.
-        extension: Per component, the smooth extension of the fluid velocity onto the faces centred inside sharp
-            no-slip bodies near their surface (None without sharp bodies): ``(index, corners, weights, factor,
-            base)``. Face ``index[k]`` (a flat index into the component) takes
-            ``base[k] + factor[k] * sum_j weights[k, j] u[corners[k, j]]``: the body's velocity there plus the
-            relative velocity ``u - u_s`` at a probe two cells out along the normal, scaled by the (negative)
-            distance ratio, i.e. the linear profile of the relative velocity continued through the surface (an
-            image-point ghost value, Mittal et al. 2008). These faces close the cells the body cuts with the
-            velocity the fluid would have there. It replaces the body's velocity ``u_s`` of the blend: a sharp
-            body's faces store ``theta (u - G p) + (1 - theta) u_x`` with ``u_x`` the extended velocity (on the fluid
-            faces the velocity itself), whose MAC divergence is zero, so the cut cells are closed with the velocity
-            the fluid would have there (second order) and the pressure keeps its fractional weights (the Neumann
-            condition at the true surface).
-            Two more entries, ``flux`` (the face's area, signed by the direction into the body, on the faces between a
-            cell with fluid and one without; else 0) and ``owner`` (the body), let the extension remove, per body,
-            the net flux into it (second order small): the fluid's mass is conserved exactly.
+        extension: Per component, the flux correction of the faces cut by sharp no-slip bodies (None without
+            sharp bodies): ``(index, corners, weights, kappa, base)``. Face ``index[k]`` (a flat index into the
+            component) gets the extra flux ``base[k] + kappa[k] * sum_j weights[k, j] u[corners[k, j]]``: the
+            relative velocity ``u - u_s`` at a probe two cells out along the normal (multilinear weights of the
+            component's faces around it) times ``kappa = (E[phi_+] - theta max(phi_F, 0)) / d`` — the mean wall
+            profile ``g phi_+`` over the wetted face (``g`` = relative velocity at the probe over its distance
+            ``d``) less the part ``theta u_F`` already carries (:func:`~phisim.fluid.projection.flux_correction`).
         solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
             its solves are iterative. A dict for a layout that is used again and again (a stepper's static
             bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
@@ -491,8 +485,10 @@ PROBE_CELLS = 2.0
 
 
 def extension_stencil(bodies, grid: Grid, i: int, t: float, dtype, device, select: torch.Tensor):
-    """``(index, corners, weights, factor, base, owner, normal)`` of the probes of component ``i``'s faces in
-    ``select`` (see :class:`SolidLayout`), or None when ``select`` is empty."""
+    """The probes of component ``i``'s faces in ``select``: ``(index, corners, weights, factor, base, owner, normal,
+    us_probe)`` (flat face indices; multilinear corners and weights of the probe two cells out along the normal;
+    ``phi / d``; ``u_s(face) - factor u_s(probe)``; the nearest body; its unit normal; ``u_s`` at the probe), or
+    None when ``select`` is empty."""
     h = min(grid.dx)
     x = grid.face_centers(i, dtype, device)
     shape = x.shape[:-1]

@@ -531,7 +531,7 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
     d = comp.restrict(coef)
     cap = _sharp_capacitance(comp, mask, cut, coef, theta * alpha, u.device, engine, capacitance)
     if cap is not None:
-        return cap.solve(comp, rhs, x, x0, inverse, u, engine)
+        return cap.solve(comp, rhs, x, x0, inverse, u, engine, like0=u0)
     p = 1 - comp.restrict(mask).to(u.dtype)
     w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
     a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
@@ -718,14 +718,41 @@ class _SharpCapacitanceSolve:
             e[torch.arange(idx.numel(), device=device), idx] = 1.0
             z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
             g[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, self.index]
+        self.op = ("implicit", coef)
+        full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
+        comp.restrict(full).copy_(fixed)
+        self.fixed_full = full
+        grid_index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
+        unknown_to_full = comp.restrict(grid_index[None]).reshape(-1)
+        self.surface_full, self.near_full = unknown_to_full[surface], unknown_to_full[near]
         m = g.T.clone()  # m[r, j] = G[index_r, index_j]
         ns = surface.numel()
         m[ns:] *= self.ad.unsqueeze(1)
         m[ns:, ns:] += torch.eye(near.numel(), dtype=torch.float64, device=device)
         self.lu, self.pivots = torch.linalg.lu_factor(m)
 
-    def solve(self, comp, rhs, x, x0, inverse, like, engine) -> torch.Tensor:
-        """The full component: free faces solved, held faces ``x`` (read as ``x0`` by the stencil)."""
+    def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(resid.dtype)
+
+    def solve(self, comp, rhs, x, x0, inverse, like, engine, like0=None) -> torch.Tensor:
+        """The full component: free faces solved, held faces ``x`` (read as ``x0`` by the stencil; ``like0``: the
+        full component ``like`` with the cut faces zeroed)."""
+        full = comp.solve_box(rhs, inverse, like, engine, op=self.op) if like0 is not None else None
+        if full is not None:  # no autograd, walls: both box solves written into new full components
+            b = full.shape[0]
+            flat = full.view(b, -1)
+            r_s = like0.reshape(like0.shape[0], -1)[:, self.surface_full] - flat[:, self.surface_full]
+            r_n = -self.ad.to(flat.dtype) * flat[:, self.near_full]
+            sigma = self._sigma(torch.cat([r_s, r_n], 1))
+            src = full.new_zeros((b, math.prod(self.fixed.shape[1:])))
+            src.index_copy_(1, self.index, sigma)
+            src = src.view(b, *self.fixed.shape[1:])
+            corr = comp.solve_box(src, inverse, like, engine, op=self.op)
+            if corr is None:
+                comp.restrict(full).add_(comp.apply(src, inverse, engine, prescaled=True))
+            else:
+                full.add_(corr)
+            return torch.where(self.fixed_full, like, full)
         z = comp.apply(rhs, inverse, engine, prescaled=True)
         flat = z.flatten(1)
         r_s = x0.flatten(1)[:, self.surface] - flat[:, self.surface]
