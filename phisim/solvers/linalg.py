@@ -67,6 +67,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from phisim.allocator import keep_freed_memory
 from phisim.checks import (
     callable_name,
     check_batch_compatible,
@@ -865,6 +866,10 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
         ShapeError: ``rhs`` has no batch axis, ``x0`` has another shape (or a batch size other than ``B`` or 1),
             or the operator, the preconditioner or the projection changes shape (naming the callable).
         NonFiniteError: Also when the preconditioner or the projection returns NaN/Inf (naming it).
+
+    On the CPU the first solve of a process calls :func:`phisim.allocator.keep_freed_memory` (glibc keeps freed
+    memory for the next iteration's arrays; the user's ``MALLOC_*`` settings and ``PHISIM_KEEP_FREED_MEMORY=0``
+    win).
     """
     if not isinstance(rhs, Tensor) or not rhs.is_floating_point():
         raise ParameterError(f"cg: rhs must be a floating-point torch.Tensor, got {type(rhs).__name__}"
@@ -898,6 +903,10 @@ def cg(operator: Operator, rhs: Tensor, x0: Tensor | None = None, *, solve: Solv
                                  "as operator_params; pass them as cg(..., operator_params=(k,)) with "
                                  "operator(x, k), else their gradients would be silently missing")
     check_callable(operator, "cg: operator")
+    if rhs.device.type == "cpu":
+        # the iterations allocate the operator's output every time: keep freed memory for the next one (arrays of a
+        # few MiB would otherwise be handed back to the system and fault in again; see phisim.allocator)
+        keep_freed_memory()
     setup = _Setup(operator, params, solve, _checked(preconditioner, "cg: preconditioner"),
                    _checked(project, "cg: projection"))
     box: list[SolveInfo] = []
