@@ -14,11 +14,13 @@ to rounding — but organised for the machine:
 * explicit viscosity, the MAC divergence and the pressure gradient are shifted views of wrap-padded arrays
   (index tuples built once); the divergence is taken of the advected velocity and the viscous step's factor
   on it, ``1 + nu dt lap`` per Fourier mode (the periodic difference operators commute), is part of the
-  pressure multiplier: one real FFT pair (``torch.fft``, a complex multiplier precomputed per time step).
+  pressure multiplier: one real FFT pair (``torch.fft``, a real multiplier precomputed per time step).
 
 A 2-D step is about 40 calls into torch where the general path makes about 140; MacCormack adds the backward
 trace and the extrema clamp (about 20 more). Everything is precomputed per time step size (the coefficient
-tensors) and nothing is read back to the host, so the step traces as one graph for ``torch.compile``.
+tensors) and nothing is read back to the host, so the step traces as one graph for ``torch.compile``; there the
+sampler is one opaque operation (:func:`grid_sample_border`) and the periodic padding plain concatenation, which
+the compiler turns into fused copies (measured in ``docs/BENCHMARKS.md``).
 
 :class:`PeriodicStep` is used by :class:`~phisim.fluid.stepper.FluidStepper` whenever its settings allow it
 (:meth:`PeriodicStep.applies`); ``FluidStepper(..., fused=False)`` keeps the general path.
@@ -107,7 +109,8 @@ class PeriodicStep:
     """The fused split step of an all-periodic fluid (see the module docstring).
 
     Args:
-        grid: The grid (every axis periodic).
+        grid: The grid (every axis periodic; 2-D or 3-D).
+        boundary: The velocity boundary (periodic along every axis).
         viscosity: Kinematic viscosity ``>= 0`` (explicit, forward Euler).
         scheme: ``'semi_lagrangian'`` or ``'maccormack'`` (clamped to the extrema of the forward stencil).
         dtype, device: Of the states.
