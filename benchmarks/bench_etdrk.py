@@ -23,10 +23,10 @@ jobs it leaves out the time the process waits for a core). The table reports eac
 over all repetitions and rounds) and the ratios phisim / exponax (below 1: phisim faster) of the best wall times,
 of the CPU times (per-round mean over the repetitions, best round: the kernel books a worker thread's CPU time
 late, so single repetitions of the JAX side can read too low, their sum over a round does not) and of the medians
-over rounds of the per-round median wall times. ``--from-json`` rebuilds the table from a results file. "FFT floor" rows time one forward
-and one inverse real FFT of the same state on both sides. One-step outputs of both are compared (max difference
-relative to the max of the state; exponax's vorticity has the opposite sign convention, which the comparison
-accounts for).
+over rounds of the per-round median wall times. ``--from-json`` rebuilds the table from a results file. "FFT floor"
+rows time one forward and one inverse real FFT of the same state on both sides. One-step outputs of both are
+compared (max difference relative to the max of the state; exponax's vorticity has the opposite sign convention,
+which the comparison accounts for).
 Results go to ``benchmarks/results/etdrk[_float64].json`` and the Markdown table to stdout and
 ``benchmarks/results/etdrk[_float64]_table.md``.
 """
