@@ -167,20 +167,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--device", default="cpu", help="torch device of the phisim side: cpu, cuda or cuda:N")
     ap.add_argument("--variants", nargs="+", default=["fused", "general"], choices=VARIANTS,
                     help="phisim steps to time: fused (the default stepper), general (fused=False), compiled "
-                         "(compile=True: inductor; one-step cases only, each compiled once, compile time reported)")
+                         "(compile=True: inductor; each case's stepper compiled once, the first call reported)")
+    ap.add_argument("--modes", nargs="+", default=["step", "rollout", "grad"], choices=["step", "rollout", "grad"],
+                    help="which cases: one step, 100-step rollouts, forward + backward through 10 steps")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(1)
     with_peer = "jaxcfd" in args.sides
     if with_peer and not PEER_PYTHON.exists():
         raise SystemExit("no jax-cfd environment: run bash benchmarks/setup_jaxpeers.sh first")
-    cases = make_cases(args.quick, args.sizes)
+    cases = [c for c in make_cases(args.quick, args.sizes) if c["mode"] in args.modes]
     built, compile_s = {}, {}
     for c in cases:
         key = json.dumps(c, sort_keys=True)
         for variant in args.variants:
-            if variant == "compiled" and c["mode"] != "step":
-                continue
             t = time.perf_counter()
             fn = build_phisim(c, device, variant)[0]
             fn()

@@ -760,6 +760,8 @@ KEPT_SECTIONS = (
     ("<!-- flow-bodies:begin -->", "<!-- flow-bodies:end -->"),  # benchmarks/bench_flow_bodies.py
     ("<!-- bodies-pcg:begin -->", "<!-- bodies-pcg:end -->"),  # benchmarks/bench_bodies.py
     ("<!-- step-cost:begin -->", "<!-- step-cost:end -->"),  # benchmarks/bench_simulate.py --step-cost
+    ("<!-- cg-floor:begin -->", "<!-- cg-floor:end -->"),  # benchmarks/bench_cg.py --iteration
+    ("<!-- jaxcfd:begin -->", "<!-- jaxcfd:end -->"),  # benchmarks/bench_jaxcfd.py
 )
 
 
