@@ -762,6 +762,7 @@ KEPT_SECTIONS = (
     ("<!-- step-cost:begin -->", "<!-- step-cost:end -->"),  # benchmarks/bench_simulate.py --step-cost
     ("<!-- cg-floor:begin -->", "<!-- cg-floor:end -->"),  # benchmarks/bench_cg.py --iteration
     ("<!-- jaxcfd:begin -->", "<!-- jaxcfd:end -->"),  # benchmarks/bench_jaxcfd.py
+    ("<!-- etdrk:begin -->", "<!-- etdrk:end -->"),  # benchmarks/bench_etdrk.py
 )
 
 
