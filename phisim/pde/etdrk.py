@@ -26,6 +26,7 @@ from typing import Union
 
 import torch
 
+from ..allocator import keep_freed_memory
 from ..errors import BoundaryError, NonFiniteError, ParameterError, ShapeError
 from .transforms import SpectralGrid
 
@@ -166,6 +167,8 @@ class ETDRKStepper:
         if not isinstance(grid, SpectralGrid):
             raise ParameterError(f"grid must be a SpectralGrid, got {type(grid).__name__}")
         self.grid = grid
+        if grid.device.type == "cpu":  # one step's freed arrays are reused by the next (phisim.allocator)
+            keep_freed_memory()
         self.dt = _check_number(dt, "dt")
         if isinstance(order, bool) or order not in (0, 1, 2, 3, 4):
             raise ParameterError(f"order must be one of 0, 1, 2, 3, 4, got {order!r}")
