@@ -23,16 +23,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.fluid import Body, FluidState, Sphere, body_forces, step  # noqa: E402
 
 D, AMP, PERIOD, NU, X0 = 0.2, 0.1, 1.0, 0.01, (0.8, 0.53)
 
 
-def run(n: int = 64, steps: int = 400, sharp: bool = True, dt: float = 0.005):
+def run(n: int = 64, steps: int = 400, sharp: bool = True, dt: float = 0.005, device=None):
     """Force history ``(steps, 3)``: time, in-line and cross force coefficients (``U = 2 pi A / T``)."""
     grid = Grid((2 * n, n), bounds=[(0.0, 2.0), (0.0, 1.0)])
     body = Body(Sphere(X0, D / 2), path=lambda t: (AMP * math.sin(2 * math.pi * t / PERIOD), 0.0), sharp=sharp)
-    state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64))
+    state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64, device=device))
     speed = 2 * math.pi * AMP / PERIOD
     hist = []
     for _ in range(steps):
@@ -58,12 +59,15 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--blended", action="store_true")
     ap.add_argument("--out", default=None, help="CSV of the force history")
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = ap.parse_args(argv)
+    device = check_device(args.device)
     torch.set_num_threads(1)
-    hist = run(args.n, args.steps, sharp=not args.blended)
+    hist = run(args.n, args.steps, sharp=not args.blended, device=device)
     if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         np.savetxt(args.out, hist, delimiter=",", header="t,c_inline,c_cross")
-    print(json.dumps({"n": args.n, "sharp": not args.blended, **spikes(hist)}))
+    print(json.dumps({"n": args.n, "sharp": not args.blended, "device": str(device), **spikes(hist)}))
     return 0
 
 

@@ -25,6 +25,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
+from phisim.checks import check_device  # noqa: E402
 from phisim.fluid import SDF, Body, Sphere, diffuse_velocity, impose_solids, make_incompressible, solid_layout  # noqa: E402
 from phisim.solvers import Solve  # noqa: E402
 
@@ -36,7 +37,7 @@ def exact(x: torch.Tensor) -> torch.Tensor:
     """The azimuthal velocity ``(..., 2)`` at points ``x``."""
     a = -OMEGA * R1**2 / (R2**2 - R1**2)
     b = OMEGA * R1**2 * R2**2 / (R2**2 - R1**2)
-    r = x - torch.tensor(CENTER, dtype=x.dtype)
+    r = x - torch.tensor(CENTER, dtype=x.dtype, device=x.device)
     rad = r.norm(dim=-1)
     ut = a * rad + b / rad
     return torch.stack([-r[..., 1] / rad * ut, r[..., 0] / rad * ut], -1)
@@ -51,14 +52,14 @@ def bodies(sharp: bool = True):
 
 
 def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int = 400, dt_cells: float = 50.0,
-                 scheme: str = "implicit"):
+                 scheme: str = "implicit", device=None):
     """The steady Stokes flow on an ``n x n`` grid over ``[-1, 1]^2`` by Stokes steps of ``dt = dt_cells dx^2 / nu``
     with ``scheme`` viscosity, until the largest change of a step is below ``tol * omega R1``; returns
     ``(velocity, steps)``."""
     grid = Grid((n, n), bounds=[(-1.0, 1.0), (-1.0, 1.0)])
     solids = bodies(sharp)
-    v = StaggeredGrid.zeros(grid, "wall", dtype=torch.float64)
-    layout = solid_layout(solids, grid, v.boundary, 0.0, torch.float64)
+    v = StaggeredGrid.zeros(grid, "wall", dtype=torch.float64, device=device)
+    layout = solid_layout(solids, grid, v.boundary, 0.0, torch.float64, v.device)
     dt = dt_cells * grid.dx[0] ** 2 / NU
     tight = Solve(rtol=1e-12)
     p = None
@@ -79,8 +80,8 @@ def errors(v: StaggeredGrid) -> dict:
     h = grid.dx[0]
     near_err, all_err = [], []
     for i in range(2):
-        x = grid.face_centers(i, torch.float64)
-        rad = (x - torch.tensor(CENTER, dtype=torch.float64)).norm(dim=-1)
+        x = grid.face_centers(i, torch.float64, v.device)
+        rad = (x - torch.tensor(CENTER, dtype=torch.float64, device=v.device)).norm(dim=-1)
         fluid = (rad > R1) & (rad < R2)
         err = (v.values[i][0] - exact(x)[..., i]).abs()
         near = fluid & ((rad - R1 < 2 * h) | (R2 - rad < 2 * h))
@@ -97,9 +98,9 @@ def torque_error(v: StaggeredGrid) -> float:
     3 cells from the surface, as :func:`phisim.fluid.body_forces`)."""
     h = v.grid.dx[0]
     m = 256
-    ang = torch.arange(m, dtype=torch.float64) * (2 * math.pi / m)
+    ang = torch.arange(m, dtype=torch.float64, device=v.device) * (2 * math.pi / m)
     nrm = torch.stack([ang.cos(), ang.sin()], -1)
-    c = torch.tensor(CENTER, dtype=torch.float64)
+    c = torch.tensor(CENTER, dtype=torch.float64, device=v.device)
     d1 = 1.5 * h
     pts = torch.cat([c + (R1 + d1) * nrm, c + (R1 + 2 * d1) * nrm])
     u = v.sample(pts)[0]  # (2, 2m)
@@ -136,11 +137,13 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-11, help="steady when a step changes the velocity less")
     ap.add_argument("--max-steps", type=int, default=400)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = ap.parse_args(argv)
+    device = check_device(args.device)
     torch.set_num_threads(args.threads)
     for row in study(args.n, sharp=not args.blended, scheme=args.scheme, dt_cells=args.dt_cells, tol=args.tol,
-                     max_steps=args.max_steps):
-        print(json.dumps(row), flush=True)
+                     max_steps=args.max_steps, device=device):
+        print(json.dumps({**row, "device": str(device)}), flush=True)
     return 0
 
 
