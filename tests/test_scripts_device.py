@@ -55,7 +55,7 @@ SCRIPTS = {
     "examples/karman.py": ["--ny", "8", "--t-end", "0.05", "--out", "{out}"],
     "examples/smoke_plume.py": ["--out", "{out}"],
     "examples/taylor_couette.py": ["--n", "16", "--max-steps", "2"],
-    "examples/oscillating_cylinder.py": ["--n", "8", "--steps", "22", "--out", "{out}/forces.csv"],
+    "examples/oscillating_cylinder.py": ["--n", "8", "--steps", "24", "--out", "{out}/forces.csv"],
     "examples/pde_inverse.py": ["--iterations", "2", "--max-iterations", "hig=1", "--seeds", "0", "--heldout-size",
                                 "4", "--eval-every", "1", "--reference-iterations", "1", "--width", "4", "--blocks",
                                 "1", "--out", "{out}"],
