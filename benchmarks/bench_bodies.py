@@ -209,10 +209,10 @@ def main(argv=None) -> int:
     if args.sharp:
         for n in args.sizes:
             for dtype in (torch.float64, torch.float32):
-                for scene, fn in (("wake implicit", lambda s: wake_step_ms(n, dtype, True, sharp=s)),
-                                  ("wake explicit", lambda s: wake_step_ms(n, dtype, True, sharp=s,
-                                                                           viscosity_scheme="explicit")),
-                                  ("plume", lambda s: plume_step_ms(n, dtype, True, sharp=s))):
+                for scene, fn in (("wake implicit", lambda s, n=n, dtype=dtype: wake_step_ms(n, dtype, True, sharp=s)),
+                                  ("wake explicit", lambda s, n=n, dtype=dtype: wake_step_ms(
+                                      n, dtype, True, sharp=s, viscosity_scheme="explicit")),
+                                  ("plume", lambda s, n=n, dtype=dtype: plume_step_ms(n, dtype, True, sharp=s))):
                     times = {False: [], True: []}
                     for _ in range(args.repeat):  # interleaved
                         for s in (False, True):

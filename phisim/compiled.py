@@ -34,7 +34,11 @@ import torch
 
 from phisim.errors import ParameterError
 
-__all__ = ["compile", "compile_function", "inductor_available"]
+__all__ = ["compile", "compile_function", "inductor_available", "is_compiling"]
+
+#: Whether the code runs inside ``torch.compile``'s tracing (a constant there): steps skip checks that read a value
+#: back to the host while traced, where the stepper made them once before.
+is_compiling = getattr(torch.compiler, "is_compiling", None) or torch._dynamo.is_compiling
 
 
 @functools.cache

@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from phisim.boundary import Boundary
+from phisim.compiled import is_compiling
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.grid import Grid
 from phisim.ops.stencil import normalize_kinds
@@ -75,16 +76,13 @@ if hasattr(torch.library, "custom_op"):
     grid_sample_border.register_fake(_grid_sample_border_fake)
     grid_sample_border.register_autograd(_grid_sample_border_backward, setup_context=_grid_sample_border_context)
 
-_is_compiling = getattr(torch.compiler, "is_compiling", None) or torch._dynamo.is_compiling
-
-
 def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
     """Periodic padding of the spatial axes of ``(B, C, *res)`` (``pads`` as ``F.pad``'s: last axis first).
 
     Eager: ``F.pad(mode="circular")``; inside ``torch.compile``: one concatenation per axis, which the compiler
     turns into plain copies (the circular pad becomes masked, nested index arithmetic there).
     """
-    if not _is_compiling():
+    if not is_compiling():
         return F.pad(x, pads, mode="circular")
     d = x.dim() - 2
     for a in range(d):
@@ -97,7 +95,7 @@ def _wrap(x: torch.Tensor, pads: tuple[int, ...]) -> torch.Tensor:
 
 
 def _sample(source: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    if _is_compiling():
+    if is_compiling():
         return grid_sample_border(source, coords)
     return torch.grid_sampler(source, coords, 0, 1, True)
 

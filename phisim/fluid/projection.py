@@ -14,8 +14,8 @@ the projection solves the weighted (variational, cut-cell) problem
 and stores ``u - G p`` on faces with ``theta > 0`` and ``u_s`` on closed faces (free-slip bodies and sharp no-slip
 bodies; the divergence of the flux :func:`solid_flux` is zero; sharp bodies add to the flux the wall profile that
 ``theta u`` misses, :func:`flux_correction`) or ``theta (u - G p) + (1 - theta) u_s`` (blended no-slip solids and
-staircase obstacles; its MAC divergence is zero). A staircase :class:`~phisim.fluid.bodies.Obstacle` is the special case of 0/1
-fractions. The returned "pressure" ``p`` is the potential of the correction (``p = dt * p_phys / rho``).
+staircase obstacles; its MAC divergence is zero). A staircase :class:`~phisim.fluid.bodies.Obstacle` is the special
+case of 0/1 fractions. The returned "pressure" ``p`` is the potential of the correction (``p = dt * p_phys / rho``).
 
 Boundary conditions per side (from the velocity boundary, :meth:`~phisim.boundary.Boundary.for_pressure`):
 

@@ -3,9 +3,9 @@
 Wall and inflow velocities enter through the ghost samples of the velocity boundary; bodies enter through
 :func:`phisim.fluid.projection.impose_solids`, applied before this step, which puts each body's velocity on
 the faces it covers, and (sharp no-slip bodies, ``solids=``) through the stencil of the faces next to them, which
-takes the body's velocity where each stencil arm crosses the surface (:class:`phisim.fluid.bodies.SolidLayout`). The work is done by
-:func:`phisim.solvers.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one DST/DCT/FFT pair per
-component (about the cost of an explicit step at small sizes; see ``docs/BENCHMARKS.md``).
+takes the body's velocity where each stencil arm crosses the surface (:class:`phisim.fluid.bodies.SolidLayout`).
+The work is done by :func:`phisim.solvers.diffusion.diffuse_staggered`: implicit schemes are solved exactly by one
+DST/DCT/FFT pair per component (about the cost of an explicit step at small sizes; see ``docs/BENCHMARKS.md``).
 """
 
 from __future__ import annotations
@@ -77,12 +77,25 @@ def diffuse_velocity(
     walls, capacitance = None, None
     if solids is not None and solids.walls is not None:
         walls = solids.walls
-        held = tuple((th <= 0) for th in solids.theta)
+        held = _held_faces(solids)
         fixed = held if fixed is None else tuple(
-            h if f is None else (torch.as_tensor(f, device=h.device) != 0) | h for f, h in zip(fixed, held))
+            h if f is None else (torch.as_tensor(f, device=f.device if h is None else h.device) != 0) | (
+                False if h is None else h) for f, h in zip(fixed, held))
         capacitance = solids.solvers if solids.direct else None
     return diffuse_staggered(velocity, dt, viscosity=viscosity, method=scheme, fixed=fixed, solve=solve,
                              walls=walls, capacitance=capacitance)
+
+
+def _held_faces(solids) -> tuple:
+    """Per component the faces the solids close (``theta <= 0``), or None where there are none. A layout kept by a
+    stepper (its ``solvers`` dict) computes them once; its traced steps then read nothing back to the host."""
+    cache = solids.solvers
+    if cache is not None and "held_faces" in cache:
+        return cache["held_faces"]
+    held = tuple(m if bool(m.any()) else None for m in ((th <= 0) for th in solids.theta))
+    if cache is not None:
+        cache["held_faces"] = held
+    return held
 
 
 def body_laplace(velocity: StaggeredGrid, solids=None) -> StaggeredGrid:

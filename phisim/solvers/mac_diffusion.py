@@ -45,6 +45,7 @@ import torch
 
 from phisim.boundary import pad_staggered_component, set_boundary_faces
 from phisim.checks import check_dt, check_nonnegative
+from phisim.compiled import is_compiling
 from phisim.errors import ParameterError, ShapeError
 from phisim.field import StaggeredGrid
 from phisim.solvers.box import TRANSFORMS, axis_eigenvalues
@@ -354,7 +355,9 @@ def _fixed_masks(fixed, velocity):
         if tuple(m.shape[1:]) != shape or m.shape[0] not in (1, velocity.batch_size):
             raise ShapeError(f"fixed[{i}] must have shape (1 or B, *{shape}), got {tuple(m.shape)}")
         m = m if m.dtype == torch.bool else m != 0
-        out.append(m if bool(m.any()) else None)
+        # an empty mask is dropped (a host read); a traced step is given no empty masks (the stepper's layout
+        # drops them once, eagerly) and reads nothing back
+        out.append(m if is_compiling() or bool(m.any()) else None)
     return out
 
 
@@ -378,7 +381,8 @@ def _walls(walls, velocity, masks):
                 raise ShapeError(f"walls[{i}] tensors must have shape (1 or B, *{shape}), got {tuple(t.shape)}")
         cut = cut.to(device=velocity.device)
         masks[i] = cut if masks[i] is None else (masks[i] | cut)
-        out.append((cut, coef.to(device=velocity.device), None if source is None else source.to(device=velocity.device)))
+        out.append((cut, coef.to(device=velocity.device),
+                    None if source is None else source.to(device=velocity.device)))
     return out, masks
 
 

@@ -191,7 +191,8 @@ def test_no_slip_and_free_slip_bodies():
     for no_slip in (True, False):
         body = Body(Sphere((0.5, 0.5), 0.2), no_slip=no_slip)
         out, _ = make_incompressible(v, body, solve=TIGHT)
-        assert float(_continuity(out, body, before=v).abs().max()) < 1e-9  # free-slip too (its flux was not weighted before)
+        # free-slip too (its flux was not weighted before)
+        assert float(_continuity(out, body, before=v).abs().max()) < 1e-9
         assert float(out.sample(inside).abs().max()) < 1e-12  # nothing moves inside a resting body
     # a moving no-slip body carries its velocity inside
     mov = Body(Sphere((0.5, 0.5), 0.2), velocity=(0.3, -0.2))
