@@ -38,14 +38,19 @@ def _run(env_extra: dict) -> tuple[bool, int]:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt: Linux only")
 def test_kept_memory_removes_the_page_faults_of_repeated_steps():
+    """With the thresholds set, 20 steps after the first take (almost) no page fault (at most the heap
+    growing by a block once). The comparison run fixes
+    glibc's thresholds small through the environment (the user's choice, which ``keep_freed_memory`` leaves
+    alone): each step then maps its 8 MiB afresh, about 2048 faults a step. (glibc's default thresholds adapt to
+    the process's history, so whether a step re-faults with them varies from run to run; the benchmark that
+    showed it is in ``docs/BENCHMARKS.md``.)"""
     applied, faults = _run({})
-    off, faults_off = _run({"PHISIM_KEEP_FREED_MEMORY": "0"})
+    off, faults_off = _run({"MALLOC_MMAP_THRESHOLD_": "131072", "MALLOC_TRIM_THRESHOLD_": "131072"})
     assert applied and not off
-    # glibc's default returns the 8 MiB freed by each step to the system: 20 steps fault ~ 20 x 2048 pages in
-    assert faults_off > 1000
-    assert faults < faults_off / 20
+    assert faults_off > 20 * 1000
+    assert faults < faults_off / 20  # at most a heap growth of a block or two (256 faults each), not every step
 
 
-def test_the_users_malloc_settings_win():
-    applied, _ = _run({"MALLOC_TRIM_THRESHOLD_": "131072"})
-    assert not applied
+def test_switched_off_and_the_users_malloc_settings_win():
+    assert not _run({"MALLOC_TRIM_THRESHOLD_": "131072"})[0]
+    assert not _run({"PHISIM_KEEP_FREED_MEMORY": "0"})[0]
