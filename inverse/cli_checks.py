@@ -30,6 +30,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from phisim.checks import existing_file
 from phisim.errors import FileFormatError, ParameterError
 
 __all__ = ["existing_file", "hdf5_file", "model_file", "writable_file", "writable_dir", "dataset_key",
@@ -37,22 +38,6 @@ __all__ = ["existing_file", "hdf5_file", "model_file", "writable_file", "writabl
 
 _ZIP = b"PK\x03\x04"  # torch.save writes a zip archive
 _HDF5 = b"\x89HDF\r\n\x1a\n"
-
-
-def existing_file(path, what: str) -> Path:
-    """``path`` as a Path if it is an existing regular file.
-
-    Raises:
-        FileFormatError: Missing, a folder, or not a regular file.
-    """
-    p = Path(path)
-    if not p.exists():
-        raise FileFormatError(f"{what} {p} does not exist")
-    if p.is_dir():
-        raise FileFormatError(f"{what} {p} is a folder, not a file")
-    if not stat.S_ISREG(p.stat().st_mode):
-        raise FileFormatError(f"{what} {p} is not a regular file (a pipe, socket or device)")
-    return p
 
 
 def _magic(p: Path) -> bytes:

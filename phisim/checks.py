@@ -17,14 +17,17 @@ paths and no new dependency.
 from __future__ import annotations
 
 import math
+import stat
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from phisim.errors import NonFiniteError, ParameterError, ShapeError
+from phisim.errors import FileFormatError, NonFiniteError, ParameterError, ShapeError
 
-__all__ = ["check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
+__all__ = ["existing_file",
+           "check_dt", "check_nonnegative", "check_positive", "check_finite", "all_finite", "check_device",
            "check_finite_number", "check_number", "check_int", "check_seed", "check_bool", "check_choice",
            "check_callable", "callable_name", "batch_size_of", "check_batch_compatible", "check_nonempty_batch",
            "check_callable_output", "check_progress"]
@@ -414,3 +417,25 @@ def check_progress(progress, name: str = "progress", stream=None) -> bool:
         raise ParameterError(f"{name} must be True, False or None (a bar when stderr is a terminal), got "
                              f"{_short(progress)}")
     return bool(progress)
+
+
+def existing_file(path, what: str) -> Path:
+    """``path`` as a Path if it is an existing regular file: the one wording of these mistakes for the library
+    and every command (``"<what> <path> does not exist"``, ``"... is a folder, not a file"``, ``"... is not a
+    regular file"``).
+
+    Args:
+        path: The file.
+        what: What the file is for, e.g. ``"input file"`` (starts the message).
+
+    Raises:
+        FileFormatError: Missing, a folder, or not a regular file (a pipe, socket or device).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileFormatError(f"{what} {p} does not exist")
+    if p.is_dir():
+        raise FileFormatError(f"{what} {p} is a folder, not a file")
+    if not stat.S_ISREG(p.stat().st_mode):
+        raise FileFormatError(f"{what} {p} is not a regular file (a pipe, socket or device)")
+    return p

@@ -16,9 +16,11 @@ import pytest
 import torch
 
 import phisim as ps
+from inverse import cli_checks
 from inverse.cli import main as cli_main
 from inverse.problems import Method, get_problem
 from inverse.train import train
+from phisim.checks import existing_file
 from phisim.errors import (
     BoundaryError,
     FileFormatError,
@@ -28,6 +30,7 @@ from phisim.errors import (
     PhisimError,
     ShapeError,
 )
+from phisim.io.h5util import open_for_read
 from phisim.solvers import poisson
 
 G = ps.Grid((8, 6))
@@ -226,7 +229,7 @@ CASES = [
     ("writer-append-nan-time", lambda: _append(time=NAN, a=np.zeros((1, 8, 6))), ParameterError, "time"),
     ("writer-append-string-time", lambda: _append(time="t0", a=np.zeros((1, 8, 6))), ParameterError, "time"),
     ("read-missing-file", lambda: ps.read_simulation("no/such/file.h5"), FileFormatError, "does not exist"),
-    ("read-folder", lambda: ps.read_simulation("."), FileFormatError, "directory"),
+    ("read-folder", lambda: ps.read_simulation("."), FileFormatError, "is a folder, not a file"),
     ("read-text-file", lambda: ps.read_simulation(_text_file()), FileFormatError, "not a readable HDF5"),
     ("read-named-pipe", lambda: ps.read_simulation(_fifo()), FileFormatError, "not a regular file"),
     ("read-training-pipe", lambda: ps.read_training(_fifo()), FileFormatError, "not a regular file"),
@@ -851,3 +854,13 @@ def test_fractional_frame_index_is_a_parameter_error(tmp_path):
     data = read_simulation(tmp_path / "names.h5")
     with pytest.raises(ParameterError, match="frame index"):
         data.frame("u", 0.5)
+
+
+def test_one_wording_for_missing_folder_and_pipe_files_in_library_and_commands(tmp_path):
+    """phisim.checks.existing_file is the one check behind the readers and the command line."""
+    assert cli_checks.existing_file is existing_file
+    for fn in (lambda p: existing_file(p, "HDF5 file"), open_for_read):
+        with pytest.raises(FileFormatError, match=r"HDF5 file .*nope\.h5 does not exist"):
+            fn(tmp_path / "nope.h5")
+        with pytest.raises(FileFormatError, match=r"HDF5 file .* is a folder, not a file"):
+            fn(tmp_path)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import h5py
 import numpy as np
 import torch
 
+from phisim.checks import existing_file
 from phisim.errors import FileFormatError, ParameterError
 from phisim.io.journal import journal_path
 
@@ -86,13 +86,7 @@ def check_output_path(path: PathLike, *, append: bool = False) -> Path:
 
 def open_for_read(path: PathLike) -> h5py.File:
     """Open an HDF5 file read-only with errors that say what is wrong (missing, folder, pipe, truncated...)."""
-    p = Path(path)
-    if not p.exists():
-        raise FileFormatError(f"{p} does not exist")
-    if p.is_dir():
-        raise FileFormatError(f"{p} is a directory, not an HDF5 file")
-    if not stat.S_ISREG(p.stat().st_mode):
-        raise FileFormatError(f"{p} is not a regular file (a pipe, socket or device); HDF5 needs a seekable file")
+    p = existing_file(path, "HDF5 file")
     try:
         return h5py.File(p, "r")
     except OSError as exc:
