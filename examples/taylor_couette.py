@@ -10,6 +10,13 @@ imposed, implicit viscosity, projection), without advection.
 ``python examples/taylor_couette.py --n 32 64 128 [--blended]`` prints, per grid, the velocity error on the fluid
 faces within two cells of either surface (max and root mean square) and over all fluid faces, the torque error,
 and the observed orders between successive grids.
+
+``--advection maccormack`` (or ``semi_lagrangian``) solves the Navier-Stokes equations instead: the same velocity is
+their steady solution (the pressure balances the centripetal term, ``dp/dr = u_theta^2 / r``), reached by split
+steps of a :class:`~phisim.fluid.FluidStepper` with that self-advection and explicit viscosity ``--nu`` (default
+0.02, a Reynolds number ``omega R1 (R2 - R1) / nu = 8``). This checks the no-slip bodies where the transported
+velocity meets them: ``--no-extension`` transports the stored field as it is (the bodies' velocity on the faces
+inside them) instead of the fluid velocity extended into them (:func:`phisim.fluid.extension.extend_into_bodies`).
 """
 
 from __future__ import annotations
@@ -26,7 +33,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fluid import SDF, Body, Sphere, diffuse_velocity, impose_solids, make_incompressible, solid_layout  # noqa: E402
+from phisim.fluid import (  # noqa: E402
+    SDF,
+    Body,
+    FluidState,
+    FluidStepper,
+    Sphere,
+    diffuse_velocity,
+    impose_solids,
+    make_incompressible,
+    solid_layout,
+)
 from phisim.solvers import Solve  # noqa: E402
 
 R1, R2, OMEGA, NU = 0.4, 0.8, 1.0, 1.0
@@ -74,6 +91,34 @@ def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int 
     return v, max_steps
 
 
+def solve_steady_ns(n: int, advection: str = "maccormack", nu: float = 0.02, tol: float = 1e-6,
+                    max_steps: int = 20000, extension: bool = True, device=None):
+    """The steady Navier-Stokes flow on an ``n x n`` grid over ``[-1, 1]^2``: split steps (``advection``, explicit
+    viscosity ``nu``, ``dt = min(0.4 dx / (omega R1), 0.45 dx^2 / (4 nu))``) from rest until the largest change of a
+    step is below ``tol * dt / dx`` (in units of ``omega R1``); returns ``(velocity, steps)``."""
+    import phisim.fluid.stepper as stepper_module
+
+    grid = Grid((n, n), bounds=[(-1.0, 1.0), (-1.0, 1.0)])
+    h = grid.dx[0]
+    dt = min(0.4 * h / (OMEGA * R1), 0.45 * h * h / (4 * nu))
+    stepper = FluidStepper(grid, "wall", obstacles=bodies(True), viscosity=nu, advection=advection, dt=dt,
+                           dtype=torch.float64, device=device)
+    state = FluidState(StaggeredGrid.zeros(grid, stepper.boundary, dtype=torch.float64, device=device))
+    original = stepper_module.extend_into_bodies
+    if not extension:  # the study's comparison: the stored field transported as it is
+        stepper_module.extend_into_bodies = lambda velocity, obstacles, time=0.0: velocity
+    try:
+        for k in range(max_steps):
+            new = stepper(state)
+            change = max(float((a - b).abs().max()) for a, b in zip(new.velocity.values, state.velocity.values))
+            state = new
+            if change < tol * OMEGA * R1 * dt / h:
+                return state.velocity, k + 1
+    finally:
+        stepper_module.extend_into_bodies = original
+    return state.velocity, max_steps
+
+
 def errors(v: StaggeredGrid) -> dict:
     """Velocity errors on the fluid faces (near the surfaces: within two cells of either)."""
     grid = v.grid
@@ -115,11 +160,12 @@ def torque_error(v: StaggeredGrid) -> float:
     return abs(torque - ref) / abs(ref)
 
 
-def study(ns, sharp: bool = True, **kw) -> list[dict]:
-    """:func:`solve_steady` on each grid, its errors and the observed orders between successive grids."""
+def study(ns, sharp: bool = True, advection: str | None = None, **kw) -> list[dict]:
+    """:func:`solve_steady` (or, with ``advection``, :func:`solve_steady_ns`) on each grid, its errors and the
+    observed orders between successive grids."""
     rows = []
     for n in ns:
-        v, steps = solve_steady(n, sharp, **kw)
+        v, steps = solve_steady(n, sharp, **kw) if advection is None else solve_steady_ns(n, advection, **kw)
         row = {"n": n, "cells_across_gap": (R2 - R1) * n / 2, "steps": steps, **errors(v), "torque": torque_error(v)}
         rows.append(row)
     for a, b in zip(rows, rows[1:]):
@@ -136,13 +182,22 @@ def main(argv=None) -> int:
     ap.add_argument("--dt-cells", type=float, default=50.0, help="time step in units of dx^2 / nu")
     ap.add_argument("--tol", type=float, default=1e-11, help="steady when a step changes the velocity less")
     ap.add_argument("--max-steps", type=int, default=400)
+    ap.add_argument("--advection", default=None, choices=["maccormack", "semi_lagrangian"],
+                    help="solve the Navier-Stokes equations with this self-advection (default: Stokes steps)")
+    ap.add_argument("--nu", type=float, default=0.02, help="viscosity of the Navier-Stokes runs")
+    ap.add_argument("--no-extension", action="store_true",
+                    help="Navier-Stokes runs: transport the stored field, not the velocity extended into the bodies")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
-    for row in study(args.n, sharp=not args.blended, scheme=args.scheme, dt_cells=args.dt_cells, tol=args.tol,
-                     max_steps=args.max_steps, device=device):
+    if args.advection is None:
+        kw = dict(sharp=not args.blended, scheme=args.scheme, dt_cells=args.dt_cells, tol=args.tol,
+                  max_steps=args.max_steps)
+    else:
+        kw = dict(advection=args.advection, nu=args.nu, extension=not args.no_extension)
+    for row in study(args.n, device=device, **kw):
         print(json.dumps({**row, "device": str(device)}), flush=True)
     return 0
 

@@ -31,6 +31,7 @@ from phisim.compiled import compile_function
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
+from phisim.fluid.extension import extend_into_bodies
 from phisim.fluid.integrators import INTEGRATORS, check_viscous_number, navier_stokes_rk_step, rk_advance
 from phisim.fluid.periodic import PeriodicStep
 from phisim.fluid.projection import check_balance, check_fits, check_velocity, project_box
@@ -295,7 +296,9 @@ def navier_stokes_step(
 ) -> tuple[StaggeredGrid, CenteredGrid]:
     """One incompressible Navier-Stokes step: advect, force, diffuse, project (and optionally renormalise).
 
-    ``u* = A(u; u, dt) + dt f``, the boundary (inflow profiles) and the bodies taken to time ``time + dt``,
+    ``u* = A(u; u, dt) + dt f`` (the transported field extended into sharp no-slip bodies,
+    :func:`~phisim.fluid.extension.extend_into_bodies`), the boundary (inflow profiles) and the bodies taken to time
+    ``time + dt``,
     the bodies' velocity imposed on the faces they cover (:func:`impose_solids`, so that viscosity sees
     each body's velocity at its surface), ``u** = diffuse(u*)``, ``u_new, p = make_incompressible(u**)``; with
     ``energy_normalization`` the result is rescaled to the kinetic energy of ``u`` (E5 of the paper).
@@ -339,7 +342,8 @@ def navier_stokes_step(
                                      time=time, obstacles=obstacles, solve=solve, pressure_guess=pressure_guess,
                                      energy_normalization=energy_normalization)
     e0 = kinetic_energy(velocity) if energy_normalization else None
-    v = advect(velocity, velocity, dt, scheme=advection)
+    src = extend_into_bodies(velocity, obstacles, float(time))
+    v = advect(src, src, dt, scheme=advection)
     v = to_time(v, float(time) + float(dt))
     if force is not None:
         check_velocity(force, "force")
@@ -458,7 +462,8 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
                           state.pressure, energy_normalization, trusted=trusted)
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
     e0 = kinetic_energy(v0) if energy_normalization else None
-    v = advect_trusted(v0, v0, dt, scheme=advection)
+    src = extend_into_bodies(v0, obstacles, state.time)
+    v = advect_trusted(src, src, dt, scheme=advection)
     v = to_time(v, t_new)
     if lift:  # sets the boundary faces
         strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
