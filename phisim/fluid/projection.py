@@ -381,8 +381,11 @@ def _flux(values, layout: SolidLayout, probes=None):
         if corr is not None and corr[i] is not None:  # the flux correction added on the cut faces alone
             index, value = corr[i]
             flat = f.reshape(f.shape[0], -1)
-            batch = max(flat.shape[0], value.shape[0])
-            f = flat.expand(batch, -1).index_add(1, index, value.expand(batch, -1)).reshape(batch, *f.shape[1:])
+            if f.is_contiguous() and flat.shape[0] == value.shape[0]:  # f: new here, saved by no backward
+                flat.index_add_(1, index, value)
+            else:
+                batch = max(flat.shape[0], value.shape[0])
+                f = flat.expand(batch, -1).index_add(1, index, value.expand(batch, -1)).reshape(batch, *f.shape[1:])
         out.append(f)
     return tuple(out)
 

@@ -746,12 +746,14 @@ class _SharpCapacitanceSolve:
     The correction ``A⁻¹ Pᵀ σ = G_{:,J} σ`` is a second box solve, or, where ``G`` decays fast enough (``a`` small
     against the cell size), a dense map on a window around the body. The bound: the row sums ``h = G 1_J ≥ 0``
     (``A`` is an M-matrix) satisfy ``A h = 0`` outside the box ``R`` around ``J``, and ``ψ = H λ^(d - m)``, ``d`` the
-    Chebyshev distance to that box, is a supersolution there for ``λ = c / (1 + c)``, ``c`` the largest
-    off-diagonal of ``-a L₀`` (``a / dx²``, twice that next to an open side of the own axis): a step changes ``d`` by
-    at most one, only one neighbour is closer, and ``-L₀`` is weakly diagonally dominant with every ghost rule. With
-    ``H`` the largest ``h`` at ``d = m`` (measured from the columns; ``m = 0`` or a distance where ``h`` is still far
-    above their round-off) the discrete maximum principle gives ``h <= H λ^(d - m)`` beyond. The window's margin is
-    the first distance where this falls below :data:`WINDOW_TOLERANCE` of ``max h``: the dropped part of the
+    Chebyshev distance to that box, is a supersolution there for ``λ = c / (1 + c)``, ``c = a / dx²`` the largest
+    off-diagonal of ``-a L₀`` away from open sides: a step changes ``d`` by at most one, only one neighbour is
+    closer, and ``-L₀`` is weakly diagonally dominant with every ghost rule. An open side of the own axis (an even
+    ghost about the boundary face, which doubles the inward coefficient there) is unfolded into mirror images of
+    the sources, each no closer than ``R``: a factor 4 on ``ψ`` covers them. With ``H`` the largest ``h`` at
+    ``d = m`` (measured from the columns; ``m = 0`` or a distance where ``h`` is still far above their round-off)
+    the discrete maximum principle gives ``h <= H λ^(d - m)`` (times the images' factor) beyond. The window's margin
+    is the first distance where this falls below :data:`WINDOW_TOLERANCE` of ``max h``: the dropped part of the
     correction is below ``2⁻⁵⁶ ‖σ‖_∞ max h`` in float64 (``2⁻²⁸`` in float32), under the round-off the second box
     solve leaves on every face. The window is used where its map is cheaper than a box solve (``|W| |J| <= n log₂
     n`` for ``n`` unknowns) and the component has no periodic axis. Per call: one box solve, the gathers of ``z_J``
@@ -789,18 +791,20 @@ class _SharpCapacitanceSolve:
         # the held faces (as flat indices into the full component and into the unknowns): written, not blended
         self.fixed_index = full.reshape(-1).nonzero().squeeze(1)
         self.fixed_unknowns = fixed.reshape(-1).nonzero().squeeze(1)
-        # the surface faces whose held value the stencil reads as 0 (cut faces)
-        self.zero_s = None
+        # the surface faces whose held value the stencil reads (not cut; a cut face reads 0): their places in J
+        # and their flat indices into the full component
+        read = torch.ones(surface.numel(), dtype=torch.bool, device=device)
         if cut is not None:
-            zs = cut.detach().reshape(cut.shape[0], -1)[:, self.surface_full]
-            self.zero_s = zs if bool(zs.any()) else None
+            read = ~cut.detach().reshape(cut.shape[0], -1)[0, self.surface_full]
+        self.read_pos = read.nonzero().squeeze(1)
+        self.read_full = self.surface_full[self.read_pos]
         ns = surface.numel()
         m = g.T.clone()  # m[r, j] = G[index_r, index_j]
         m[ns:, ns:] += torch.diag(1.0 / self.ad)
         lu, pivots = torch.linalg.lu_factor(m)
         # σ = r M⁻ᵀ for rows r: the inverse's transpose, applied as one small product per call
-        self._inverse = {torch.float64: torch.linalg.lu_solve(
-            lu, pivots, torch.eye(k, dtype=torch.float64, device=device), adjoint=True)}
+        self._inverse = torch.linalg.lu_solve(lu, pivots, torch.eye(k, dtype=torch.float64, device=device),
+                                              adjoint=True)
         # per dtype: (window slices, window shape, the map r ↦ r M⁻ᵀ G_{W,J}ᵀ of shape (k, |W|)) or None
         self.windows: dict = {}
         found = {dt: self._window(comp, shape, h, coef, k, tol) for dt, tol in WINDOW_TOLERANCE.items()}
@@ -848,15 +852,21 @@ class _SharpCapacitanceSolve:
         at = torch.zeros(top + 1, dtype=torch.float64, device=h.device).scatter_reduce(
             0, dist.reshape(-1), h, reduce="amax", include_self=True).tolist()
         hmax = float(h.max())
-        open_own = comp.odd is not None and not all(comp.odd)
-        c = coef * max((2.0 if open_own and a == comp.i else 1.0) / d**2 for a, d in enumerate(comp.dx))
+        c = coef * max(1.0 / d**2 for d in comp.dx)
         lam = c / (1.0 + c)
+        # an open side of the own axis mirrors the sources (even ghost about the boundary face): up to two images
+        # per side, each no closer than the box itself
+        images = 1.0
+        if comp.odd is not None and not all(comp.odd):
+            if lam ** (2 * shape[comp.i]) > 1.0 / 3.0:
+                return None
+            images = 4.0
         target = tol * hmax
         margin = None
         for m0, h0 in enumerate(at):
             if m0 and h0 < 1e-9 * hmax:  # measured values of this size are still exact to 1e-4 (round-off 1e-13)
                 break
-            h0 = h0 + 1e-13 * hmax
+            h0 = images * (h0 + 1e-13 * hmax)
             q = 0 if h0 <= target else math.ceil(math.log(target / h0) / math.log(lam))
             margin = m0 + q if margin is None else min(margin, m0 + q)
         window = tuple(slice(max(0, lo[a] - margin), min(n, hi[a] + margin + 1)) for a, n in enumerate(shape))
@@ -869,20 +879,10 @@ class _SharpCapacitanceSolve:
         """``(window, shape, map)`` of the correction in ``dtype``, or None (two box solves)."""
         return self.windows.get(dtype, self.windows[torch.float64])
 
-    def _inverse_map(self, dtype) -> torch.Tensor:
-        m = self._inverse.get(dtype)
-        if m is None:
-            m = self._inverse[dtype] = self._inverse[torch.float64].to(dtype)
-        return m
-
     def _residual(self, z_flat: torch.Tensor, g_flat: torch.Tensor, z_index) -> torch.Tensor:
         """``[g_S, 0_N] - z_J`` from flat components (``z_index``: where ``J`` lies in ``z_flat``)."""
-        ns = self.surface.numel()
-        zj = z_flat.index_select(1, z_index)
-        gs = g_flat.index_select(1, self.surface_full)
-        if self.zero_s is not None:
-            gs = gs.masked_fill(self.zero_s, 0)
-        return torch.cat([gs - zj[:, :ns], -zj[:, ns:]], 1)
+        r = z_flat.index_select(1, z_index).neg_()
+        return r.index_add_(1, self.read_pos, g_flat.index_select(1, self.read_full))
 
     def solve(self, comp, rhs, inverse, like, engine) -> torch.Tensor:
         """The full component: free faces solved, held faces ``like`` (read as 0 on the cut faces by the stencil),
@@ -910,7 +910,7 @@ class _SharpCapacitanceSolve:
             else:
                 z[(slice(None), *window)].add_(corr)
         else:
-            sigma = r @ self._inverse_map(r.dtype)
+            sigma = (r.to(torch.float64) @ self._inverse).to(r.dtype)  # small; float64 as built
             src = torch.zeros((b, math.prod(self.fixed.shape[1:])), dtype=z.dtype, device=z.device)
             src = src.index_copy(1, self.index, sigma).view(b, *self.fixed.shape[1:])
             corr = comp.solve_box(src, inverse, like, engine, op=self.op) if full is not None else None

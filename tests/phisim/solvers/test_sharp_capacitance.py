@@ -107,19 +107,18 @@ def test_green_function_decays_within_its_bound(closed):
         grid = torch.stack(torch.meshgrid(*(torch.arange(n) for n in shape), indexing="ij"), -1)
         dist = torch.clamp(torch.maximum(lo - grid, grid - hi), min=0).max(-1).values.reshape(-1)
         at = [float(h[dist == d].max()) for d in range(int(dist.max()) + 1)]
-        open_own = comp.odd is not None and not all(comp.odd)
-        c = 0.08 * (2.0 if open_own else 1.0)
-        lam = c / (1 + c)
+        images = 4.0 if comp.odd is not None and not all(comp.odd) else 1.0  # mirror images of an open side
+        lam = 0.08 / (1 + 0.08)
         measurable = [d for d, x in enumerate(at) if x > 1e-13 * hmax]
         assert len(measurable) >= 8
         for m in measurable:
             for d in measurable:
                 if d > m:
-                    assert at[d] <= at[m] * lam ** (d - m) * (1 + 1e-9) + 1e-14 * hmax, (m, d, at[m], at[d], lam)
+                    assert at[d] <= images * at[m] * lam ** (d - m) * (1 + 1e-9) + 1e-14 * hmax, (m, d, at, lam)
         # the window reaches the distance where the bound from some reliable anchor is below the tolerance
         window = s.windows[F64][0]
         margin = max(max(int(lo[a]) - sl.start, sl.stop - 1 - int(hi[a])) for a, sl in enumerate(window))
-        bound = min((at[m] + 1e-13 * hmax) * lam ** (margin - m) for m in measurable
+        bound = min(images * (at[m] + 1e-13 * hmax) * lam ** (margin - m) for m in measurable
                     if m <= margin and (m == 0 or at[m] >= 1e-9 * hmax))
         assert bound <= md.WINDOW_TOLERANCE[F64] * hmax * (1 + 1e-9)
 
