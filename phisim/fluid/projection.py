@@ -331,7 +331,13 @@ def _blend(values, layout: SolidLayout, corrected=None):
         c = u if corrected is None else corrected[i]
         keep = _sharp_keep(layout, i, corrected is None)
         if keep is not None:  # sharp no-slip bodies alone on this component: (1 - sl) noslip + sl free is free
-            out.append(torch.where(keep, c, _solid(layout, i, u)))
+            if layout.solid_velocity is None:  # resting bodies: c on the kept faces, 0 on the others
+                weight = keep.get(c.dtype)
+                if weight is None:
+                    weight = keep[c.dtype] = keep["mask"].to(c.dtype)
+                out.append(c * weight)
+            else:
+                out.append(torch.where(keep["mask"], c, _solid(layout, i, u)))
             continue
         th = layout.theta[i].to(u.dtype)
         s = _solid(layout, i, u)
@@ -352,7 +358,8 @@ def _blend(values, layout: SolidLayout, corrected=None):
 def _sharp_keep(layout: SolidLayout, i: int, imposing: bool):
     """For a persistent layout whose component ``i`` is closed by sharp no-slip bodies alone (the share ``sl`` of
     :func:`_blend` is 1 on every face), the faces that keep the fluid velocity (``theta > 0``, imposing: and not cut),
-    found once; None otherwise (the general blend)."""
+    found once (``{'mask': bool mask, dtype: the mask as 0/1 in that dtype}``); None otherwise (the general
+    blend)."""
     cache = layout.solvers
     if cache is None or layout.sharp is None:
         return None
@@ -362,9 +369,10 @@ def _sharp_keep(layout: SolidLayout, i: int, imposing: bool):
         sl = share[0] if len(share) == 1 else share[0] + share[1]
         keep = None
         if not sl.requires_grad and bool((sl == 1).all()):
-            keep = layout.theta[i].detach() > 0
+            mask = layout.theta[i].detach() > 0
             if imposing and layout.walls is not None and layout.walls[i] is not None:
-                keep = keep & ~layout.walls[i][0]
+                mask = mask & ~layout.walls[i][0]
+            keep = {"mask": mask}
         cache[key] = keep
     return cache[key]
 

@@ -29,7 +29,9 @@ Green's-function correction per transverse mode (:func:`phisim.spectral.fft.wall
 Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. Where the
 caller keeps the faces for reuse (it passes a ``capacitance`` dict, e.g. a stepper's static bodies) the θ-scheme
 is solved directly with a capacitance matrix on the body surface (:class:`_CapacitanceSolve`: two box solves
-and a small LU solve per call), built at the first request and kept in that dict; otherwise by
+and a small LU solve per call; :class:`_SharpCapacitanceSolve` for sharp surfaces: one box solve and a dense map on
+a window around the body where the Green's function decays fast enough, else two), built at the first request and
+kept in that dict; otherwise by
 :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG operator is made
 symmetric by halving the rows of free boundary faces on open sides (the vertex-centred Neumann stencil is symmetric
 in that weighted inner product).
@@ -509,7 +511,8 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
     source = None if source is None else source.to(u.dtype)
 
     def zeroed():  # the stencil reads 0 on cut faces
-        return u.masked_fill(cut, 0)
+        keep = _open_faces(comp, cut, u.dtype, capacitance)
+        return u.masked_fill(cut, 0) if keep is None else u * keep
 
     if method == "explicit":
         num = u + alpha * comp.laplace(zeroed())
@@ -577,6 +580,19 @@ def _same(kept, t: torch.Tensor) -> bool:
 
 def _kept(t: torch.Tensor):
     return (t, t._version, t.detach().clone())
+
+
+def _open_faces(comp, cut: torch.Tensor, dtype, cache: dict | None) -> torch.Tensor | None:
+    """``1 - cut`` in ``dtype`` (a product with it zeroes the cut faces), kept in ``cache``; None without one."""
+    if cache is None:
+        return None
+    key = ("open-faces", comp.key, dtype, str(cut.device))
+    hit = cache.get(key)
+    if hit is not None and _same(hit[0], cut):
+        return hit[1]
+    keep = (~cut).to(dtype)
+    cache[key] = (_kept(cut), keep)
+    return keep
 
 
 def _explicit_denominator(comp, coef: torch.Tensor, alpha, cache: dict | None) -> torch.Tensor:
