@@ -741,11 +741,9 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | N
 
 
 #: Relative size (per dtype) below which the correction of a sharp capacitance solve is dropped outside its window:
-#: a sixteenth of the round-off that the second box solve it replaces leaves on every face (see
+#: a sixteenth of the round-off that the box solve of the whole component leaves on every face (see
 #: :class:`_SharpCapacitanceSolve`).
 WINDOW_TOLERANCE = {torch.float64: 2.0**-56, torch.float32: 2.0**-28}
-#: Most entries of the dense window map of one sharp capacitance solve (64 MiB in float64).
-WINDOW_MAX_ENTRIES = 1 << 23
 
 
 class _SharpCapacitanceSolve:
@@ -759,21 +757,24 @@ class _SharpCapacitanceSolve:
     built from ``|J|`` box solves and inverted once in float64). ``g`` is the held value as the stencil reads it:
     the face's value, 0 on the cut faces.
 
-    The correction ``A⁻¹ Pᵀ σ = G_{:,J} σ`` is a second box solve, or, where ``G`` decays fast enough (``a`` small
-    against the cell size), a dense map on a window around the body. The bound: the row sums ``h = G 1_J ≥ 0``
-    (``A`` is an M-matrix) satisfy ``A h = 0`` outside the box ``R`` around ``J``, and ``ψ = H λ^(d - m)``, ``d`` the
-    Chebyshev distance to that box, is a supersolution there for ``λ = c / (1 + c)``, ``c = a / dx²`` the largest
-    off-diagonal of ``-a L₀`` away from open sides: a step changes ``d`` by at most one, only one neighbour is
-    closer, and ``-L₀`` is weakly diagonally dominant with every ghost rule. An open side of the own axis (an even
-    ghost about the boundary face, which doubles the inward coefficient there) is unfolded into mirror images of
-    the sources, each no closer than ``R``: a factor 4 on ``ψ`` covers them. With ``H`` the largest ``h`` at
-    ``d = m`` (measured from the columns; ``m = 0`` or a distance where ``h`` is still far above their round-off)
-    the discrete maximum principle gives ``h <= H λ^(d - m)`` (times the images' factor) beyond. The window's margin
-    is the first distance where this falls below :data:`WINDOW_TOLERANCE` of ``max h``: the dropped part of the
-    correction is below ``2⁻⁵⁶ ‖σ‖_∞ max h`` in float64 (``2⁻²⁸`` in float32), under the round-off the second box
-    solve leaves on every face. The window is used where its map is cheaper than a box solve (``|W| |J| <= n log₂
-    n`` for ``n`` unknowns) and the component has no periodic axis. Per call: one box solve, the gathers of ``z_J``
-    and ``g_S`` and one small dense product.
+    The correction ``w = A⁻¹ Pᵀ σ = G_{:,J} σ`` is a second box solve of the whole component, or, where ``G``
+    decays fast enough (``a`` small against the cell size), a box solve on a window ``W`` around the body alone:
+    the same operator with ``w = 0`` outside ``W`` (DST-I along every axis). The bound: the row sums
+    ``h = G 1_J ≥ 0`` (``A`` is an M-matrix) satisfy ``A h = 0`` outside the box ``R`` around ``J``, and
+    ``ψ = H λ^(d - m)``, ``d`` the Chebyshev distance to that box, is a supersolution there for ``λ = c / (1 + c)``,
+    ``c = a / dx²`` the largest off-diagonal of ``-a L₀`` away from open sides: a step changes ``d`` by at most one,
+    only one neighbour is closer, and ``-L₀`` is weakly diagonally dominant with every ghost rule. An open side of
+    the own axis (an even ghost about the boundary face, which doubles the inward coefficient there) is unfolded
+    into mirror images of the sources, each no closer than ``R``: a factor 4 on ``ψ`` covers them. With ``H`` the
+    largest ``h`` at ``d = m`` (measured from the columns; ``m = 0`` or a distance where ``h`` is still far above
+    their round-off) the discrete maximum principle gives ``h <= H λ^(d - m)`` (times the images' factor) beyond,
+    so ``|w| <= h ‖σ‖_∞`` is below :data:`WINDOW_TOLERANCE` ``max h ‖σ‖_∞`` outside the window's margin; the
+    window's solve differs from ``w`` by a screened-harmonic function of its values on the ring around ``W``, no
+    larger there (maximum principle again). Both are under the round-off of the whole component's box solve
+    (``2⁻⁵⁶`` in float64, ``2⁻²⁸`` in float32, per unit ``max h ‖σ‖_∞``). The window is used where it lies inside
+    the unknowns with a ring to spare, holds at most half of them, and the component has no periodic axis. Per
+    call: one box solve of the component, the gathers of ``z_J`` and ``g_S``, a ``|J| x |J|`` product and the
+    window's box solve.
     """
 
     def __init__(self, comp, surface, near, dcoef, fixed, coef: float, device, engine, cut=None):
@@ -787,15 +788,11 @@ class _SharpCapacitanceSolve:
         mult = comp.inverse_multiplier(coef, torch.float64, device)
         g = torch.empty(k, k, dtype=torch.float64, device=device)  # g[j] = (A⁻¹ e_j) on S ∪ N
         h = torch.zeros(n_all, dtype=torch.float64, device=device)  # row sums of |G_{:,J}|
-        columns = []  # the columns, kept while small (the window maps are taken from them)
-        keep = k * n_all <= (1 << 22)
         chunk = max(1, (1 << 22) // n_all)
         for start in range(0, k, chunk):
             z = self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
             g[start : start + z.shape[0]] = z[:, self.index]
             h += z.abs().sum(0)
-            if keep:
-                columns.append(z)
         self.op = ("implicit", coef)
         full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
         comp.restrict(full).copy_(fixed)
@@ -821,24 +818,27 @@ class _SharpCapacitanceSolve:
         # σ = r M⁻ᵀ for rows r: the inverse's transpose, applied as one small product per call
         self._inverse = torch.linalg.lu_solve(lu, pivots, torch.eye(k, dtype=torch.float64, device=device),
                                               adjoint=True)
-        # per dtype: (window slices, window shape, the map r ↦ r M⁻ᵀ G_{W,J}ᵀ of shape (k, |W|)) or None
+        # per dtype: the window's solve (slices, the places of J in it, its normalised DST-I multiplier) or None
         self.windows: dict = {}
-        found = {dt: self._window(comp, shape, h, coef, k, tol) for dt, tol in WINDOW_TOLERANCE.items()}
-        widest = found[torch.float64] or found[torch.float32]
-        if widest is not None:
-            cols = torch.cat(columns) if keep else torch.cat([
-                self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
-                for start in range(0, k, chunk)])
-            cols = cols.reshape(k, *shape)[(slice(None), *widest)]
-            for dt, window in found.items():
-                if window is None:
-                    continue
-                inner = tuple(slice(w.start - o.start, w.stop - o.start) for w, o in zip(window, widest))
-                part = cols[(slice(None), *inner)].reshape(k, -1)
-                self.windows[dt] = (window, tuple(w.stop - w.start for w in window),
-                                    torch.linalg.lu_solve(lu, pivots, part, adjoint=True).to(dt))
-        for dt in WINDOW_TOLERANCE:
-            self.windows.setdefault(dt, None)
+        for dt, tol in WINDOW_TOLERANCE.items():
+            window = self._window(comp, shape, h, coef, k, tol)
+            if window is None:
+                self.windows[dt] = None
+                continue
+            wshape = tuple(sl.stop - sl.start for sl in window)
+            local = torch.unravel_index(self.index, shape)
+            flat = torch.zeros_like(self.index)
+            for a, (sl, m) in enumerate(zip(window, wshape)):
+                flat = flat * m + (local[a] - sl.start)
+            lam = torch.zeros((), dtype=torch.float64)
+            scale = 1.0
+            for a, m in enumerate(wshape):
+                kk = torch.arange(m, dtype=torch.float64)
+                ev = -4 * torch.sin(math.pi * (kk + 1) / (2 * (m + 1))) ** 2 / comp.dx[a] ** 2
+                lam = lam.unsqueeze(-1) + ev
+                scale /= 2 * (m + 1)
+            mult_w = (scale / (1.0 - coef * lam)).to(dtype=dt, device=device)
+            self.windows[dt] = (window, wshape, flat, mult_w)
 
     @staticmethod
     def _columns(comp, idx, shape, mult, engine) -> torch.Tensor:
@@ -849,7 +849,7 @@ class _SharpCapacitanceSolve:
         return comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True).reshape(idx.numel(), n_all)
 
     def _window(self, comp, shape, h: torch.Tensor, coef: float, k: int, tol: float):
-        """The window (slices of the unknowns) outside which ``G_{:,J}`` is dropped at tolerance ``tol``, or None
+        """The window (slices of the unknowns) outside which the correction is dropped at tolerance ``tol``, or None
         (see the class)."""
         if comp.periodic or k == 0:
             return None
@@ -885,15 +885,23 @@ class _SharpCapacitanceSolve:
             h0 = images * (h0 + 1e-13 * hmax)
             q = 0 if h0 <= target else math.ceil(math.log(target / h0) / math.log(lam))
             margin = m0 + q if margin is None else min(margin, m0 + q)
-        window = tuple(slice(max(0, lo[a] - margin), min(n, hi[a] + margin + 1)) for a, n in enumerate(shape))
-        size = math.prod(sl.stop - sl.start for sl in window)
-        if size >= n_all or size * k > min(n_all * math.log2(n_all), WINDOW_MAX_ENTRIES):
+        window = tuple(slice(lo[a] - margin, hi[a] + margin + 1) for a in range(len(shape)))
+        # inside the unknowns with a ring to spare (the ring is where the window's zero condition is checked)
+        if any(sl.start < 1 or sl.stop > n - 1 for sl, n in zip(window, shape)):
+            return None
+        if 2 * math.prod(sl.stop - sl.start for sl in window) > n_all:
             return None
         return window
 
-    def _window_map(self, dtype):
-        """``(window, shape, map)`` of the correction in ``dtype``, or None (two box solves)."""
-        return self.windows.get(dtype, self.windows[torch.float64])
+    @staticmethod
+    def _window_solve(src: torch.Tensor, mult: torch.Tensor, engine) -> torch.Tensor:
+        """``A_W⁻¹ src`` on the window (zero outside): DST-I along every axis, ``mult`` normalised."""
+        axes = tuple(range(1, src.ndim))
+        kinds = ("dst1",) * len(axes)
+        out = _fft.r2r_multiply(src, kinds, kinds, axes, mult, engine=engine)
+        if out is None:  # autograd or another engine
+            out = _fft.r2rn(_fft.r2rn(src, kinds, axes, engine=engine) * mult, kinds, axes, engine=engine)
+        return out
 
     def _residual(self, z_flat: torch.Tensor, g_flat: torch.Tensor, z_index) -> torch.Tensor:
         """``[g_S, 0_N] - z_J`` from flat components (``z_index``: where ``J`` lies in ``z_flat``)."""
@@ -914,10 +922,13 @@ class _SharpCapacitanceSolve:
             b = z.shape[0]
             r = self._residual(z.reshape(b, -1), like.reshape(like.shape[0], -1), self.index)
         grad = z.requires_grad or r.requires_grad
-        win = self._window_map(r.dtype)
+        win = self.windows.get(r.dtype, self.windows[torch.float64])
         if win is not None:
-            window, wshape, wmap = win
-            corr = (r @ (wmap if wmap.dtype == r.dtype else wmap.to(r.dtype))).view(b, *wshape)
+            window, wshape, places, mult_w = win
+            sigma = (r.to(torch.float64) @ self._inverse).to(r.dtype)
+            src = torch.zeros((b, math.prod(wshape)), dtype=z.dtype, device=z.device)
+            src = src.index_copy(1, places, sigma).view(b, *wshape)
+            corr = self._window_solve(src, mult_w.to(z.dtype), engine)
             if grad:
                 pad = []
                 for sl, n in reversed(list(zip(window, z.shape[1:]))):
