@@ -573,6 +573,8 @@ def _same(kept, t: torch.Tensor) -> bool:
     """Whether ``t`` is the tensor a cache entry was built from: the very object, not modified in place since
     (``kept = (t, t._version, copy)``), or, failing that, equal to the copy kept then."""
     obj, version, copy_ = kept
+    if is_compiling():  # a traced step reads nothing back: the very tensors of the eager steps, or a miss
+        return obj is t
     if obj is t and t._version == version:
         return True
     return copy_.shape == t.shape and copy_.device == t.device and torch.equal(copy_, t)
@@ -591,7 +593,8 @@ def _open_faces(comp, cut: torch.Tensor, dtype, cache: dict | None) -> torch.Ten
     if hit is not None and _same(hit[0], cut):
         return hit[1]
     keep = (~cut).to(dtype)
-    cache[key] = (_kept(cut), keep)
+    if not is_compiling():  # what a trace computes is not kept
+        cache[key] = (_kept(cut), keep)
     return keep
 
 
@@ -604,7 +607,8 @@ def _explicit_denominator(comp, coef: torch.Tensor, alpha, cache: dict | None) -
     if hit is not None and _same(hit[0], coef):
         return hit[1]
     den = 1 + alpha * coef
-    cache[key] = (_kept(coef), den)
+    if not is_compiling():  # what a trace computes is not kept
+        cache[key] = (_kept(coef), den)
     return den
 
 
@@ -969,6 +973,8 @@ def _sharp_capacitance(comp, mask, cut, coef_full, coef, device, engine, cache):
     hit = cache.get(key)
     if hit is not None and _same(hit[0], mask) and _same(hit[1], coef_full) and _same(hit[2], cut):
         return hit[3] or None
+    if is_compiling():  # built by the eager steps only
+        return None
     fixed = comp.restrict(mask).detach()
     surface = _surface(comp, fixed[0])
     d = comp.restrict(coef_full.detach())[0].flatten()
