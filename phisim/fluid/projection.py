@@ -334,7 +334,9 @@ def _blend(values, layout: SolidLayout, corrected=None):
             if layout.solid_velocity is None:  # resting bodies: c on the kept faces, 0 on the others
                 weight = keep.get(c.dtype)
                 if weight is None:
-                    weight = keep[c.dtype] = keep["mask"].to(c.dtype)
+                    weight = keep["mask"].to(c.dtype)
+                    if not torch.compiler.is_compiling():  # what a trace computes is not kept
+                        keep[c.dtype] = weight
                 out.append(c * weight)
             else:
                 out.append(torch.where(keep["mask"], c, _solid(layout, i, u)))
@@ -365,6 +367,8 @@ def _sharp_keep(layout: SolidLayout, i: int, imposing: bool):
         return None
     key = ("sharp-keep", i, imposing)
     if key not in cache:
+        if torch.compiler.is_compiling():  # found by the eager steps only (it reads the share back)
+            return None
         share = [x[i] for x in (layout.slip, layout.sharp) if x is not None]
         sl = share[0] if len(share) == 1 else share[0] + share[1]
         keep = None
