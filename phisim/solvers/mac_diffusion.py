@@ -29,9 +29,9 @@ Green's-function correction per transverse mode (:func:`phisim.spectral.fft.wall
 Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. Where the
 caller keeps the faces for reuse (it passes a ``capacitance`` dict, e.g. a stepper's static bodies) the θ-scheme
 is solved directly with a capacitance matrix on the body surface (:class:`_CapacitanceSolve`: two box solves
-and a small LU solve per call; :class:`_SharpCapacitanceSolve` for sharp surfaces: one box solve and a dense map on
-a window around the body where the Green's function decays fast enough, else two), built at the first request and
-kept in that dict; otherwise by
+and a small LU solve per call; :class:`_SharpCapacitanceSolve` for sharp surfaces: one box solve of the component and
+one on a window around the body where the Green's function decays fast enough, else two), built at the first
+request and kept in that dict; otherwise by
 :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG operator is made
 symmetric by halving the rows of free boundary faces on open sides (the vertex-centred Neumann stencil is symmetric
 in that weighted inner product).

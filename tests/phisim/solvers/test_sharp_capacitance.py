@@ -1,10 +1,11 @@
 """The direct viscous solve of a sharp no-slip surface with its correction on a window around the body.
 
 Where the Green's function of the box operator ``I - a L₀`` decays fast (``a`` small against the cell size), the
-capacitance solve of a persistent layout applies its correction as a dense map on a window instead of a second box
-solve (:class:`phisim.solvers.mac_diffusion._SharpCapacitanceSolve`). These tests check that the window path gives
-the step of the two-box-solve path and of PCG, that the decay bound it relies on holds for the measured Green's
-function, and that the projection's shortcuts for sharp-only layouts give what the general formulas give.
+capacitance solve of a persistent layout computes its correction by a box solve on a window around the body instead
+of a second box solve of the whole component (:class:`phisim.solvers.mac_diffusion._SharpCapacitanceSolve`). These
+tests check that the window path gives the step of the two-box-solve path and of PCG, that the decay bound it relies
+on holds for the measured Green's function, and that the projection's shortcuts for sharp-only layouts give what the
+general formulas give.
 """
 
 from __future__ import annotations
