@@ -14,7 +14,8 @@ Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--thread
       [--sharp] [--json out.json]
 
 ``--sharp`` times whole steps of the wake (implicit and explicit viscosity) and the plume with sharp and with
-blended no-slip bodies instead (direct pressure solve, interleaved, best of ``--repeat``).
+blended no-slip bodies instead (direct pressure solve, interleaved, best of ``--repeat`` medians of the step's
+thread time, CPU).
 """
 
 from __future__ import annotations
@@ -124,18 +125,18 @@ def measure(n: int, dtype, repeat: int, device="cpu") -> dict:
             "solve_ms": 1e3 * t_solve, "device": str(device), **direct}
 
 
-def _median_step_ms(step, state, steps: int) -> float:
-    """Median ms of ``state = step(state, k)`` over the last half of ``steps`` steps."""
+def _median_step_ms(step, state, steps: int, clock=time.perf_counter) -> float:
+    """Median ms of ``state = step(state, k)`` over the last half of ``steps`` steps, timed by ``clock``."""
     times = []
     for k in range(steps):
-        t = time.perf_counter()
+        t = clock()
         state = step(state, k)
-        times.append(time.perf_counter() - t)
+        times.append(clock() - t)
     return 1e3 * statistics.median(times[steps // 2:])
 
 
 def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = True,
-                 viscosity_scheme: str = "implicit") -> float:
+                 viscosity_scheme: str = "implicit", clock=time.perf_counter) -> float:
     """Median ms per split step (implicit viscosity) of a cylinder wake on ``n x n`` cells over the last half
     of ``steps`` steps: inflow 0.5 on the left, open right side, walls, a disc of radius 0.06 n, Re 100 (the
     wake scene of ``bench_flow_bodies.py``), with the pressure solved by PCG only or by the direct solve; ``sharp``:
@@ -154,10 +155,11 @@ def wake_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = Tr
     stepper = FluidStepper(grid, v.boundary, obstacles=body, viscosity=nu,
                            advection="semi_lagrangian", viscosity_scheme=viscosity_scheme, dt=dt, dtype=dtype,
                            direct="auto" if direct else False)
-    return _median_step_ms(lambda state, k: stepper(state), FluidState(v), steps)
+    return _median_step_ms(lambda state, k: stepper(state), FluidState(v), steps, clock)
 
 
-def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = True) -> float:
+def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = True,
+                  clock=time.perf_counter) -> float:
     """Median ms per step of a smoke plume in a closed box with two box bodies (the ``plume_boxes`` scene of
     ``bench_flow_bodies.py``: MacCormack smoke, semi-Lagrangian velocity, buoyancy 0.1, ``make_incompressible``)
     over the last half of ``steps`` steps, with the pressure solved by PCG only or by the direct solve."""
@@ -183,7 +185,7 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = T
         out = project(vel, pressure_guess=p)
         return m, out.velocity, out.pressure
 
-    return _median_step_ms(step, (smoke, v, None), steps)
+    return _median_step_ms(step, (smoke, v, None), steps, clock)
 
 
 def main(argv=None) -> int:
@@ -206,13 +208,15 @@ def main(argv=None) -> int:
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
     rows = []
-    if args.sharp:
+    if args.sharp:  # thread time: the CPU time of this thread, robust to other jobs on the machine
         for n in args.sizes:
             for dtype in (torch.float64, torch.float32):
-                for scene, fn in (("wake implicit", lambda s, n=n, dtype=dtype: wake_step_ms(n, dtype, True, sharp=s)),
+                for scene, fn in (("wake implicit", lambda s, n=n, dtype=dtype: wake_step_ms(
+                                      n, dtype, True, sharp=s, clock=time.thread_time)),
                                   ("wake explicit", lambda s, n=n, dtype=dtype: wake_step_ms(
-                                      n, dtype, True, sharp=s, viscosity_scheme="explicit")),
-                                  ("plume", lambda s, n=n, dtype=dtype: plume_step_ms(n, dtype, True, sharp=s))):
+                                      n, dtype, True, sharp=s, viscosity_scheme="explicit", clock=time.thread_time)),
+                                  ("plume", lambda s, n=n, dtype=dtype: plume_step_ms(n, dtype, True, sharp=s,
+                                                                                       clock=time.thread_time))):
                     times = {False: [], True: []}
                     for _ in range(args.repeat):  # interleaved
                         for s in (False, True):

@@ -296,6 +296,15 @@ def _solid(layout: SolidLayout, i: int, like: torch.Tensor):
 def flux_correction(values, layout: SolidLayout):
     """Per component, the flux that the blend ``theta u + (1 - theta) u_s`` misses on the faces cut by sharp no-slip
     bodies (:attr:`~phisim.fluid.bodies.SolidLayout.extension`; zero elsewhere), or None without such bodies."""
+    parts = _correction_values(values, layout)
+    if parts is None:
+        return None
+    return tuple(None if part is None else torch.zeros_like(u.reshape(u.shape[0], -1)).index_copy(
+        1, part[0], part[1]).reshape(u.shape) for u, part in zip(values, parts))
+
+
+def _correction_values(values, layout: SolidLayout):
+    """:func:`flux_correction` as ``(index, value)`` per component (the flat faces and their extra flux), or None."""
     if layout.extension is None:
         return None
     out = []
@@ -305,9 +314,10 @@ def flux_correction(values, layout: SolidLayout):
             continue
         index, corners, weights, kappa, base = ext
         flat = u.reshape(u.shape[0], -1)
-        value = base.to(u.dtype) + kappa.to(u.dtype) * (flat[:, corners] * weights.to(u.dtype)).sum(-1)
-        out.append(torch.zeros_like(flat).index_copy(1, index, value).reshape(u.shape))
-    return tuple(out)
+        probe = flat.index_select(1, corners.reshape(-1)).view(flat.shape[0], *corners.shape)
+        value = base.to(u.dtype) + kappa.to(u.dtype) * (probe * weights.to(u.dtype)).sum(-1)
+        out.append((index, value))
+    return out
 
 
 def _blend(values, layout: SolidLayout, corrected=None):
@@ -318,8 +328,20 @@ def _blend(values, layout: SolidLayout, corrected=None):
     the others."""
     out = []
     for i, u in enumerate(values):
-        th = layout.theta[i].to(u.dtype)
         c = u if corrected is None else corrected[i]
+        keep = _sharp_keep(layout, i, corrected is None)
+        if keep is not None:  # sharp no-slip bodies alone on this component: (1 - sl) noslip + sl free is free
+            if layout.solid_velocity is None:  # resting bodies: c on the kept faces, 0 on the others
+                weight = keep.get(c.dtype)
+                if weight is None:
+                    weight = keep["mask"].to(c.dtype)
+                    if not torch.compiler.is_compiling():  # what a trace computes is not kept
+                        keep[c.dtype] = weight
+                out.append(c * weight)
+            else:
+                out.append(torch.where(keep["mask"], c, _solid(layout, i, u)))
+            continue
+        th = layout.theta[i].to(u.dtype)
         s = _solid(layout, i, u)
         noslip = th * c if layout.solid_velocity is None else th * c + (1 - th) * s
         share = [x[i].to(u.dtype) for x in (layout.slip, layout.sharp) if x is not None]
@@ -335,16 +357,48 @@ def _blend(values, layout: SolidLayout, corrected=None):
     return tuple(out)
 
 
+def _sharp_keep(layout: SolidLayout, i: int, imposing: bool):
+    """For a persistent layout whose component ``i`` is closed by sharp no-slip bodies alone (the share ``sl`` of
+    :func:`_blend` is 1 on every face), the faces that keep the fluid velocity (``theta > 0``, imposing: and not cut),
+    found once (``{'mask': bool mask, dtype: the mask as 0/1 in that dtype}``); None otherwise (the general
+    blend)."""
+    cache = layout.solvers
+    if cache is None or layout.sharp is None:
+        return None
+    key = ("sharp-keep", i, imposing)
+    if key not in cache:
+        if torch.compiler.is_compiling():  # found by the eager steps only (it reads the share back)
+            return None
+        share = [x[i] for x in (layout.slip, layout.sharp) if x is not None]
+        sl = share[0] if len(share) == 1 else share[0] + share[1]
+        keep = None
+        if not sl.requires_grad and bool((sl == 1).all()):
+            mask = layout.theta[i].detach() > 0
+            if imposing and layout.walls is not None and layout.walls[i] is not None:
+                mask = mask & ~layout.walls[i][0]
+            keep = {"mask": mask}
+        cache[key] = keep
+    return cache[key]
+
+
 def _flux(values, layout: SolidLayout, probes=None):
     """The volume flux per face of imposed velocities (the projection's right-hand side): ``theta u + (1 - theta)
     u_s``, plus the :func:`flux_correction` of sharp no-slip bodies (from ``probes``, default ``values``)."""
     out = []
-    corr = flux_correction(values if probes is None else probes, layout)
+    corr = _correction_values(values if probes is None else probes, layout)
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
         s = _solid(layout, i, u)
         f = th * u if layout.solid_velocity is None else th * u + (1 - th) * s
-        out.append(f if corr is None or corr[i] is None else f + corr[i])
+        if corr is not None and corr[i] is not None:  # the flux correction added on the cut faces alone
+            index, value = corr[i]
+            flat = f.reshape(f.shape[0], -1)
+            if f.is_contiguous() and flat.shape[0] == value.shape[0]:  # f: new here, saved by no backward
+                flat.index_add_(1, index, value)
+            else:
+                batch = max(flat.shape[0], value.shape[0])
+                f = flat.expand(batch, -1).index_add(1, index, value.expand(batch, -1)).reshape(batch, *f.shape[1:])
+        out.append(f)
     return tuple(out)
 
 

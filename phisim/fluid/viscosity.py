@@ -77,7 +77,7 @@ def diffuse_velocity(
     walls, capacitance = None, None
     if solids is not None and solids.walls is not None:
         walls = solids.walls
-        held = _held_faces(solids)
+        held = _held_faces(solids, beyond_cut=True)
         fixed = held if fixed is None else tuple(
             h if f is None else (torch.as_tensor(f, device=f.device if h is None else h.device) != 0) | (
                 False if h is None else h) for f, h in zip(fixed, held))
@@ -86,15 +86,24 @@ def diffuse_velocity(
                              walls=walls, capacitance=capacitance)
 
 
-def _held_faces(solids) -> tuple:
+def _held_faces(solids, beyond_cut: bool = False) -> tuple:
     """Per component the faces the solids close (``theta <= 0``), or None where there are none. A layout kept by a
-    stepper (its ``solvers`` dict) computes them once; its traced steps then read nothing back to the host."""
+    stepper (its ``solvers`` dict) computes them once; its traced steps then read nothing back to the host.
+
+    ``beyond_cut``: None also where every closed face is a cut face of a sharp body (``walls``), which the viscous
+    step holds anyway: the held set is then the layout's ``cut`` mask itself (no union per step)."""
     cache = solids.solvers
-    if cache is not None and "held_faces" in cache:
-        return cache["held_faces"]
-    held = tuple(m if bool(m.any()) else None for m in ((th <= 0) for th in solids.theta))
+    key = "held_faces_beyond_cut" if beyond_cut else "held_faces"
+    if cache is not None and key in cache:
+        return cache[key]
+    held = _held_faces(solids) if beyond_cut else tuple(
+        m if bool(m.any()) else None for m in ((th <= 0) for th in solids.theta))
+    if beyond_cut:
+        walls = solids.walls
+        held = tuple(h if h is None or w is None or w[0].shape[0] != h.shape[0] or bool((h & ~w[0]).any()) else None
+                     for h, w in zip(held, walls))
     if cache is not None:
-        cache["held_faces"] = held
+        cache[key] = held
     return held
 
 

@@ -284,7 +284,8 @@ def diffuse_staggered(
     :mod:`phisim.solvers.mac_diffusion`). With ``fixed`` faces (bodies) the solve uses conjugate gradients
     preconditioned with the exact box solve, or, where the caller passes a ``capacitance`` dict (the solver
     cache of a body layout it reuses), a direct capacitance matrix on the body surface (|S| box solves to build,
-    kept in that dict; then two box solves per call).
+    kept in that dict; then two box solves per call, or, for a sharp surface where the Green's function of the box
+    operator falls below round-off within a window around the body, one box solve and one on that window alone).
 
     Methods and their order in time:
 

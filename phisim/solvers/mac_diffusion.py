@@ -29,7 +29,9 @@ Green's-function correction per transverse mode (:func:`phisim.spectral.fft.wall
 Faces fixed inside the domain (solid bodies: the caller sets their velocity) break the separability. Where the
 caller keeps the faces for reuse (it passes a ``capacitance`` dict, e.g. a stepper's static bodies) the θ-scheme
 is solved directly with a capacitance matrix on the body surface (:class:`_CapacitanceSolve`: two box solves
-and a small LU solve per call), built at the first request and kept in that dict; otherwise by
+and a small LU solve per call; :class:`_SharpCapacitanceSolve` for sharp surfaces: one box solve of the component and
+one on a window around the body where the Green's function decays fast enough, else two), built at the first
+request and kept in that dict; otherwise by
 :func:`phisim.solvers.linalg.cg` on the free faces, preconditioned with the exact box solve. The CG operator is made
 symmetric by halving the rows of free boundary faces on open sides (the vertex-centred Neumann stencil is symmetric
 in that weighted inner product).
@@ -145,6 +147,8 @@ class _Component:
             shape = [1] * (grid.rank + 1)
             shape[1 + i] = -1
             self.weight = w.reshape(shape)
+        #: What identifies this component's box operator in a solver cache (built once, shared by copies).
+        self.key = (i, tuple(self.face_shape), tuple(self.dx), repr(kinds), self.first, self.count, self.odd)
 
     # -- unknowns <-> full component --------------------------------------------------------------------
 
@@ -505,22 +509,25 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
     cut, coef, source = wall
     coef = coef.to(u.dtype)
     source = None if source is None else source.to(u.dtype)
-    u0 = torch.where(cut, torch.zeros_like(u), u)  # the stencil reads 0 on cut faces
 
-    def sharp_lap(v0, v):  # L u = L_0 u - coef u + source on the full component
-        lap = comp.laplace(v0) - coef * v
-        return lap if source is None else lap + source
+    def zeroed():  # the stencil reads 0 on cut faces
+        keep = _open_faces(comp, cut, u.dtype, capacitance)
+        return u.masked_fill(cut, 0) if keep is None else u * keep
 
     if method == "explicit":
-        num = u + alpha * comp.laplace(u0)
+        num = u + alpha * comp.laplace(zeroed())
         if source is not None:
             num = num + alpha * source
-        return torch.where(mask, u, num / (1 + alpha * coef))
+        return torch.where(mask, u, num / _explicit_denominator(comp, coef, alpha, capacitance))
     x = comp.restrict(u)
     b = comp.source(u)
     rhs = x
     if theta < 1:
-        rhs = rhs + ((1 - theta) * alpha) * comp.restrict(sharp_lap(u0, u))
+        u0 = zeroed()
+        lap = comp.laplace(u0) - coef * u  # L u = L_0 u - coef u + source on the full component
+        if source is not None:
+            lap = lap + source
+        rhs = rhs + ((1 - theta) * alpha) * comp.restrict(lap)
         if b is not None:
             rhs = rhs + (theta * alpha) * b
         if source is not None:
@@ -531,11 +538,11 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
         if source is not None:
             rhs = rhs + alpha * comp.restrict(source)
     inverse = comp.inverse_multiplier(theta * alpha, u.dtype, u.device)
-    x0 = comp.restrict(u0)
-    d = comp.restrict(coef)
     cap = _sharp_capacitance(comp, mask, cut, coef, theta * alpha, u.device, engine, capacitance)
     if cap is not None:
-        return cap.solve(comp, rhs, x, x0, inverse, u, engine, like0=u0)
+        return cap.solve(comp, rhs, inverse, u, engine)
+    x0 = comp.restrict(zeroed())
+    d = comp.restrict(coef)
     p = 1 - comp.restrict(mask).to(u.dtype)
     w = None if comp.weight is None else comp.weight.to(dtype=u.dtype, device=u.device)
     a_t = torch.as_tensor(theta * alpha, dtype=u.dtype, device=u.device)
@@ -560,6 +567,49 @@ def _sharp_component(comp, u, mask, wall, method, alpha, theta, solve, engine, c
         solve = Solve(rtol=1e-10 if u.dtype == torch.float64 else 1e-6)
     y = cg(operator, rhs_cg, (p * x).detach(), solve=solve, preconditioner=precond, operator_params=(a_t, d))
     return comp.embed(p * y + (1 - p) * x, u)
+
+
+def _same(kept, t: torch.Tensor) -> bool:
+    """Whether ``t`` is the tensor a cache entry was built from: the very object, not modified in place since
+    (``kept = (t, t._version, copy)``), or, failing that, equal to the copy kept then."""
+    obj, version, copy_ = kept
+    if is_compiling():  # a traced step reads nothing back: the very tensors of the eager steps, or a miss
+        return obj is t
+    if obj is t and t._version == version:
+        return True
+    return copy_.shape == t.shape and copy_.device == t.device and torch.equal(copy_, t)
+
+
+def _kept(t: torch.Tensor):
+    return (t, t._version, t.detach().clone())
+
+
+def _open_faces(comp, cut: torch.Tensor, dtype, cache: dict | None) -> torch.Tensor | None:
+    """``1 - cut`` in ``dtype`` (a product with it zeroes the cut faces), kept in ``cache``; None without one."""
+    if cache is None:
+        return None
+    key = ("open-faces", comp.key, dtype, str(cut.device))
+    hit = cache.get(key)
+    if hit is not None and _same(hit[0], cut):
+        return hit[1]
+    keep = (~cut).to(dtype)
+    if not is_compiling():  # what a trace computes is not kept
+        cache[key] = (_kept(cut), keep)
+    return keep
+
+
+def _explicit_denominator(comp, coef: torch.Tensor, alpha, cache: dict | None) -> torch.Tensor:
+    """``1 + α coef``, the point-implicit diagonal of an explicit step; kept in ``cache`` for a float ``α``."""
+    if cache is None or isinstance(alpha, torch.Tensor) or coef.requires_grad:
+        return 1 + alpha * coef
+    key = ("explicit-denominator", comp.key, float(alpha), coef.dtype, str(coef.device))
+    hit = cache.get(key)
+    if hit is not None and _same(hit[0], coef):
+        return hit[1]
+    den = 1 + alpha * coef
+    if not is_compiling():  # what a trace computes is not kept
+        cache[key] = (_kept(coef), den)
+    return den
 
 
 def staggered_laplace(velocity, walls=None):
@@ -694,18 +744,44 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | N
     return solver or None
 
 
+#: Relative size (per dtype) below which the correction of a sharp capacitance solve is dropped outside its window:
+#: a sixteenth of the round-off that the box solve of the whole component leaves on every face (see
+#: :class:`_SharpCapacitanceSolve`).
+WINDOW_TOLERANCE = {torch.float64: 2.0**-56, torch.float32: 2.0**-28}
+
+
 class _SharpCapacitanceSolve:
     """Exact solve of ``(I - a (L₀ - C)) u = f`` on the free faces, ``u`` read as ``g`` on the held faces.
 
     ``C`` is the diagonal ``coef`` of a sharp no-slip surface on the free faces ``N`` next to it. With the box
     operator ``A = I - a L₀`` (inverted exactly by the transforms) the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources
     ``σ`` on the held surface faces ``S`` and on ``N``: on ``S`` they make ``u_S = g_S``, on ``N`` they supply the
-    diagonal, ``σ_N = -a C u_N``. With ``G = A⁻¹`` restricted to ``S ∪ N``:
-    ``[[G_SS, G_SN], [a C G_NS, I + a C G_NN]] σ = [g_S - z_S, -a C z_N]``, ``z = A⁻¹ f`` (dense, LU-factored
-    once in float64; ``|S| + |N|`` box solves to build, two per call).
+    diagonal, ``σ_N = -a C u_N``. With ``G = A⁻¹`` restricted to ``J = S ∪ N`` and ``z = A⁻¹ f``:
+    ``(G_JJ + diag(0_S, (a C)⁻¹_N)) σ = [g_S, 0_N] - z_J`` (the rows of ``N`` divided by ``a C``; the matrix is
+    built from ``|J|`` box solves and inverted once in float64). ``g`` is the held value as the stencil reads it:
+    the face's value, 0 on the cut faces.
+
+    The correction ``w = A⁻¹ Pᵀ σ = G_{:,J} σ`` is a second box solve of the whole component, or, where ``G``
+    decays fast enough (``a`` small against the cell size), a box solve on a window ``W`` around the body alone:
+    the same operator with ``w = 0`` outside ``W`` (DST-I along every axis). The bound: the row sums
+    ``h = G 1_J ≥ 0`` (``A`` is an M-matrix) satisfy ``A h = 0`` outside the box ``R`` around ``J``, and
+    ``ψ = H λ^(d - m)``, ``d`` the Chebyshev distance to that box, is a supersolution there for ``λ = c / (1 + c)``,
+    ``c = a / dx²`` the largest off-diagonal of ``-a L₀`` away from open sides: a step changes ``d`` by at most one,
+    only one neighbour is closer, and ``-L₀`` is weakly diagonally dominant with every ghost rule. An open side of
+    the own axis (an even ghost about the boundary face, which doubles the inward coefficient there) is unfolded
+    into mirror images of the sources, each no closer than ``R``: a factor 4 on ``ψ`` covers them. With ``H`` the
+    largest ``h`` at ``d = m`` (measured from the columns; ``m = 0`` or a distance where ``h`` is still far above
+    their round-off) the discrete maximum principle gives ``h <= H λ^(d - m)`` (times the images' factor) beyond,
+    so ``|w| <= h ‖σ‖_∞`` is below :data:`WINDOW_TOLERANCE` ``max h ‖σ‖_∞`` outside the window's margin; the
+    window's solve differs from ``w`` by a screened-harmonic function of its values on the ring around ``W``, no
+    larger there (maximum principle again). Both are under the round-off of the whole component's box solve
+    (``2⁻⁵⁶`` in float64, ``2⁻²⁸`` in float32, per unit ``max h ‖σ‖_∞``). The window is used where it lies inside
+    the unknowns with a ring to spare, holds at most half of them, and the component has no periodic axis. Per
+    call: one box solve of the component, the gathers of ``z_J`` and ``g_S``, a ``|J| x |J|`` product and the
+    window's box solve.
     """
 
-    def __init__(self, comp, surface, near, dcoef, fixed, coef: float, device, engine):
+    def __init__(self, comp, surface, near, dcoef, fixed, coef: float, device, engine, cut=None):
         self.surface, self.near = surface, near
         self.fixed = fixed
         self.index = torch.cat([surface, near])
@@ -715,13 +791,12 @@ class _SharpCapacitanceSolve:
         self.ad = (coef * dcoef).to(torch.float64)  # a C on the faces of N
         mult = comp.inverse_multiplier(coef, torch.float64, device)
         g = torch.empty(k, k, dtype=torch.float64, device=device)  # g[j] = (A⁻¹ e_j) on S ∪ N
+        h = torch.zeros(n_all, dtype=torch.float64, device=device)  # row sums of |G_{:,J}|
         chunk = max(1, (1 << 22) // n_all)
         for start in range(0, k, chunk):
-            idx = self.index[start : start + chunk]
-            e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
-            e[torch.arange(idx.numel(), device=device), idx] = 1.0
-            z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
-            g[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, self.index]
+            z = self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
+            g[start : start + z.shape[0]] = z[:, self.index]
+            h += z.abs().sum(0)
         self.op = ("implicit", coef)
         full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
         comp.restrict(full).copy_(fixed)
@@ -729,43 +804,163 @@ class _SharpCapacitanceSolve:
         grid_index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
         unknown_to_full = comp.restrict(grid_index[None]).reshape(-1)
         self.surface_full, self.near_full = unknown_to_full[surface], unknown_to_full[near]
-        m = g.T.clone()  # m[r, j] = G[index_r, index_j]
+        self.index_full = torch.cat([self.surface_full, self.near_full])
+        # the held faces (as flat indices into the full component and into the unknowns): written, not blended
+        self.fixed_index = full.reshape(-1).nonzero().squeeze(1)
+        self.fixed_unknowns = fixed.reshape(-1).nonzero().squeeze(1)
+        # the surface faces whose held value the stencil reads (not cut; a cut face reads 0): their places in J
+        # and their flat indices into the full component
+        read = torch.ones(surface.numel(), dtype=torch.bool, device=device)
+        if cut is not None:
+            read = ~cut.detach().reshape(cut.shape[0], -1)[0, self.surface_full]
+        self.read_pos = read.nonzero().squeeze(1)
+        self.read_full = self.surface_full[self.read_pos]
         ns = surface.numel()
-        m[ns:] *= self.ad.unsqueeze(1)
-        m[ns:, ns:] += torch.eye(near.numel(), dtype=torch.float64, device=device)
-        self.lu, self.pivots = torch.linalg.lu_factor(m)
+        m = g.T.clone()  # m[r, j] = G[index_r, index_j]
+        m[ns:, ns:] += torch.diag(1.0 / self.ad)
+        lu, pivots = torch.linalg.lu_factor(m)
+        # σ = r M⁻ᵀ for rows r: the inverse's transpose, applied as one small product per call
+        self._inverse = torch.linalg.lu_solve(lu, pivots, torch.eye(k, dtype=torch.float64, device=device),
+                                              adjoint=True)
+        # per dtype: the window's solve (slices, the places of J in it, its normalised DST-I multiplier) or None
+        self.windows: dict = {}
+        for dt, tol in WINDOW_TOLERANCE.items():
+            window = self._window(comp, shape, h, coef, k, tol)
+            if window is None:
+                self.windows[dt] = None
+                continue
+            wshape = tuple(sl.stop - sl.start for sl in window)
+            local = torch.unravel_index(self.index, shape)
+            flat = torch.zeros_like(self.index)
+            for a, (sl, m) in enumerate(zip(window, wshape)):
+                flat = flat * m + (local[a] - sl.start)
+            lam = torch.zeros((), dtype=torch.float64)
+            scale = 1.0
+            for a, m in enumerate(wshape):
+                kk = torch.arange(m, dtype=torch.float64)
+                ev = -4 * torch.sin(math.pi * (kk + 1) / (2 * (m + 1))) ** 2 / comp.dx[a] ** 2
+                lam = lam.unsqueeze(-1) + ev
+                scale /= 2 * (m + 1)
+            mult_w = (scale / (1.0 - coef * lam)).to(dtype=dt, device=device)
+            self.windows[dt] = (window, wshape, flat, mult_w)
 
-    def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
-        return torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(resid.dtype)
+    @staticmethod
+    def _columns(comp, idx, shape, mult, engine) -> torch.Tensor:
+        """``A⁻¹ e_j`` for the unknowns ``idx``, as rows ``(len(idx), n)``."""
+        n_all = math.prod(shape)
+        e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=mult.device)
+        e[torch.arange(idx.numel(), device=mult.device), idx] = 1.0
+        return comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True).reshape(idx.numel(), n_all)
 
-    def solve(self, comp, rhs, x, x0, inverse, like, engine, like0=None) -> torch.Tensor:
-        """The full component: free faces solved, held faces ``x`` (read as ``x0`` by the stencil; ``like0``: the
-        full component ``like`` with the cut faces zeroed)."""
-        full = comp.solve_box(rhs, inverse, like, engine, op=self.op) if like0 is not None else None
-        if full is not None:  # no autograd, walls: both box solves written into new full components
+    def _window(self, comp, shape, h: torch.Tensor, coef: float, k: int, tol: float):
+        """The window (slices of the unknowns) outside which the correction is dropped at tolerance ``tol``, or None
+        (see the class)."""
+        if comp.periodic or k == 0:
+            return None
+        n_all = math.prod(shape)
+        coords = torch.stack(torch.unravel_index(self.index, shape), 1)
+        lo, hi = coords.min(0).values.tolist(), coords.max(0).values.tolist()
+        dist = torch.zeros(shape, dtype=torch.long, device=h.device)  # Chebyshev distance to the box of J
+        for a, n in enumerate(shape):
+            x = torch.arange(n, device=h.device)
+            d = torch.clamp(torch.maximum(lo[a] - x, x - hi[a]), min=0)
+            dist = torch.maximum(dist, d.reshape([-1 if b == a else 1 for b in range(len(shape))]))
+        top = int(dist.max())
+        if top == 0:
+            return None
+        # the largest h at each distance
+        at = torch.zeros(top + 1, dtype=torch.float64, device=h.device).scatter_reduce(
+            0, dist.reshape(-1), h, reduce="amax", include_self=True).tolist()
+        hmax = float(h.max())
+        c = coef * max(1.0 / d**2 for d in comp.dx)
+        lam = c / (1.0 + c)
+        # an open side of the own axis mirrors the sources (even ghost about the boundary face): up to two images
+        # per side, each no closer than the box itself
+        images = 1.0
+        if comp.odd is not None and not all(comp.odd):
+            if lam ** (2 * shape[comp.i]) > 1.0 / 3.0:
+                return None
+            images = 4.0
+        target = tol * hmax
+        margin = None
+        for m0, h0 in enumerate(at):
+            if m0 and h0 < 1e-9 * hmax:  # measured values of this size are still exact to 1e-4 (round-off 1e-13)
+                break
+            h0 = images * (h0 + 1e-13 * hmax)
+            q = 0 if h0 <= target else math.ceil(math.log(target / h0) / math.log(lam))
+            margin = m0 + q if margin is None else min(margin, m0 + q)
+        window = tuple(slice(lo[a] - margin, hi[a] + margin + 1) for a in range(len(shape)))
+        # inside the unknowns with a ring to spare (the ring is where the window's zero condition is checked)
+        if any(sl.start < 1 or sl.stop > n - 1 for sl, n in zip(window, shape)):
+            return None
+        if 2 * math.prod(sl.stop - sl.start for sl in window) > n_all:
+            return None
+        return window
+
+    @staticmethod
+    def _window_solve(src: torch.Tensor, mult: torch.Tensor, engine) -> torch.Tensor:
+        """``A_W⁻¹ src`` on the window (zero outside): DST-I along every axis, ``mult`` normalised."""
+        axes = tuple(range(1, src.ndim))
+        kinds = ("dst1",) * len(axes)
+        out = _fft.r2r_multiply(src, kinds, kinds, axes, mult, engine=engine)
+        if out is None:  # autograd or another engine
+            out = _fft.r2rn(_fft.r2rn(src, kinds, axes, engine=engine) * mult, kinds, axes, engine=engine)
+        return out
+
+    def _residual(self, z_flat: torch.Tensor, g_flat: torch.Tensor, z_index) -> torch.Tensor:
+        """``[g_S, 0_N] - z_J`` from flat components (``z_index``: where ``J`` lies in ``z_flat``)."""
+        r = z_flat.index_select(1, z_index).neg_()
+        return r.index_add_(1, self.read_pos, g_flat.index_select(1, self.read_full))
+
+    def solve(self, comp, rhs, inverse, like, engine) -> torch.Tensor:
+        """The full component: free faces solved, held faces ``like`` (read as 0 on the cut faces by the stencil),
+        boundary faces from the boundary."""
+        full = comp.solve_box(rhs, inverse, like, engine, op=self.op)
+        if full is not None:  # no autograd, walls: the box solve written into a new full component
             b = full.shape[0]
             flat = full.view(b, -1)
-            r_s = like0.reshape(like0.shape[0], -1)[:, self.surface_full] - flat[:, self.surface_full]
-            r_n = -self.ad.to(flat.dtype) * flat[:, self.near_full]
-            sigma = self._sigma(torch.cat([r_s, r_n], 1))
-            src = full.new_zeros((b, math.prod(self.fixed.shape[1:])))
-            src.index_copy_(1, self.index, sigma)
-            src = src.view(b, *self.fixed.shape[1:])
-            corr = comp.solve_box(src, inverse, like, engine, op=self.op)
-            if corr is None:
-                comp.restrict(full).add_(comp.apply(src, inverse, engine, prescaled=True))
+            z = comp.restrict(full)
+            r = self._residual(flat, like.reshape(like.shape[0], -1), self.index_full)
+        else:
+            z = comp.apply(rhs, inverse, engine, prescaled=True)
+            b = z.shape[0]
+            r = self._residual(z.reshape(b, -1), like.reshape(like.shape[0], -1), self.index)
+        grad = z.requires_grad or r.requires_grad
+        win = self.windows.get(r.dtype, self.windows[torch.float64])
+        if win is not None:
+            window, wshape, places, mult_w = win
+            sigma = (r.to(torch.float64) @ self._inverse).to(r.dtype)
+            src = torch.zeros((b, math.prod(wshape)), dtype=z.dtype, device=z.device)
+            src = src.index_copy(1, places, sigma).view(b, *wshape)
+            corr = self._window_solve(src, mult_w.to(z.dtype), engine)
+            if grad:
+                pad = []
+                for sl, n in reversed(list(zip(window, z.shape[1:]))):
+                    pad += [sl.start, n - sl.stop]
+                z = z + torch.nn.functional.pad(corr, pad)
             else:
-                full.add_(corr)
-            return torch.where(self.fixed_full, like, full)
-        z = comp.apply(rhs, inverse, engine, prescaled=True)
-        flat = z.flatten(1)
-        r_s = x0.flatten(1)[:, self.surface] - flat[:, self.surface]
-        r_n = -self.ad.to(flat.dtype) * flat[:, self.near]
-        resid = torch.cat([r_s, r_n], 1)
-        sigma = torch.linalg.lu_solve(self.lu, self.pivots, resid.T.to(torch.float64)).T.to(z.dtype)
-        src = torch.zeros_like(flat).index_copy(1, self.index, sigma).reshape(z.shape)
-        z = z + comp.apply(src, inverse, engine, prescaled=True)
-        return comp.embed(torch.where(self.fixed, x, z), like)
+                z[(slice(None), *window)].add_(corr)
+        else:
+            sigma = (r.to(torch.float64) @ self._inverse).to(r.dtype)  # small; float64 as built
+            src = torch.zeros((b, math.prod(self.fixed.shape[1:])), dtype=z.dtype, device=z.device)
+            src = src.index_copy(1, self.index, sigma).view(b, *self.fixed.shape[1:])
+            corr = comp.solve_box(src, inverse, like, engine, op=self.op) if full is not None else None
+            if corr is not None:
+                full.add_(corr)  # the boundary faces are zero in both
+            elif grad:
+                z = z + comp.apply(src, inverse, engine, prescaled=True)
+            else:
+                z.add_(comp.apply(src, inverse, engine, prescaled=True))
+        if full is not None:
+            held = like.reshape(like.shape[0], -1).index_select(1, self.fixed_index)
+            full.view(b, -1).index_copy_(1, self.fixed_index, held.expand(b, -1))
+            return full
+        x = comp.restrict(like)
+        if grad:
+            return comp.embed(torch.where(self.fixed, x, z), like)
+        held = x.reshape(x.shape[0], -1).index_select(1, self.fixed_unknowns)
+        z.view(b, -1).index_copy_(1, self.fixed_unknowns, held.expand(b, -1))
+        return comp.embed(z, like)
 
 
 def _sharp_capacitance(comp, mask, cut, coef_full, coef, device, engine, cache):
@@ -774,11 +969,12 @@ def _sharp_capacitance(comp, mask, cut, coef_full, coef, device, engine, cache):
     if (cache is None or isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or coef_full.shape[0] != 1
             or coef_full.requires_grad):
         return None
-    key = ("sharp-capacitance", comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first,
-           comp.count, comp.odd, float(coef), str(device))
+    key = ("sharp-capacitance", comp.key, float(coef), str(device))
     hit = cache.get(key)
-    if hit is not None and torch.equal(hit[0], mask) and torch.equal(hit[1], coef_full):
-        return hit[2] or None
+    if hit is not None and _same(hit[0], mask) and _same(hit[1], coef_full) and _same(hit[2], cut):
+        return hit[3] or None
+    if is_compiling():  # built by the eager steps only
+        return None
     fixed = comp.restrict(mask).detach()
     surface = _surface(comp, fixed[0])
     d = comp.restrict(coef_full.detach())[0].flatten()
@@ -786,6 +982,6 @@ def _sharp_capacitance(comp, mask, cut, coef_full, coef, device, engine, cache):
     solver = False
     if surface.numel() + near.numel() <= 2 * CAPACITANCE_MAX_FACES:
         solver = _SharpCapacitanceSolve(comp, surface, near, d[near].to(torch.float64), fixed, float(coef), device,
-                                        engine)
-    cache[key] = (mask.detach().clone(), coef_full.detach().clone(), solver)
+                                        engine, cut=cut[:1])
+    cache[key] = (_kept(mask), _kept(coef_full), _kept(cut), solver)
     return solver or None
