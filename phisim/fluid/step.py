@@ -215,7 +215,7 @@ def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressu
         v = impose_solids(v, layout)
     if float(viscosity) != 0:
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
-                             solve=solve if viscosity_scheme == "implicit" else None, solids=layout)
+                             solve=solve if viscosity_scheme == "implicit" else None, solids=layout, time=t_new)
     if layout is None:  # no re-validation; boundary faces already set unless viscosity changed them
         v, p = project_box(v if float(viscosity) == 0 else v.with_boundary_faces(), check=not trusted)
     elif trusted:

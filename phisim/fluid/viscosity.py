@@ -15,6 +15,7 @@ import torch
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import ParameterError
 from phisim.field import StaggeredGrid
+from phisim.fluid.extension import free_slip_ghosts
 from phisim.fluid.projection import check_velocity
 from phisim.ops.differential import laplace
 from phisim.solvers.diffusion import diffuse_staggered, staggered_laplace
@@ -28,7 +29,7 @@ VISCOSITY_SCHEMES = ("explicit", "implicit", "crank_nicolson", "spectral")
 
 def diffuse_velocity(
     velocity: StaggeredGrid, dt, *, viscosity: float, scheme: str = "explicit", solve: Solve | None = None,
-    fixed=None, solids=None,
+    fixed=None, solids=None, time: float = 0.0,
 ) -> StaggeredGrid:
     """Viscous diffusion ``du/dt = viscosity * lap(u)`` of a MAC velocity over one step ``dt``.
 
@@ -50,7 +51,9 @@ def diffuse_velocity(
         solids: The rasterised solids (:class:`~phisim.fluid.bodies.SolidLayout`, after
             :func:`~phisim.fluid.projection.impose_solids`), or None. Faces they close are held, and sharp no-slip
             bodies enter the stencil of the faces next to them at their true surface (``SolidLayout.walls``); the
-            direct capacitance solves of a persistent layout are kept on it.
+            direct capacitance solves of a persistent layout are kept on it. Free-slip bodies: the faces they close
+            take ghost values of the free-slip condition first (:func:`~phisim.fluid.extension.free_slip_ghosts`).
+        time: Time of ``solids`` (the velocity of moving free-slip bodies in their ghost values).
 
     Returns:
         The diffused velocity with boundary faces re-imposed.
@@ -75,6 +78,8 @@ def diffuse_velocity(
                 "use scheme='implicit' or 'crank_nicolson'"
             )
     walls, capacitance = None, None
+    if solids is not None and solids.slip is not None:
+        velocity = free_slip_ghosts(velocity, solids, float(time), closed_only=False)
     if solids is not None and solids.walls is not None:
         walls = solids.walls
         held = _held_faces(solids, beyond_cut=True)

@@ -101,3 +101,38 @@ def test_navier_stokes_couette_flow_converges_at_second_order_with_the_extension
     assert min(orders.values()) >= 1.5, rows
     plain = tc.study([24, 48], advection="maccormack", extension=False)
     assert plain[1]["near_max"] > 1.2 * rows[1]["near_max"], (plain, rows)
+
+
+def _ghost_error(n: int) -> float:
+    """Largest error of the free-slip ghost values of a rigid rotation inside a free-slip outer cylinder."""
+    from phisim.fluid import SDF, impose_solids
+    from phisim.fluid.extension import free_slip_ghosts
+
+    c = torch.tensor([0.013, -0.021], dtype=F64)
+    grid = Grid((n, n), bounds=[(-1, 1), (-1, 1)])
+    outer = Body(SDF(lambda x: 0.8 - (x - c.to(x.dtype)).norm(dim=-1), center=(0.013, -0.021),
+                     bounds=((-1, -1), (1, 1))), no_slip=False)
+
+    def rigid(x):
+        r = x - c
+        return torch.stack([-r[..., 1], r[..., 0]], -1)
+
+    v = StaggeredGrid.from_function(rigid, grid, "wall", dtype=F64)
+    layout = solid_layout(outer, grid, v.boundary, 0.0, F64)
+    ghosts = free_slip_ghosts(impose_solids(v, layout), layout, closed_only=False)
+    err = []
+    for i in range(2):
+        x = grid.face_centers(i, F64)
+        phi = outer.sdf(x, 0.0)
+        band = (phi <= 0) & (phi > -BAND_CELLS * grid.dx[0])
+        err.append((ghosts.values[i][0] - rigid(x)[..., i])[band].abs().max())
+    return float(max(err))
+
+
+def test_free_slip_ghosts_continue_a_rigid_rotation_through_a_curved_surface():
+    """A rigid rotation has no shear stress anywhere: the ghost values inside a free-slip cylinder (tangential part
+    grown with the surface's curvature, normal part through 0) reproduce it, up to the finite-difference curvature
+    of the signed distance (second order)."""
+    e24, e48 = _ghost_error(24), _ghost_error(48)
+    assert e48 < 1e-4, e48
+    assert math.log2(e24 / e48) > 1.8, (e24, e48)
