@@ -176,9 +176,10 @@ class Body:
         rotation: ``rotation(t) -> angle`` (2-D) or rotation vector / matrix (3-D), instead of
             ``angular_velocity``.
         no_slip: True: the fluid takes the body's velocity at its surface; False: free-slip (only the
-            normal flux through the surface is closed). The viscous step does not know the free-slip condition:
-            it reads the body's velocity on the faces inside, so with viscosity a free-slip body drags the fluid
-            much like a no-slip one on the staircase of its faces (docs/VALIDATION.md, "Free-slip bodies").
+            normal flux through the surface is closed; the viscous step reads ghost values of the free-slip
+            condition inside, :func:`phisim.fluid.extension.free_slip_ghosts`). Next to curved free-slip surfaces
+            the velocity is not converged yet (an O(1) flux error in the cut cells; docs/VALIDATION.md,
+            "Free-slip bodies").
         name: A label used in outputs (forces, files).
         sharp: How a no-slip body imposes its velocity. True (default): sharply, at the true surface: cut faces
             keep the fluid velocity and the viscous stencil of every fluid face next to the body takes the body's
