@@ -612,12 +612,15 @@ def uncover_faces(values, layout: SolidLayout, grid, t_old: float, t_new: float)
     """
     from phisim.fluid.bodies import Body, uncovered_stencil
 
-    moving = [b for b in layout.bodies if isinstance(b, Body) and b.no_slip and b.sharp and not b.static]
-    if not moving or t_new == t_old:
+    sharp = [b for b in layout.bodies if isinstance(b, Body) and b.no_slip and b.sharp]
+    if all(b.static for b in sharp) or t_new == t_old:
         return values
     out = []
     for i, u in enumerate(values):
-        st = uncovered_stencil(moving, grid, i, t_old, t_new, torch.float64, u.device)
+        st = uncovered_stencil(sharp, grid, i, t_old, t_new, torch.float64, u.device)
+        if st is not None:  # not where another solid (a staircase obstacle, a blended body) closes the face
+            wet = layout.theta[i].detach().amax(0).reshape(-1)[st[0]] > 0
+            st = None if not bool(wet.any()) else tuple(x[wet] for x in st)
         if st is None:
             out.append(u)
             continue

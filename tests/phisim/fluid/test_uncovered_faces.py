@@ -167,3 +167,26 @@ def test_dutsch_morison_fit_recovers_coefficients_and_the_script_runs(tmp_path):
     assert abs(fit["C_i"] - 1.4) < 1e-8 and fit["rms_difference_over_amplitude"] > 0.03
     assert mod.main(["--res", "2", "--periods", "0.1", "--half-width", "3", "--out", str(tmp_path / "d")]) == 0
     assert (tmp_path / "d_forces.csv").exists() and (tmp_path / "d_profiles.csv").exists()
+
+
+def test_faces_closed_by_another_solid_are_left_alone():
+    """A face the moving disc uncovers inside a staircase obstacle keeps the obstacle's imposed value (0)."""
+    from phisim.fluid import Obstacle
+
+    grid = Grid((40, 32), bounds=[(0.0, 1.25), (0.0, 1.0)])
+    body = Body(Sphere((0.5, 0.52), 0.2), velocity=(0.3, 0.0))
+    wall = Obstacle.box((0.0, 0.0), (0.45, 1.0))  # covers the disc's trailing side
+    v = _linear_field(grid, ((1.0, 2.0, -1.0), (-0.5, 1.0, 3.0)))
+    both = solid_layout([body, wall], grid, Boundary.create("wall", 2), 0.1, F64)
+    out = impose_solids(v, both, moved=(0.0, 0.1))
+    plain = impose_solids(v, both)
+    changed = 0
+    for i in range(2):
+        th = both.theta[i][0]
+        assert torch.equal(out.values[i][0][th <= 0], plain.values[i][0][th <= 0])
+        changed += int((out.values[i][0] != plain.values[i][0]).sum())
+        st = uncovered_stencil([body], grid, i, 0.0, 0.1, F64, None)
+        if st is not None:
+            closed = th.reshape(-1)[st[0]] <= 0
+            assert bool(closed.any()) or i == 1  # some uncovered faces lie in the obstacle
+    assert changed > 0  # the others still take the profile
