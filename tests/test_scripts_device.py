@@ -56,6 +56,7 @@ SCRIPTS = {
     "examples/smoke_plume.py": ["--out", "{out}"],
     "examples/taylor_couette.py": ["--n", "16", "--max-steps", "2"],
     "examples/oscillating_cylinder.py": ["--n", "8", "--steps", "24", "--out", "{out}/forces.csv"],
+    "examples/dutsch_cylinder.py": ["--res", "2", "--periods", "0.1", "--half-width", "3", "--out", "{out}/dutsch"],
     "examples/pde_inverse.py": ["--iterations", "2", "--max-iterations", "hig=1", "--seeds", "0", "--heldout-size",
                                 "4", "--eval-every", "1", "--reference-iterations", "1", "--width", "4", "--blocks",
                                 "1", "--out", "{out}"],

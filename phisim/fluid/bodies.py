@@ -820,3 +820,30 @@ def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:
     if solid is None or not bool(solid.any()):
         return None
     return solid
+
+
+def uncovered_stencil(bodies, grid: Grid, i: int, t_old: float, t_new: float, dtype, device):
+    """The faces of component ``i`` that moving sharp no-slip bodies uncover between ``t_old`` and ``t_new``, and the
+    value each takes: ``(index, corners, weights, factor, base)``, or None when no face is uncovered.
+
+    A face is uncovered when its centre lies inside the union of ``bodies`` at ``t_old`` (``phi <= 0``) and in the
+    fluid at ``t_new``. Its velocity there is the linear wall profile of the relative velocity along the normal,
+    ``u = u_s(x) + (phi / d) (u(P) - u_s(P))``: the body's velocity at the surface, the fluid's at the probe ``P`` a
+    distance ``d`` (:data:`PROBE_CELLS` cells) from the surface along the normal (the probes of
+    :func:`extension_stencil`), i.e. ``base[k] + factor[k] * sum_j weights[k, j] u[corners[k, j]]`` for the face with
+    flat index ``index[k]``. Differentiable in the bodies' parameters (``factor``, ``base``, ``weights``).
+
+    Args:
+        bodies: The sharp no-slip bodies (their union is the solid).
+        grid: The grid.
+        i: The component.
+        t_old, t_new: The times of the previous and of the new position.
+        dtype, device: Of the computation.
+    """
+    x = grid.face_centers(i, dtype, device)
+    with torch.no_grad():
+        old = torch.stack([b.sdf(x, t_old) for b in bodies], 0).min(0).values
+        new = torch.stack([b.sdf(x, t_new) for b in bodies], 0).min(0).values
+        select = (old <= 0) & (new > 0)
+    ext = extension_stencil(bodies, grid, i, t_new, dtype, device, select)
+    return None if ext is None else ext[:5]

@@ -257,7 +257,7 @@ def rk_advance(velocity: StaggeredGrid, dt, nu: float, integrator: str, force, t
         t_out = time + float(dt) * (stages[k + 1][2] if k + 1 < len(stages) else 1.0)
         w = to_time(w, t_out)
         layout = solid_layout(obstacles, w.grid, w.boundary, t_out, w.dtype, w.device)
-        w = impose_solids(w, layout)
+        w = impose_solids(w, layout, moved=(time, t_out))
         stage, pressure = project(w, layout, guess, t_out)
         guess = pressure.values / b if b != 1.0 else pressure
         b_last = b
@@ -298,7 +298,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
             y = y.with_values(tuple(c - x for c, x in zip(y.values, grad_q[1])))
         if half_lap is not None:
             y = y + half_lap
-        y = impose_solids(to_time(y, t_new), layout)
+        y = impose_solids(to_time(y, t_new), layout, moved=(time, t_new))
         if float(nu) != 0:
             y = diffuse_staggered(y, 0.5 * dt, viscosity=nu, method="implicit", fixed=fixed, solve=solve,
                                   capacitance=layout.solvers if layout is not None and layout.direct else None,

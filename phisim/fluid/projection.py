@@ -269,16 +269,22 @@ class Projection:
         return _project(velocity.with_boundary_faces(), layout, self.solve, pressure_guess)
 
 
-def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> StaggeredGrid:
+def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None, moved: tuple[float, float] | None = None
+                  ) -> StaggeredGrid:
     """Impose the solids' velocity ``u_s`` before a viscous step and a projection.
 
     Blended no-slip solids store ``theta u + (1 - theta) u_s``; free-slip bodies and sharp no-slip bodies keep the
     fluid velocity on faces with ``theta > 0`` (a sharp body: on faces whose centre lies in the fluid) and take
-    ``u_s`` on the others.
+    ``u_s`` on the others. With ``moved``, the faces whose centre a moving sharp no-slip body left since the
+    previous time (freshly uncovered faces, which still hold the body's velocity) take the linear wall profile
+    between the body's velocity at the surface and the fluid's velocity at a probe two cells out along the normal
+    (:func:`~phisim.fluid.bodies.uncovered_stencil`).
 
     Args:
         velocity: MAC velocity.
         layout: The rasterised solids (None: returned with boundary faces set).
+        moved: ``(t_old, t_new)``: the time of the previous position of the bodies and the time of ``layout``
+            (None: no face is treated as uncovered).
 
     Returns:
         The velocity with boundary faces re-imposed.
@@ -286,7 +292,10 @@ def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None) -> Stagge
     v = velocity.with_boundary_faces()
     if layout is None:
         return v
-    return v.with_values(_blend(v.values, layout)).with_boundary_faces()
+    values = _blend(v.values, layout)
+    if moved is not None:
+        values = uncover_faces(values, layout, v.grid, *moved)
+    return v.with_values(values).with_boundary_faces()
 
 
 def _solid(layout: SolidLayout, i: int, like: torch.Tensor):
@@ -642,3 +651,35 @@ def relative_divergence(velocity: StaggeredGrid, reference: StaggeredGrid | None
         scale = torch.stack([c.flatten(1).abs().max(1).values for c in velocity.values]).max(0).values
         scale = scale / min(velocity.grid.dx)
         return d.abs().max(1).values / scale.clamp_min(torch.finfo(d.dtype).tiny)
+
+
+def uncover_faces(values, layout: SolidLayout, grid, t_old: float, t_new: float):
+    """``values`` with the faces that moving sharp no-slip bodies of ``layout`` uncovered between ``t_old`` and
+    ``t_new`` set to the linear wall profile (:func:`~phisim.fluid.bodies.uncovered_stencil`); unchanged without
+    moving sharp no-slip bodies.
+
+    Why: such a face still holds the velocity it was given inside the body (the body's velocity, then advected),
+    which the viscous step and the projection would take as the fluid's. The profile is what the sharp surface
+    imposes on the faces next to it (the linear ghost values of the viscous stencil, the flux correction's wall
+    profile), from values already in the fluid: it changes the stored velocity continuously as a face leaves
+    the body (``phi -> 0`` gives the body's velocity).
+    """
+    from phisim.fluid.bodies import Body, uncovered_stencil
+
+    sharp = [b for b in layout.bodies if isinstance(b, Body) and b.no_slip and b.sharp]
+    if all(b.static for b in sharp) or t_new == t_old:
+        return values
+    out = []
+    for i, u in enumerate(values):
+        st = uncovered_stencil(sharp, grid, i, t_old, t_new, torch.float64, u.device)
+        if st is not None:  # not where another solid (a staircase obstacle, a blended body) closes the face
+            wet = layout.theta[i].detach().amax(0).reshape(-1)[st[0]] > 0
+            st = None if not bool(wet.any()) else tuple(x[wet] for x in st)
+        if st is None:
+            out.append(u)
+            continue
+        index, corners, weights, factor, base = st
+        flat = u.reshape(u.shape[0], -1)
+        value = base.to(u.dtype) + factor.to(u.dtype) * (flat[:, corners] * weights.to(u.dtype)).sum(-1)
+        out.append(flat.index_copy(1, index, value.expand(flat.shape[0], -1)).reshape(u.shape))
+    return tuple(out)

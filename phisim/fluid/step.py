@@ -212,7 +212,7 @@ def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressu
     """
     layout = None if obstacles is None else solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
     if layout is not None or not faces_set:
-        v = impose_solids(v, layout)
+        v = impose_solids(v, layout, moved=(t_new - float(dt), t_new))
     if float(viscosity) != 0:
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None, solids=layout, time=t_new)
