@@ -49,7 +49,7 @@ from phisim.boundary import NORMAL, Boundary
 from phisim.checks import all_finite, check_batch_compatible
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import Obstacle, SolidLayout, as_solids, solid_layout
+from phisim.fluid.bodies import Body, Obstacle, SolidLayout, as_solids, solid_layout, uncovered_stencil
 from phisim.ops.differential import divergence
 from phisim.ops.stencil import face_divergence, face_gradient, normalize_kinds
 from phisim.solvers.box import apply_multiplier, is_singular, solve_multiplier
@@ -664,7 +664,6 @@ def uncover_faces(values, layout: SolidLayout, grid, t_old: float, t_new: float)
     profile), from values already in the fluid: it changes the stored velocity continuously as a face leaves
     the body (``phi -> 0`` gives the body's velocity).
     """
-    from phisim.fluid.bodies import Body, uncovered_stencil
 
     sharp = [b for b in layout.bodies if isinstance(b, Body) and b.no_slip and b.sharp]
     if all(b.static for b in sharp) or t_new == t_old:
