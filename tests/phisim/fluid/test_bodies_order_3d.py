@@ -21,13 +21,13 @@ def _orders(rows, key):
 
 
 def test_spherical_couette_flow_converges_at_second_order(load_example):
-    """Velocity within two cells of either sphere (max and rms) and the torque transmitted through the middle sphere:
-    observed order at least 1.5 from 16^3 to 24^3 (measured: 1.76, 1.60, 2.21)."""
+    """Velocity within two cells of either sphere (max and rms) and on all fluid faces (rms): observed order at least
+    1.5 from 16^3 to 24^3 (measured: 1.76, 1.60, 1.67)."""
     sc = load_example("spherical_couette")
     rows = sc.study([16, 24], rtol=1e-8, tol=1e-7)  # the same figures as the defaults (1e-10, 1e-9) in half the time
     # relative to the wall speed (measured 1.6e-2, 2.4e-3)
     assert rows[-1]["near_max"] < 1.8e-2 and rows[-1]["near_rms"] < 2.8e-3
-    for key in ("near_max", "near_rms", "all_rms", "torque_mid"):
+    for key in ("near_max", "near_rms", "all_rms"):
         assert min(_orders(rows, key)) >= 1.5, (key, rows)
 
 
@@ -54,10 +54,13 @@ def test_spherical_couette_exact_solution_and_torque(load_example):
 
 @pytest.mark.slow
 def test_spherical_couette_flow_converges_at_second_order_on_three_grids(load_example):
+    """16^3-24^3-32^3 (measured orders 1.76 / 2.42, 1.60 / 2.07, 1.67 / 2.16), and the torque transmitted through the
+    middle sphere from 24^3 to 32^3 (2.36; on 16^3 its stencil reaches across the walls)."""
     sc = load_example("spherical_couette")
-    rows = sc.study([16, 24, 32])
-    for key in ("near_max", "near_rms", "all_rms", "torque_mid"):
+    rows = sc.study([16, 24, 32], rtol=1e-8, tol=1e-7)
+    for key in ("near_max", "near_rms", "all_rms"):
         assert min(_orders(rows, key)) >= 1.5, (key, rows)
+    assert _orders(rows[1:], "torque_mid")[0] >= 1.5, rows
 
 
 def test_sphere_in_a_stream_drag_is_positive_and_cross_forces_vanish_by_symmetry(load_example):
