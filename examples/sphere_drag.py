@@ -42,7 +42,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phisim import Grid, Open, StaggeredGrid  # noqa: E402
+from phisim import CenteredGrid, Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.fluid import Body, FluidState, FluidStepper, Sphere, body_forces  # noqa: E402
@@ -71,6 +71,31 @@ def setup(n: int, re: float = 100.0, dtype=torch.float64, device="cpu", width: f
                                                            0 * x[..., 0]], -1), grid, boundary, dtype=dtype,
                                     device=device)
     return grid, body, FluidState(v.with_boundary_faces()), U * D / re
+
+
+def stokes_velocity(x: torch.Tensor) -> torch.Tensor:
+    """Stokes flow past the resting sphere in the stream ``U`` (zero inside), ``(..., 3)``: ``u = U - (3 a / 4) (U / r
+    + (U . x) x / r^3) - (a^3 / 4) (U / r^3 - 3 (U . x) x / r^5)`` with ``a = D / 2``; its viscous drag is
+    ``4 pi mu a U`` (two thirds of Stokes' ``6 pi mu a U``)."""
+    a = D / 2
+    r = x.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    u_inf = torch.zeros_like(x)
+    u_inf[..., 0] = U
+    ux = U * x[..., :1]
+    u = u_inf - 0.75 * a * (u_inf / r + ux * x / r**3) - 0.25 * a**3 * (u_inf / r**3 - 3 * ux * x / r**5)
+    return torch.where(r > a, u, torch.zeros_like(u))
+
+
+def stokes_viscous_check(n: int, probe_distance: float = 1.5, nu: float = 0.01, device="cpu") -> float:
+    """The viscous drag coefficient that :func:`phisim.fluid.body_forces` measures on the exact Stokes flow sampled
+    onto the grid with ``n`` cells per diameter, relative to the exact ``C_D,v = 16 nu / (U D)``, minus 1: the error of
+    the force measurement alone, on a profile without a thin boundary layer."""
+    grid, body, state, _ = setup(n, dtype=torch.float64, device=device)
+    v = StaggeredGrid.from_function(stokes_velocity, grid, state.velocity.boundary, dtype=torch.float64,
+                                    device=state.velocity.device)
+    p = CenteredGrid.zeros(grid, "open", dtype=torch.float64, device=v.device)
+    f = body_forces(v, p, body, dt=1.0, viscosity=nu, probe_distance=probe_distance)
+    return float(2 * f.viscous[0, 0] / (U**2 * AREA)) / (16 * nu / (U * D)) - 1
 
 
 def recirculation_length(velocity: StaggeredGrid, samples: int = 2000) -> float:
