@@ -446,7 +446,7 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     :func:`~phisim.fluid.geometry.fluid_fraction` over the control volume of side ``dx``."""
     phi = body.sdf(points, t)
     grad = sdf_gradient(body, points, t, 1e-3 * dx)
-    if body.no_slip and body.sharp:
+    if body.sharp or not body.no_slip:
         return cut_fractions(phi, face_normal(grad, axis), dx)[0]
     return fluid_fraction(phi, grad.abs().sum(-1), dx)
 

@@ -50,6 +50,7 @@ from phisim.checks import all_finite, check_batch_compatible
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Body, Obstacle, SolidLayout, as_solids, solid_layout, uncovered_stencil
+from phisim.fluid.extension import free_slip_flux
 from phisim.ops.differential import divergence
 from phisim.ops.stencil import face_divergence, face_gradient, normalize_kinds
 from phisim.solvers.box import apply_multiplier, is_singular, solve_multiplier
@@ -390,11 +391,16 @@ def _sharp_keep(layout: SolidLayout, i: int, imposing: bool):
     return cache[key]
 
 
-def _flux(values, layout: SolidLayout, probes=None):
+def _flux(values, layout: SolidLayout, probes=None, grid=None):
     """The volume flux per face of imposed velocities (the projection's right-hand side): ``theta u + (1 - theta)
     u_s``, plus the :func:`flux_correction` of sharp no-slip bodies (from ``probes``, default ``values``)."""
     out = []
     corr = _correction_values(values if probes is None else probes, layout)
+    slip = None if grid is None else free_slip_flux(values if probes is None else probes, layout, grid)
+    if slip is not None:
+        corr = slip if corr is None else [a if b is None else b if a is None else
+                                          (torch.cat([a[0], b[0]]), torch.cat([a[1], b[1]], -1))
+                                          for a, b in zip(corr, slip)]
     for i, u in enumerate(values):
         th = layout.theta[i].to(u.dtype)
         s = _solid(layout, i, u)
@@ -435,7 +441,7 @@ def solid_flux(velocity: StaggeredGrid, layout: SolidLayout | None, before: Stag
     if layout is None or (layout.slip is None and layout.sharp is None):
         return velocity
     values = velocity.values
-    flux = _flux(values, layout, None if before is None else before.values)
+    flux = _flux(values, layout, None if before is None else before.values, velocity.grid)
     out = []
     for i, (u, f) in enumerate(zip(values, flux)):
         share = [x[i].to(u.dtype) for x in (layout.slip, layout.sharp) if x is not None]
@@ -598,7 +604,7 @@ def _project(v, layout, solve, pressure_guess, trusted: bool = False) -> Project
     if not trusted and layout.bodies and bool((cell.flatten(1).max(1).values <= 0).any()):
         raise ParameterError("obstacles cover every cell of a sample; there is no fluid to project")
     values = v.values
-    flux = _flux(values, layout)
+    flux = _flux(values, layout, grid=grid)
     op = _operator(layout, normalize_kinds(kinds, grid.rank), grid.dx)
     rhs = -op.divergence(flux)
     x0 = _guess_tensor(pressure_guess, v)

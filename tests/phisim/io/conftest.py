@@ -63,6 +63,25 @@ def process_gone(pid: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
+def _terminal_signals() -> None:
+    """In a spawned command: Ctrl-C as at a terminal. A test run started in the background by a non-interactive
+    shell inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler in its children."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.fixture(autouse=True)
+def _sigint_as_at_a_terminal():
+    """This process's SIGINT as at a terminal for the duration of a test (see :func:`_terminal_signals`)."""
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        yield
+        return
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _env() -> dict:
     """The environment of the commands: the repository importable, the same for every run compared."""
     return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -75,7 +94,7 @@ def run_and_interrupt(args: list[str], ready: Callable[[], bool], *, cwd: Path, 
     Fails the test if the command ends before ``ready()`` or never becomes ready.
     """
     proc = subprocess.Popen([sys.executable, *args], cwd=cwd, env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_terminal_signals)
     try:
         t0 = time.monotonic()
         while not ready():
@@ -102,7 +121,7 @@ def run_python(args: list[str], *, cwd: Path, timeout: float = 300.0) -> subproc
     """Run ``python args...`` to its end in the environment of :func:`run_and_interrupt` (runs whose bits are
     compared must not depend on the test process's torch settings, e.g. its thread count)."""
     return subprocess.run([sys.executable, *args], cwd=cwd, env=_env(), capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, preexec_fn=_terminal_signals)
 
 
 @pytest.fixture
