@@ -551,6 +551,21 @@ def extension_stencil(bodies, grid: Grid, i: int, t: float, dtype, device, selec
     return index, torch.stack(corners, 1), torch.stack(weights, 1), factor, base, owner, normal, us_probe
 
 
+def sharp_no_slip(solids) -> list:
+    """The sharp no-slip :class:`Body` objects among ``solids`` (bodies, obstacles, in any order)."""
+    return [s for s in solids if isinstance(s, Body) and s.no_slip and s.sharp]
+
+
+def set_from_probes(u: torch.Tensor, stencil: tuple) -> torch.Tensor:
+    """``u`` (one MAC component ``(B, *face_shape)``) with the faces of an :func:`extension_stencil`-type ``stencil``
+    ``(index, corners, weights, factor, base)`` set to ``base + factor * sum_j weights[:, j] u[corners[:, j]]`` (the
+    linear wall profile through the probes)."""
+    index, corners, weights, factor, base = stencil
+    flat = u.reshape(u.shape[0], -1)
+    value = base.to(u.dtype) + factor.to(u.dtype) * (flat[:, corners] * weights.to(u.dtype)).sum(-1)
+    return flat.index_copy(1, index, value.expand(flat.shape[0], -1)).reshape(u.shape)
+
+
 def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
     """``(cut, coef, source)`` of the sharp no-slip stencil of MAC component ``i`` (see :class:`SolidLayout`).
 
@@ -754,7 +769,7 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
         return None if ts is None else tuple(x.to(dtype) for x in ts)
 
     walls = extension = None
-    sharp = [s for s in solids if isinstance(s, Body) and s.no_slip and s.sharp]
+    sharp = sharp_no_slip(solids)
     if sharp:
         walls, extension = [], []
         for i in range(rank):

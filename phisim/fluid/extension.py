@@ -31,6 +31,8 @@ from phisim.fluid.bodies import (
     extension_stencil,
     face_normal,
     sdf_gradient,
+    set_from_probes,
+    sharp_no_slip,
     unit_normal,
 )
 from phisim.fluid.geometry import cut_fractions
@@ -40,10 +42,6 @@ __all__ = ["BAND_CELLS", "extend_into_bodies", "free_slip_flux", "free_slip_ghos
 #: Depth of the band inside a body that gets the extended velocity, in cells (a departure point of a Courant
 #: number up to 1 and its interpolation stencil reach one cell beyond the faces next to the surface).
 BAND_CELLS = 2.0
-
-
-def _sharp_bodies(solids) -> list:
-    return [s for s in solids if isinstance(s, Body) and s.no_slip and s.sharp]
 
 
 def _stencils(bodies, grid, t: float, dtype, device) -> tuple:
@@ -76,7 +74,7 @@ def extend_into_bodies(velocity: StaggeredGrid, obstacles, time: float = 0.0) ->
     if obstacles is None:
         return velocity
     layout = obstacles if isinstance(obstacles, SolidLayout) else None
-    bodies = _sharp_bodies(layout.bodies if layout is not None else as_solids(obstacles))
+    bodies = sharp_no_slip(layout.bodies if layout is not None else as_solids(obstacles))
     if not bodies:
         return velocity
     dtype, device = velocity.dtype, velocity.device
@@ -87,16 +85,8 @@ def extend_into_bodies(velocity: StaggeredGrid, obstacles, time: float = 0.0) ->
         stencils = _stencils(bodies, velocity.grid, float(time), dtype, device)
         if cache is not None:
             cache[key] = stencils
-    out = []
-    for u, st in zip(velocity.values, stencils):
-        if st is None:
-            out.append(u)
-            continue
-        index, corners, weights, factor, base = st
-        flat = u.reshape(u.shape[0], -1)
-        value = base + factor * (flat[:, corners] * weights).sum(-1)
-        out.append(flat.index_copy(1, index, value).reshape(u.shape))
-    return velocity._with_components(out)
+    return velocity._with_components([u if st is None else set_from_probes(u, st)
+                                      for u, st in zip(velocity.values, stencils)])
 
 
 def _free_slip_bodies(solids) -> list:

@@ -49,7 +49,15 @@ from phisim.boundary import NORMAL, Boundary
 from phisim.checks import all_finite, check_batch_compatible
 from phisim.errors import GridMismatchError, NonFiniteError, ParameterError, ShapeError, SolveError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import Body, Obstacle, SolidLayout, as_solids, solid_layout, uncovered_stencil
+from phisim.fluid.bodies import (
+    Obstacle,
+    SolidLayout,
+    as_solids,
+    set_from_probes,
+    sharp_no_slip,
+    solid_layout,
+    uncovered_stencil,
+)
 from phisim.fluid.extension import free_slip_flux
 from phisim.ops.differential import divergence
 from phisim.ops.stencil import face_divergence, face_gradient, normalize_kinds
@@ -671,7 +679,7 @@ def uncover_faces(values, layout: SolidLayout, grid, t_old: float, t_new: float)
     the body (``phi -> 0`` gives the body's velocity).
     """
 
-    sharp = [b for b in layout.bodies if isinstance(b, Body) and b.no_slip and b.sharp]
+    sharp = sharp_no_slip(layout.bodies)
     if all(b.static for b in sharp) or t_new == t_old:
         return values
     out = []
@@ -680,11 +688,5 @@ def uncover_faces(values, layout: SolidLayout, grid, t_old: float, t_new: float)
         if st is not None:  # not where another solid (a staircase obstacle, a blended body) closes the face
             wet = layout.theta[i].detach().amax(0).reshape(-1)[st[0]] > 0
             st = None if not bool(wet.any()) else tuple(x[wet] for x in st)
-        if st is None:
-            out.append(u)
-            continue
-        index, corners, weights, factor, base = st
-        flat = u.reshape(u.shape[0], -1)
-        value = base.to(u.dtype) + factor.to(u.dtype) * (flat[:, corners] * weights.to(u.dtype)).sum(-1)
-        out.append(flat.index_copy(1, index, value.expand(flat.shape[0], -1)).reshape(u.shape))
+        out.append(u if st is None else set_from_probes(u, st))
     return tuple(out)
