@@ -126,6 +126,7 @@ def main(argv=None) -> int:
                         help="time step in units of dx^2 / nu (default 50 incremental, 1 split)")
     parser.add_argument("--tol", type=float, default=1e-7, help="steady when a step changes the velocity less "
                         "than this times its maximum (default 1e-7)")
+    parser.add_argument("--max-steps", type=int, default=100000, help="most steps per grid (default 100000)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     parser.add_argument("--out", default=None, help="JSON file for the results")
@@ -134,7 +135,7 @@ def main(argv=None) -> int:
     device = check_device(args.device)
     rows = []
     for n in args.n:
-        row = solve_steady(n, args.c, args.scheme, args.dt_cells, args.tol, device=device)
+        row = solve_steady(n, args.c, args.scheme, args.dt_cells, args.tol, args.max_steps, device=device)
         rows.append(row)
         print(f"n={n:4d} D/dx={row['cells_per_diameter']:5.1f} steps={row['steps']:6d}  "
               f"F/(mu U)={row['coefficient']:.5f}"
@@ -144,6 +145,7 @@ def main(argv=None) -> int:
         print("orders, coefficient:", [round(o, 2) for o in orders(rows, "error")],
               " surface force:", [round(o, 2) for o in orders(rows, "surface_error")])
     if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=1) + "\n")
     return 0
 

@@ -56,6 +56,7 @@ SCRIPTS = {
     "examples/smoke_plume.py": ["--out", "{out}"],
     "examples/taylor_couette.py": ["--n", "16", "--max-steps", "2"],
     "examples/spherical_couette.py": ["--n", "12", "--max-steps", "2", "--out", "{out}/couette.json"],
+    "examples/cylinder_array.py": ["--n", "8", "--max-steps", "2", "--out", "{out}/array.json"],
     "examples/sphere_drag.py": ["--n", "4", "--box", "1.5", "3", "3", "--t-end", "0.5", "--quiet", "--out",
                                 "{out}/sphere.json"],
     "examples/oscillating_cylinder.py": ["--n", "8", "--steps", "24", "--out", "{out}/forces.csv"],

@@ -3,6 +3,7 @@ Sangani & Acrivos (1982): the discrete flow past a sharp no-slip body converges 
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -15,6 +16,17 @@ def test_reference_series_matches_the_published_table(load_example):
     for c, table in ((0.05, 15.56), (0.1, 24.83)):
         assert abs(ca.sangani_acrivos(c) - table) / table < 1e-3
     assert abs(ca.sangani_acrivos(0.2) - 51.53) / 51.53 > 0.01
+
+
+def test_tiny_run_writes_its_rows(load_example, tmp_path):
+    """Both steady iterations run from the command line and write one row per grid with the reference."""
+    ca = load_example("cylinder_array")
+    for scheme in ("incremental", "split"):
+        out = tmp_path / scheme / "array.json"
+        assert ca.main(["--n", "8", "12", "--max-steps", "3", "--scheme", scheme, "--out", str(out)]) == 0
+        rows = json.loads(out.read_text())["rows"]
+        assert [r["n"] for r in rows] == [8, 12] and all(r["steps"] == 3 for r in rows)
+        assert all(math.isfinite(r["coefficient"]) and r["reference"] == ca.sangani_acrivos(0.05) for r in rows)
 
 
 def test_unknown_scheme_is_refused(load_example):
