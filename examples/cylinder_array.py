@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
+from phisim.errors import ParameterError  # noqa: E402
 from phisim.fluid import (  # noqa: E402
     Body,
     Sphere,
@@ -73,7 +74,7 @@ def solve_steady(n: int, c: float = 0.05, scheme: str = "incremental", dt_cells:
 
     Steps until the largest change of a step is below ``tol`` times the largest velocity."""
     if scheme not in ("incremental", "split"):
-        raise ValueError(f"scheme must be 'incremental' or 'split', got {scheme!r}")
+        raise ParameterError(f"scheme must be 'incremental' or 'split', got {scheme!r}")
     dt_cells = (50.0 if scheme == "incremental" else 1.0) if dt_cells is None else dt_cells
     radius = math.sqrt(c / math.pi)
     grid = Grid((n, n), bounds=[(0.0, 1.0), (0.0, 1.0)])
@@ -146,7 +147,8 @@ def main(argv=None) -> int:
               " surface force:", [round(o, 2) for o in orders(rows, "surface_error")])
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=1) + "\n")
+        Path(args.out).write_text(json.dumps({"rows": rows, "argv": list(sys.argv[1:] if argv is None else argv)},
+                                              indent=1) + "\n")
     return 0
 
 

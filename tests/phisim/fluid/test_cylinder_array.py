@@ -8,6 +8,8 @@ import math
 
 import pytest
 
+from phisim.errors import ParameterError
+
 
 def test_reference_series_matches_the_published_table(load_example):
     """The truncated series reproduces Sangani & Acrivos's table where it applies (15.56 at c = 0.05, 24.83 at 0.1;
@@ -31,7 +33,7 @@ def test_tiny_run_writes_its_rows(load_example, tmp_path):
 
 def test_unknown_scheme_is_refused(load_example):
     ca = load_example("cylinder_array")
-    with pytest.raises(ValueError, match="scheme"):
+    with pytest.raises(ParameterError, match="scheme"):
         ca.solve_steady(8, scheme="exact")
 
 
