@@ -72,7 +72,9 @@ def solve_steady(n: int, c: float = 0.05, scheme: str = "incremental", dt_cells:
                  tol: float = 1e-7, max_steps: int = 100000, device=None) -> dict:
     """The steady flow on an ``n x n`` grid; returns the coefficient, the surface force and the run's numbers.
 
-    Steps until the largest change of a step is below ``tol`` times the largest velocity."""
+    Steps until the largest change of a step is below ``tol`` times the largest velocity. The surface force of the
+    incremental iteration is not a result: the pressure of cut cells reached only through faces centred inside the
+    body settles far more slowly than the velocity (the command line prints it for the split step alone)."""
     if scheme not in ("incremental", "split"):
         raise ParameterError(f"scheme must be 'incremental' or 'split', got {scheme!r}")
     dt_cells = (50.0 if scheme == "incremental" else 1.0) if dt_cells is None else dt_cells
@@ -86,13 +88,12 @@ def solve_steady(n: int, c: float = 0.05, scheme: str = "incremental", dt_cells:
     p = None
     t0 = _time.perf_counter()
     periodic = normalize_kinds("periodic", 2)
+    kick = (FORCE * dt, 0.0)
     steps = 0
     while steps < max_steps:
         steps += 1
-        w = impose_solids(v, layout)
-        kick = [FORCE * dt, 0.0]
         grad = (0.0, 0.0) if (scheme == "split" or p is None) else face_gradient(p.values, grid.dx, periodic)
-        w = impose_solids(w.with_values(tuple(u + kk - g for u, kk, g in zip(w.values, kick, grad))), layout)
+        w = impose_solids(v.with_values(tuple(u + kk - g for u, kk, g in zip(v.values, kick, grad))), layout)
         w = diffuse_velocity(w, dt, viscosity=NU, scheme="implicit", solids=layout, solve=tight)
         new, q = make_incompressible(w, layout, solve=tight, pressure_guess=None if scheme == "incremental" else p)
         p = q if (scheme == "split" or p is None) else p.with_values(p.values + q.values)
@@ -138,13 +139,14 @@ def main(argv=None) -> int:
     for n in args.n:
         row = solve_steady(n, args.c, args.scheme, args.dt_cells, args.tol, args.max_steps, device=device)
         rows.append(row)
+        surface = f"  surface force {100 * row['surface_error']:+.3f} %" if args.scheme == "split" else ""
         print(f"n={n:4d} D/dx={row['cells_per_diameter']:5.1f} steps={row['steps']:6d}  "
-              f"F/(mu U)={row['coefficient']:.5f}"
-              f" (reference {row['reference']:.5f}, {100 * row['error']:+.3f} %)  surface force "
-              f"{100 * row['surface_error']:+.3f} %  ({row['wall_s']:.1f} s)", flush=True)
+              f"F/(mu U)={row['coefficient']:.5f} (reference {row['reference']:.5f}, {100 * row['error']:+.3f} %)"
+              f"{surface}  ({row['wall_s']:.1f} s)", flush=True)
     if len(rows) > 1:
         print("orders, coefficient:", [round(o, 2) for o in orders(rows, "error")],
-              " surface force:", [round(o, 2) for o in orders(rows, "surface_error")])
+              *([" surface force:", [round(o, 2) for o in orders(rows, "surface_error")]] if args.scheme == "split"
+                else []))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"rows": rows, "argv": list(sys.argv[1:] if argv is None else argv)},
