@@ -33,7 +33,7 @@ from phisim.fluid.projection import (
     relative_divergence,
     solid_flux,
 )
-from phisim.fluid.step import FluidState, buoyancy, cfl_dt, kinetic_energy, normalize_energy
+from phisim.fluid.step import FluidState, anticipate_pressure, buoyancy, cfl_dt, kinetic_energy, normalize_energy
 from phisim.fluid.stepper import FluidStepper, navier_stokes_step, step
 from phisim.fluid.transport import AdvectionDiffusionStepper, BurgersStepper
 from phisim.fluid.viscosity import VISCOSITY_SCHEMES, diffuse_velocity
@@ -43,7 +43,7 @@ __all__ = [
     "Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks",
     "Projection", "ProjectionResult", "make_incompressible", "relative_divergence", "impose_solids",
     "net_boundary_flux", "solid_flux", "PRESSURE_SOLVE",
-    "diffuse_velocity", "VISCOSITY_SCHEMES",
+    "diffuse_velocity", "VISCOSITY_SCHEMES", "anticipate_pressure",
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",

@@ -353,27 +353,13 @@ class SolidLayout:
         bodies: The solids, in the order given.
         sharp: Per component, the share of the solid part of each face that belongs to sharp no-slip bodies (None
             without them).
-        walls: Per component, the sharp no-slip condition of the viscous stencil (None without sharp no-slip
-            bodies): ``(cut, coef, source)``, each ``(1 or B, *face_shape(i))``. ``cut`` marks the faces whose centre
-            lies in a sharp body (``phi <= 0``): they are no unknowns of the viscous step, and the stencil of a fluid
-            face ``F`` does not read them. For each arm of that stencil from ``F`` to a cut face (along axis ``a``)
-            the surface crossing at the fraction ``s = phi_F / (phi_F - phi_N)`` of the arm takes its place: the
-            linear ghost value ``u_w / s + (1 - 1 / s) u_F`` (Gibou, Fedkiw, Cheng & Kang 2002), so that
-            ``L u = L_0 u - coef u + source`` with ``L_0`` the box stencil reading 0 on cut faces,
-            ``coef = sum (1 / s - 1) / dx_a^2`` and ``source = sum u_w / (s dx_a^2)`` (``u_w`` the body's velocity
-            at the crossing point; ``source`` None for resting bodies). Only the diagonal changes, so the
-            operator stays symmetric.
-        extension: Per component, the flux correction of the faces cut by sharp no-slip bodies (None without
-            sharp bodies): ``(index, corners, weights, kappa, base)``. Face ``index[k]`` (a flat index into the
-            component) gets the extra flux ``base[k] + kappa[k] * sum_j weights[k, j] u[corners[k, j]]``: the
-            relative velocity ``u - u_s`` at a probe two cells out along the normal (multilinear weights of the
-            component's faces around it) times ``kappa = (E[phi_+] - theta max(phi_F, 0)) / d`` — the mean wall
-            profile ``g phi_+`` over the wetted face (``g`` = relative velocity at the probe over its distance
-            ``d``) less the part ``theta u_F`` already carries (:func:`~phisim.fluid.projection.flux_correction`).
-        solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
-            its solves are iterative. A dict for a layout that is used again and again (a stepper's static
-            bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
-            for it are kept there, and the direct solves that pay off only when reused are used.
+        tangents: Per component, the stencil of the tangential pressure correction of the viscous wall values (None
+            without sharp no-slip bodies; an entry None where no face has a wall arm): ``(index, weight, normal,
+            neighbours)``: the flat indices of the faces with an arm to the surface, their weight ``sum 1 / (s
+            dx_a^2)`` in ``source`` (a change ``g`` of the wall value of every arm of a face changes its Laplacian by
+            ``g * weight``), the unit normal of the nearest body there, and per other component ``j`` the flat indices
+            ``(P, 4)`` and weights of the four ``j`` faces around each face (those centred in the fluid; the weights
+            sum to 1, or to 0 when none is) (:func:`phisim.fluid.step.anticipate_pressure`).
     """
 
     theta: tuple
@@ -385,6 +371,7 @@ class SolidLayout:
     walls: tuple | None = field(default=None, repr=False)
     extension: tuple | None = field(default=None, repr=False)
     sharp: tuple | None = field(default=None, repr=False)
+    tangents: tuple | None = field(default=None, repr=False)
 
     def persistent(self, direct: bool | str = "auto") -> SolidLayout:
         """This layout marked for reuse: solvers built for it are kept on it.
@@ -422,7 +409,11 @@ class SolidLayout:
             None if e is None else (e[0].to(device=device), e[1].to(device=device), cv(e[2]), cv(e[3]), cv(e[4]))
             for e in self.extension)
         out = SolidLayout(cvs(self.theta), cvs(self.solid_velocity), cvs(self.slip), cv(self.cell_fraction),
-                          self.bodies, walls=walls, extension=extension, sharp=cvs(self.sharp))
+                          self.bodies, walls=walls, extension=extension, sharp=cvs(self.sharp),
+                          tangents=None if self.tangents is None else tuple(
+                              None if w is None else (w[0].to(device=device), cv(w[1]), cv(w[2]),
+                                                      tuple(None if nb is None else (nb[0].to(device=device), cv(nb[1]))
+                                                            for nb in w[3])) for w in self.tangents))
         return out if self.solvers is None else out.persistent(self.direct)
 
 
@@ -577,7 +568,9 @@ def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
         dtype, device: Of the computation.
 
     Returns:
-        ``cut`` (bool), ``coef`` and ``source`` (None when every body rests), each of shape ``face_shape(i)``.
+        ``cut`` (bool), ``coef``, ``source`` (None when every body rests) and ``weight`` (``sum 1 / (s dx_a^2)`` over
+        the arms that cross the surface: the factor of the wall values in ``source``), each of shape
+        ``face_shape(i)``.
     """
     x = grid.face_centers(i, dtype, device)
     phis = torch.stack([b.sdf(x, t) for b in bodies], 0)
@@ -586,6 +579,7 @@ def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
     moving = any(not b.static for b in bodies)
     cut = phi.detach() <= 0
     coef = torch.zeros_like(phi)
+    weight = torch.zeros_like(phi)
     source = torch.zeros_like(phi) if moving else None
     for a in range(grid.rank):
         if phi.shape[a] < 2:
@@ -599,6 +593,7 @@ def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
             gap = torch.where(link, pf - pn, torch.ones_like(pf))
             s = torch.where(link, pf / gap, torch.ones_like(pf)).clamp(WALL_FRACTION_MIN, 1.0)
             coef = coef + _place(torch.where(link, (1 / s - 1) / h2, torch.zeros_like(s)), a, side)
+            weight = weight + _place(torch.where(link, 1 / (s * h2), torch.zeros_like(s)), a, side)
             if moving:
                 xf, _ = _arm(x, a, side)
                 step = torch.zeros(grid.rank, dtype=dtype, device=device)
@@ -612,7 +607,66 @@ def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
                     _, on = _arm(owner, a, side)
                     uw = vel.gather(0, on.unsqueeze(0))[0]
                 source = source + _place(torch.where(link, uw / (s * h2), torch.zeros_like(s)), a, side)
-    return cut, coef, source
+    return cut, coef, source, weight
+
+
+def tangent_stencil(bodies, grid: Grid, boundary: Boundary, i: int, t: float, weight: torch.Tensor, theta, dtype):
+    """The entry of :attr:`SolidLayout.tangents` for component ``i`` (None when no face has a wall arm).
+
+    Args:
+        bodies: The sharp no-slip bodies.
+        grid, boundary: The grid and the velocity boundary (periodic axes wrap).
+        i: The component.
+        t: Time (positions of moving bodies).
+        weight: The wall weight of :func:`wall_stencil` (``face_shape(i)``, in the work precision).
+        theta: Per component, the fluid fractions of the faces ``(1, *face_shape(j))``: a face with ``theta > 0``
+            lies between two cells that hold fluid, so its pressure gradient is the fluid's.
+        dtype: Of the returned weights and normals.
+    """
+    index = (weight.detach() > 0).flatten().nonzero().squeeze(1)
+    if index.numel() == 0:
+        return None
+    device = weight.device
+    h = min(grid.dx)
+    work = weight.dtype
+    shape = grid.face_shape(i)
+    x = grid.face_centers(i, work, device).reshape(-1, grid.rank)[index]
+    phis = torch.stack([b.sdf(x, t) for b in bodies], 0)
+    owner = phis.detach().argmin(0)
+    normal = torch.zeros_like(x)
+    for k, b in enumerate(bodies):
+        sel = (owner == k).nonzero().squeeze(1)
+        if sel.numel():
+            normal = normal.index_put((sel,), unit_normal(b, x[sel], t, 1e-3 * h))
+    pos = torch.stack(torch.unravel_index(index, shape), -1)  # (P, d) face indices
+    neighbours = []
+    for j in range(grid.rank):
+        if j == i:
+            neighbours.append(None)
+            continue
+        jshape = grid.face_shape(j)
+        fluid = theta[j].detach()[0] > 0
+        corners, ok = [], []
+        for di in (-1, 0):
+            for dj in (0, 1):
+                q = pos.clone()
+                q[:, i] += di
+                q[:, j] += dj
+                inside = torch.ones(len(index), dtype=torch.bool, device=device)
+                n_i = grid.resolution[i]
+                if boundary.is_periodic(i):
+                    q[:, i] = q[:, i] % n_i
+                else:
+                    inside = inside & (q[:, i] >= 0) & (q[:, i] < n_i)
+                    q[:, i] = q[:, i].clamp(0, n_i - 1)
+                flat = sum(q[:, a] * math.prod(jshape[a + 1:]) for a in range(grid.rank))
+                corners.append(flat)
+                ok.append(inside & fluid.flatten()[flat])
+        corners = torch.stack(corners, 1)
+        w = torch.stack(ok, 1).to(work)
+        w = w / w.sum(1, keepdim=True).clamp_min(1.0)
+        neighbours.append((corners, w.to(dtype)))
+    return index, weight.flatten()[index].to(dtype), normal.to(dtype), tuple(neighbours)
 
 
 def as_solids(obstacles) -> list:
@@ -768,13 +822,14 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
     def conv(ts):
         return None if ts is None else tuple(x.to(dtype) for x in ts)
 
-    walls = extension = None
+    walls = extension = tangents = None
     sharp = sharp_no_slip(solids)
     if sharp:
-        walls, extension = [], []
+        walls, extension, tangents = [], [], []
         for i in range(rank):
-            cut, coef, source = wall_stencil(sharp, grid, i, t, work, device)
+            cut, coef, source, weight = wall_stencil(sharp, grid, i, t, work, device)
             walls.append((cut[None], coef[None].to(dtype), None if source is None else source[None].to(dtype)))
+            tangents.append(tangent_stencil(sharp, grid, boundary, i, t, weight, theta, dtype))
             th_i = theta[i].detach()[0]
             ext = extension_stencil(sharp, grid, i, t, work, device, (th_i > 0) & (th_i < 1))
             if ext is None:
@@ -789,9 +844,9 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
             kappa = (mean - thf * pf.clamp_min(0)) / (PROBE_CELLS * h)
             ext = (ext[0], ext[1], ext[2], kappa, -kappa * ext[7], ext[5])
             extension.append((ext[0], ext[1], ext[2].to(dtype), ext[3].to(dtype), ext[4].to(dtype)))
-        walls, extension = tuple(walls), tuple(extension)
+        walls, extension, tangents = tuple(walls), tuple(extension), tuple(tangents)
     return SolidLayout(conv(theta), conv(solid_velocity), conv(slip), cell.to(dtype), tuple(solids), walls=walls,
-                       extension=extension, sharp=conv(sharp_share))
+                       extension=extension, sharp=conv(sharp_share), tangents=tangents)
 
 
 def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:

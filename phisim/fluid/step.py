@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -32,14 +32,16 @@ from phisim.checks import (
 )
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import solid_layout
+from phisim.fluid.bodies import body_fraction, sharp_no_slip, solid_layout
 from phisim.fluid.projection import check_velocity, impose_solids, make_incompressible, project_box, project_trusted
 from phisim.fluid.viscosity import diffuse_velocity
 from phisim.grid import Grid
+from phisim.ops.stencil import face_gradient, normalize_kinds
 from phisim.padding import const
+from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "rescale_energy", "cfl_dt", "FluidState", "to_time",
-           "finish_step",
+           "finish_step", "anticipate_pressure",
            "scalar_values", "buoyancy_args", "apply_buoyancy"]
 
 
@@ -203,6 +205,94 @@ def to_time(v: StaggeredGrid, t: float) -> StaggeredGrid:
     return v if b is v.boundary else v.with_boundary(b)
 
 
+def anticipate_pressure(layout, pressure, velocity: StaggeredGrid, time: float = 0.0, dt: float = 0.0):
+    """``layout`` with the wall values of its sharp no-slip surfaces moved by the previous step's tangential pressure
+    gradient.
+
+    The split step imposes the body's velocity ``u_s`` in the viscous step and then projects; the projection changes
+    the velocity next to the surface by ``-G p`` (``p`` the pressure potential, ``dt p_phys / rho``), so the stored
+    velocity slips along the surface by ``dt dp/ds``, an error that does not vanish at a steady state and grows with
+    ``nu dt / dx^2`` (``docs/VALIDATION.md``, "Flow driven through a body"). Giving the viscous step the wall value
+    ``u_s + (G p^n)_t`` instead, with the tangential part of the previous step's gradient, leaves after the projection
+    a slip of the change of the pressure over a step (Kim & Moin 1985, J. Comput. Phys. 59: the boundary condition of
+    the intermediate velocity). The normal part is left out: the viscous step keeps the body's normal velocity at the
+    surface, and the projection's flux constraint holds the normal flow there.
+
+    On each face with an arm to the surface (:attr:`~phisim.fluid.bodies.SolidLayout.tangents`) the face gradient of
+    ``p^n`` and the other components' gradients averaged from the four faces around it (those with a wetted part)
+    give ``G p``; its tangential part ``g_t = G p - (G p . n) n`` enters the viscous stencil as ``source += g_t *
+    weight``; the rest of the step is unchanged. ``p^n`` carries the previous step's ``dt``: with a constant ``dt``
+    it is the gradient the projection will apply; a changing ``dt`` scales the correction by the ratio of the steps.
+    Moving bodies: the previous pressure is read where each cell was relative to the body a step earlier, at ``x -
+    u_s dt`` (multilinear, from the cells that held fluid then: a cell the body covered holds no fluid pressure).
+
+    Args:
+        layout: The rasterised solids at the new time (:class:`~phisim.fluid.bodies.SolidLayout`) or None.
+        pressure: The previous step's pressure potential (CenteredGrid or tensor ``(B, *res)``), or None.
+        velocity: The velocity of the step (its grid, and its boundary, from which the pressure's follows).
+        time: The new time (the layout's).
+        dt: The step (moving bodies).
+
+    Returns:
+        The layout with the corrected wall sources (``layout`` itself without sharp no-slip bodies or pressure).
+    """
+    if layout is None or layout.walls is None or layout.tangents is None or pressure is None:
+        return layout
+    p = pressure.values if isinstance(pressure, CenteredGrid) else pressure
+    grid = velocity.grid
+    sharp = sharp_no_slip(layout.bodies)
+    if any(not b.static for b in sharp) and float(dt) != 0:
+        p = _pressure_in_body_frame(p, sharp, velocity, float(time), float(dt))
+    kinds = normalize_kinds(field_kinds_and_values(velocity.boundary.for_pressure())[0], grid.rank)
+    grads = [g.to(velocity.dtype).reshape(g.shape[0], -1) for g in face_gradient(p, grid.dx, kinds)]
+    walls = []
+    for i, (wall, stencil) in enumerate(zip(layout.walls, layout.tangents)):
+        if wall is None or stencil is None:
+            walls.append(wall)
+            continue
+        index, weight, normal, neighbours = stencil
+        normal = normal.to(grads[i].dtype)
+        own = grads[i][:, index]  # (B, P)
+        dot = normal[:, i] * own
+        for j, nb in enumerate(neighbours):
+            if nb is not None:
+                corners, w = nb
+                dot = dot + normal[:, j] * (grads[j][:, corners] * w.to(own.dtype)).sum(-1)
+        tangential = (own - normal[:, i] * dot) * weight.to(own.dtype)
+        cut, coef, source = wall
+        flat = torch.zeros_like(grads[i]).index_copy(1, index, tangential)
+        extra = flat.reshape(flat.shape[0], *grid.face_shape(i))
+        walls.append((cut, coef, extra if source is None else source + extra))
+    return replace(layout, walls=tuple(walls))
+
+
+def _pressure_in_body_frame(p: torch.Tensor, bodies, velocity: StaggeredGrid, t: float, dt: float) -> torch.Tensor:
+    """The previous pressure ``p`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
+    multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others hold no fluid pressure)."""
+    grid = velocity.grid
+    work = velocity.dtype
+    x = grid.cell_centers(work, velocity.device)
+    h = min(grid.dx)
+    with torch.no_grad():
+        old = torch.stack([body_fraction(b, x, t - dt, h) for b in bodies], 0).amin(0)
+        valid = (old > 0).to(work)
+    flat = x.reshape(-1, grid.rank)
+    phis = torch.stack([b.sdf(flat, t) for b in bodies], 0)
+    owner = phis.detach().argmin(0)
+    us = torch.zeros_like(flat)
+    for k, b in enumerate(bodies):
+        sel = (owner == k).nonzero().squeeze(1)
+        if not b.static and sel.numel():
+            us = us.index_put((sel,), b.velocity_at(flat[sel], t).to(work))
+    pts = flat - dt * us
+    batch = p.shape[0]
+    boundary = velocity.boundary.for_pressure()
+    num = CenteredGrid(p.to(work) * valid, grid, boundary).sample(pts)
+    den = CenteredGrid(valid.expand(batch, *valid.shape).contiguous(), grid, boundary).sample(pts)
+    out = torch.where(den > 1e-3, num / den.clamp_min(1e-3), p.to(work).reshape(batch, -1))
+    return out.reshape(p.shape)
+
+
 def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess, t_new=0.0,
                  faces_set: bool = False, trusted: bool = False):
     """The part of a step after advection and forcing: solids, viscosity, projection, energy.
@@ -214,8 +304,9 @@ def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressu
     if layout is not None or not faces_set:
         v = impose_solids(v, layout, moved=(t_new - float(dt), t_new))
     if float(viscosity) != 0:
+        walls = anticipate_pressure(layout, pressure_guess, v, t_new, float(dt))
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
-                             solve=solve if viscosity_scheme == "implicit" else None, solids=layout, time=t_new)
+                             solve=solve if viscosity_scheme == "implicit" else None, solids=walls, time=t_new)
     if layout is None:  # no re-validation; boundary faces already set unless viscosity changed them
         v, p = project_box(v if float(viscosity) == 0 else v.with_boundary_faces(), check=not trusted)
     elif trusted:
