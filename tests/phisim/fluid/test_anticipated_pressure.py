@@ -27,31 +27,33 @@ F64 = torch.float64
 TIGHT = Solve(rtol=1e-12)
 
 
-def _linear_pressure(grid, a: float, b: float) -> CenteredGrid:
+def _linear_pressure(grid, g) -> CenteredGrid:
     x = grid.cell_centers(F64, "cpu")
-    return CenteredGrid((a * x[..., 0] + b * x[..., 1])[None], grid, "wall")
+    return CenteredGrid((x @ torch.tensor(g, dtype=F64))[None], grid, "wall")
 
 
-def test_extra_source_is_the_tangential_gradient_times_the_wall_weight():
+@pytest.mark.parametrize("rank", [2, 3])
+def test_extra_source_is_the_tangential_gradient_times_the_wall_weight(rank):
     """For a linear pressure (gradient G everywhere) the source added to each face with a wall arm is
-    ``(G - (G . n) n)_i`` times its wall weight, with ``n`` the disc's normal there; other faces get nothing."""
-    grid = Grid((24, 20), bounds=[(0, 1.2), (0, 1)])
-    centre, radius = (0.61, 0.48), 0.23
+    ``(G - (G . n) n)_i`` times its wall weight, with ``n`` the sphere's normal there; other faces get nothing."""
+    res, bounds = ((24, 20), [(0, 1.2), (0, 1)]) if rank == 2 else ((14, 12, 13), [(0, 1.1), (0, 1), (0, 1)])
+    grid = Grid(res, bounds=bounds)
+    centre, radius = (0.61, 0.48, 0.52)[:rank], 0.27
     body = Body(Sphere(centre, radius))
     v = StaggeredGrid.zeros(grid, "wall", dtype=F64)
     layout = solid_layout(body, grid, v.boundary, 0.0, F64)
-    g = torch.tensor([0.7, -0.4], dtype=F64)
-    out = anticipate_pressure(layout, _linear_pressure(grid, 0.7, -0.4), v)
-    assert out is not layout and out.walls[0][2] is not None
+    g = torch.tensor((0.7, -0.4, 0.25)[:rank], dtype=F64)
+    out = anticipate_pressure(layout, _linear_pressure(grid, g.tolist()), v)
+    assert out is not layout
     checked = 0
-    for i in range(2):
+    for i in range(rank):
         index, weight, _, _ = layout.tangents[i]
         extra = out.walls[i][2][0].flatten()
         assert layout.walls[i][2] is None  # a resting body has no source of its own
-        x = grid.face_centers(i, F64, "cpu").reshape(-1, 2)[index]
+        x = grid.face_centers(i, F64, "cpu").reshape(-1, rank)[index]
         n = (x - torch.tensor(centre, dtype=F64)) / (x - torch.tensor(centre, dtype=F64)).norm(dim=-1, keepdim=True)
-        expected = (g[i] - (n @ g) * n[:, i]) * weight
-        assert torch.allclose(extra[index], expected, rtol=1e-6, atol=1e-9)
+        expected = g[i] - (n @ g) * n[:, i]  # per unit weight (the normal by differences of the distance: 1e-8)
+        assert torch.allclose(extra[index] / weight, expected, rtol=0, atol=1e-7)
         rest = torch.ones_like(extra, dtype=torch.bool)
         rest[index] = False
         assert float(extra[rest].abs().max()) == 0.0
@@ -86,7 +88,7 @@ def test_nothing_to_anticipate_leaves_the_layout():
     v = StaggeredGrid.zeros(grid, "wall", dtype=F64)
     sharp = solid_layout(Body(Sphere((0.5, 0.5), 0.2)), grid, v.boundary, 0.0, F64)
     blended = solid_layout(Body(Sphere((0.5, 0.5), 0.2), sharp=False), grid, v.boundary, 0.0, F64)
-    p = _linear_pressure(grid, 1.0, 0.0)
+    p = _linear_pressure(grid, (1.0, 0.0))
     assert anticipate_pressure(sharp, None, v) is sharp
     assert anticipate_pressure(blended, p, v) is blended
     assert anticipate_pressure(None, p, v) is None
