@@ -358,8 +358,29 @@ class SolidLayout:
             neighbours)``: the flat indices of the faces with an arm to the surface, their weight ``sum 1 / (s
             dx_a^2)`` in ``source`` (a change ``g`` of the wall value of every arm of a face changes its Laplacian by
             ``g * weight``), the unit normal of the nearest body there, and per other component ``j`` the flat indices
-            ``(P, 4)`` and weights of the four ``j`` faces around each face (those centred in the fluid; the weights
-            sum to 1, or to 0 when none is) (:func:`phisim.fluid.step.anticipate_pressure`).
+            ``(P, 4)`` and weights of the four ``j`` faces around each face (those with a wetted part, ``theta > 0``;
+            the weights sum to 1, or to 0 when none has) (:func:`phisim.fluid.step.anticipate_pressure`).
+        walls: Per component, the sharp no-slip condition of the viscous stencil (None without sharp no-slip
+            bodies): ``(cut, coef, source)``, each ``(1 or B, *face_shape(i))``. ``cut`` marks the faces whose centre
+            lies in a sharp body (``phi <= 0``): they are no unknowns of the viscous step, and the stencil of a fluid
+            face ``F`` does not read them. For each arm of that stencil from ``F`` to a cut face (along axis ``a``)
+            the surface crossing at the fraction ``s = phi_F / (phi_F - phi_N)`` of the arm takes its place: the
+            linear ghost value ``u_w / s + (1 - 1 / s) u_F`` (Gibou, Fedkiw, Cheng & Kang 2002), so that
+            ``L u = L_0 u - coef u + source`` with ``L_0`` the box stencil reading 0 on cut faces,
+            ``coef = sum (1 / s - 1) / dx_a^2`` and ``source = sum u_w / (s dx_a^2)`` (``u_w`` the body's velocity
+            at the crossing point; ``source`` None for resting bodies). Only the diagonal changes, so the
+            operator stays symmetric.
+        extension: Per component, the flux correction of the faces cut by sharp no-slip bodies (None without
+            sharp bodies): ``(index, corners, weights, kappa, base)``. Face ``index[k]`` (a flat index into the
+            component) gets the extra flux ``base[k] + kappa[k] * sum_j weights[k, j] u[corners[k, j]]``: the
+            relative velocity ``u - u_s`` at a probe two cells out along the normal (multilinear weights of the
+            component's faces around it) times ``kappa = (E[phi_+] - theta max(phi_F, 0)) / d`` — the mean wall
+            profile ``g phi_+`` over the wetted face (``g`` = relative velocity at the probe over its distance
+            ``d``) less the part ``theta u_F`` already carries (:func:`~phisim.fluid.projection.flux_correction`).
+        solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
+            its solves are iterative. A dict for a layout that is used again and again (a stepper's static
+            bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
+            for it are kept there, and the direct solves that pay off only when reused are used.
     """
 
     theta: tuple
