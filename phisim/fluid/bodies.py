@@ -358,8 +358,9 @@ class SolidLayout:
             neighbours)``: the flat indices of the faces with an arm to the surface, their weight ``sum 1 / (s
             dx_a^2)`` in ``source`` (a change ``g`` of the wall value of every arm of a face changes its Laplacian by
             ``g * weight``), the unit normal of the nearest body there, and per other component ``j`` the flat indices
-            ``(P, 4)`` and weights of the four ``j`` faces around each face (those with a wetted part, ``theta > 0``;
-            the weights sum to 1, or to 0 when none has) (:func:`phisim.fluid.step.anticipate_pressure`).
+            ``(P, 4)`` and weights of the four ``j`` faces around each face (those with a wetted part, ``theta > 0``:
+            both diagonals, else the one diagonal pair that has it, else what has it; the weights sum to 1, or to 0
+            when none has) (:func:`phisim.fluid.step.anticipate_pressure`).
         walls: Per component, the sharp no-slip condition of the viscous stencil (None without sharp no-slip
             bodies): ``(cut, coef, source)``, each ``(1 or B, *face_shape(i))``. ``cut`` marks the faces whose centre
             lies in a sharp body (``phi <= 0``): they are no unknowns of the viscous step, and the stencil of a fluid
@@ -684,7 +685,13 @@ def tangent_stencil(bodies, grid: Grid, boundary: Boundary, i: int, t: float, we
                 corners.append(flat)
                 ok.append(inside & fluid.flatten()[flat])
         corners = torch.stack(corners, 1)
-        w = torch.stack(ok, 1).to(work)
+        ok = torch.stack(ok, 1)
+        # corners (-1, 0), (-1, 1), (0, 0), (0, 1) along (i, j): the face centre is the midpoint of either diagonal,
+        # so a diagonal pair in the fluid gives the value there exactly for a linear field; without one, the mean
+        # of what is in the fluid
+        first, second = ok[:, 0] & ok[:, 3], ok[:, 1] & ok[:, 2]
+        pairs = torch.stack([first, second, second, first], 1).to(work)
+        w = torch.where((first | second).unsqueeze(1), pairs, ok.to(work))
         w = w / w.sum(1, keepdim=True).clamp_min(1.0)
         neighbours.append((corners, w.to(dtype)))
     return index, weight.flatten()[index].to(dtype), normal.to(dtype), tuple(neighbours)
