@@ -10,7 +10,8 @@ Modules:
   with walls, inflows, outflows, periodic sides and bodies;
 * :mod:`~phisim.fluid.viscosity` -- :func:`diffuse_velocity`;
 * :mod:`~phisim.fluid.forces` -- drag and lift on bodies, pressure at probe points;
-* :mod:`~phisim.fluid.step` -- the parts of a split step (buoyancy, energy, CFL) and :class:`FluidState`;
+* :mod:`~phisim.fluid.step` -- the parts of a split step (buoyancy, energy, CFL, the wall values of sharp bodies
+  with the anticipated pressure gradient: :func:`anticipate_pressure`) and :class:`FluidState`;
 * :mod:`~phisim.fluid.stepper` -- :class:`FluidStepper` (settings checked and operators built once; the way to
   step a flow), and the same steps as pure functions, :func:`step` and :func:`navier_stokes_step`;
 * :mod:`~phisim.fluid.transport` -- :class:`AdvectionDiffusionStepper` (a scalar in a given flow) and

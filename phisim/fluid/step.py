@@ -6,6 +6,8 @@ semi-Lagrangian or MacCormack), a body force (e.g. :func:`buoyancy`), the solids
 explicit or implicit), projection (:func:`~phisim.fluid.projection.make_incompressible`), and optionally a
 rescaling to the kinetic energy the step started with (:func:`normalize_energy`). :func:`step` advances a
 :class:`FluidState` (velocity, marker, pressure, time) for smoke-like simulations and flows past bodies.
+Past sharp no-slip bodies the viscous step's wall values carry the previous step's tangential pressure gradient
+(:func:`anticipate_pressure`), so that the projection leaves no slip along the surface.
 First order in time (operator splitting); second order in space with MacCormack advection.
 ``integrator='rk2'``, ``'rk3'`` or ``'imex2'`` selects the second-/third-order integrators of
 :mod:`phisim.fluid.integrators` instead (orders in time: split 1, rk2 2, rk3 3, imex2 2).
