@@ -632,7 +632,8 @@ def wall_stencil(bodies, grid: Grid, i: int, t: float, dtype, device) -> tuple:
     return cut, coef, source, weight
 
 
-def tangent_stencil(bodies, grid: Grid, boundary: Boundary, i: int, t: float, weight: torch.Tensor, theta, dtype):
+def tangent_stencil(bodies, grid: Grid, boundary: Boundary, i: int, t: float, weight: torch.Tensor, theta: tuple,
+                    dtype: torch.dtype) -> tuple | None:
     """The entry of :attr:`SolidLayout.tangents` for component ``i`` (None when no face has a wall arm).
 
     Args:

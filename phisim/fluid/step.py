@@ -34,13 +34,12 @@ from phisim.checks import (
 )
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import body_fraction, sharp_no_slip, solid_layout
+from phisim.fluid.bodies import SolidLayout, body_fraction, sharp_no_slip, solid_layout
 from phisim.fluid.projection import check_velocity, impose_solids, make_incompressible, project_box, project_trusted
 from phisim.fluid.viscosity import diffuse_velocity
 from phisim.grid import Grid
-from phisim.ops.stencil import face_gradient, normalize_kinds
+from phisim.ops.differential import gradient
 from phisim.padding import const
-from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "rescale_energy", "cfl_dt", "FluidState", "to_time",
            "finish_step", "anticipate_pressure",
@@ -207,7 +206,8 @@ def to_time(v: StaggeredGrid, t: float) -> StaggeredGrid:
     return v if b is v.boundary else v.with_boundary(b)
 
 
-def anticipate_pressure(layout, pressure, velocity: StaggeredGrid, time: float = 0.0, dt: float = 0.0):
+def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | torch.Tensor | None,
+                        velocity: StaggeredGrid, time: float = 0.0, dt: float = 0.0) -> SolidLayout | None:
     """``layout`` with the wall values of its sharp no-slip surfaces moved by the previous step's tangential pressure
     gradient.
 
@@ -237,16 +237,23 @@ def anticipate_pressure(layout, pressure, velocity: StaggeredGrid, time: float =
 
     Returns:
         The layout with the corrected wall sources (``layout`` itself without sharp no-slip bodies or pressure).
+
+    Raises:
+        GridMismatchError: For a pressure on another grid than the velocity.
+        ShapeError: For a pressure tensor that is not ``(B, *res)`` or ``(*res)``.
     """
     if layout is None or layout.walls is None or layout.tangents is None or pressure is None:
         return layout
-    p = pressure.values if isinstance(pressure, CenteredGrid) else pressure
     grid = velocity.grid
+    if isinstance(pressure, CenteredGrid) and pressure.grid != grid:
+        raise GridMismatchError(f"pressure grid {pressure.grid} differs from the velocity grid {grid}")
+    p = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
+    p = p.to(dtype=velocity.dtype, device=velocity.device)
+    q = CenteredGrid(p if p.ndim == grid.rank + 1 else p[None], grid, velocity.boundary.for_pressure())
     sharp = sharp_no_slip(layout.bodies)
     if any(not b.static for b in sharp) and float(dt) != 0:
-        p = _pressure_in_body_frame(p, sharp, velocity, float(time), float(dt))
-    kinds = normalize_kinds(field_kinds_and_values(velocity.boundary.for_pressure())[0], grid.rank)
-    grads = [g.to(velocity.dtype).reshape(g.shape[0], -1) for g in face_gradient(p, grid.dx, kinds)]
+        q = _pressure_in_body_frame(q, sharp, velocity, float(time), float(dt))
+    grads = [g.reshape(g.shape[0], -1) for g in gradient(q, at="face").values]
     walls = []
     for i, (wall, stencil) in enumerate(zip(layout.walls, layout.tangents)):
         if wall is None or stencil is None:
@@ -268,8 +275,8 @@ def anticipate_pressure(layout, pressure, velocity: StaggeredGrid, time: float =
     return replace(layout, walls=tuple(walls))
 
 
-def _pressure_in_body_frame(p: torch.Tensor, bodies, velocity: StaggeredGrid, t: float, dt: float) -> torch.Tensor:
-    """The previous pressure ``p`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
+def _pressure_in_body_frame(q: CenteredGrid, bodies, velocity: StaggeredGrid, t: float, dt: float) -> CenteredGrid:
+    """The previous pressure ``q`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
     multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others hold no fluid pressure)."""
     grid = velocity.grid
     work = velocity.dtype
@@ -287,12 +294,11 @@ def _pressure_in_body_frame(p: torch.Tensor, bodies, velocity: StaggeredGrid, t:
         if not b.static and sel.numel():
             us = us.index_put((sel,), b.velocity_at(flat[sel], t).to(work))
     pts = flat - dt * us
-    batch = p.shape[0]
-    boundary = velocity.boundary.for_pressure()
-    num = CenteredGrid(p.to(work) * valid, grid, boundary).sample(pts)
-    den = CenteredGrid(valid.expand(batch, *valid.shape).contiguous(), grid, boundary).sample(pts)
-    out = torch.where(den > 1e-3, num / den.clamp_min(1e-3), p.to(work).reshape(batch, -1))
-    return out.reshape(p.shape)
+    p = q.values
+    num = q.with_values(p * valid).sample(pts)
+    den = q.with_values(valid.expand(p.shape).contiguous()).sample(pts)
+    out = torch.where(den > 1e-3, num / den.clamp_min(1e-3), p.reshape(p.shape[0], -1))
+    return q.with_values(out.reshape(p.shape))
 
 
 def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressure_guess, t_new=0.0,

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from phisim import Grid, StaggeredGrid
+from phisim.errors import GridMismatchError, ShapeError
 from phisim.field import CenteredGrid
 from phisim.fluid import (
     Body,
@@ -92,6 +93,22 @@ def test_nothing_to_anticipate_leaves_the_layout():
     assert anticipate_pressure(sharp, None, v) is sharp
     assert anticipate_pressure(blended, p, v) is blended
     assert anticipate_pressure(None, p, v) is None
+
+
+def test_bad_pressure_is_refused():
+    """A pressure on another grid, or a tensor of another resolution, is refused with a PhisimError."""
+    grid = Grid((16, 16), bounds=[(0, 1), (0, 1)])
+    v = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    layout = solid_layout(Body(Sphere((0.5, 0.5), 0.2)), grid, v.boundary, 0.0, F64)
+    other = Grid((16, 16), bounds=[(0, 2), (0, 1)])
+    with pytest.raises(GridMismatchError, match="pressure grid"):
+        anticipate_pressure(layout, CenteredGrid(torch.zeros((1, 16, 16), dtype=F64), other, "wall"), v)
+    with pytest.raises(ShapeError):
+        anticipate_pressure(layout, torch.zeros((1, 15, 16), dtype=F64), v)
+    # a bare (*res) tensor is one sample, as the steps accept it
+    plain = anticipate_pressure(layout, _linear_pressure(grid, (0.3, 0.2)).values[0], v)
+    ref = anticipate_pressure(layout, _linear_pressure(grid, (0.3, 0.2)), v)
+    assert all(torch.equal(a[2], b[2]) for a, b in zip(plain.walls, ref.walls))
 
 
 def _array_error(n: int, dt_cells: float, anticipate: bool) -> float:
