@@ -378,6 +378,8 @@ class SolidLayout:
             component's faces around it) times ``kappa = (E[phi_+] - theta max(phi_F, 0)) / d`` — the mean wall
             profile ``g phi_+`` over the wetted face (``g`` = relative velocity at the probe over its distance
             ``d``) less the part ``theta u_F`` already carries (:func:`~phisim.fluid.projection.flux_correction`).
+        time: The time the solids were rasterised at (where moving bodies are); what is evaluated later from the
+            bodies' geometry (the free-slip flux correction) is evaluated at this time.
         solvers: ``None`` for a layout used once (a moving body at one instant, a call of a pure function):
             its solves are iterative. A dict for a layout that is used again and again (a stepper's static
             bodies, see :meth:`persistent`): the pressure operator and the viscous capacitance solves built
@@ -394,6 +396,7 @@ class SolidLayout:
     extension: tuple | None = field(default=None, repr=False)
     sharp: tuple | None = field(default=None, repr=False)
     tangents: tuple | None = field(default=None, repr=False)
+    time: float = 0.0
 
     def persistent(self, direct: bool | str = "auto") -> SolidLayout:
         """This layout marked for reuse: solvers built for it are kept on it.
@@ -435,7 +438,8 @@ class SolidLayout:
                           tangents=None if self.tangents is None else tuple(
                               None if w is None else (w[0].to(device=device), cv(w[1]), cv(w[2]),
                                                       tuple(None if nb is None else (nb[0].to(device=device), cv(nb[1]))
-                                                            for nb in w[3])) for w in self.tangents))
+                                                            for nb in w[3])) for w in self.tangents),
+                          time=self.time)
         return out if self.solvers is None else out.persistent(self.direct)
 
 
@@ -875,7 +879,7 @@ def _rasterise(solids, grid, boundary, t, dtype, device) -> SolidLayout | None:
             extension.append((ext[0], ext[1], ext[2].to(dtype), ext[3].to(dtype), ext[4].to(dtype)))
         walls, extension, tangents = tuple(walls), tuple(extension), tuple(tangents)
     return SolidLayout(conv(theta), conv(solid_velocity), conv(slip), cell.to(dtype), tuple(solids), walls=walls,
-                       extension=extension, sharp=conv(sharp_share), tangents=tangents)
+                       extension=extension, sharp=conv(sharp_share), tangents=tangents, time=float(t))
 
 
 def obstacle_mask(obstacles, grid: Grid, device=None) -> torch.Tensor | None:

@@ -252,19 +252,22 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
     return index, torch.stack(neighbours, 1), torch.stack(weights, 1).to(dtype)
 
 
-def free_slip_flux(values, layout: SolidLayout | None, grid, time: float = 0.0):
+def free_slip_flux(values, layout: SolidLayout | None, grid, time: float | None = None):
     """Per component ``(index, value)`` of the flux the blend ``theta u`` misses on faces cut by free-slip bodies
     (None without free-slip bodies): the fluid velocity is not constant over a face, and its mean over the wetted part
     is its value at the wetted part's centroid, ``u_F + (grad u . g) (E[phi_+] - theta phi_F) / |g|^2`` for a planar
     cut (``g`` the unit normal's part in the face, ``E[phi_+]`` the face's mean positive distance,
     :func:`~phisim.fluid.geometry.cut_fractions`), the in-face derivative taken one face towards the fluid. Without
     it the cut cells' divergence is off by O(1) and the velocity next to a curved free-slip surface does not
-    converge (the no-slip bodies' counterpart is :func:`~phisim.fluid.projection.flux_correction`)."""
+    converge (the no-slip bodies' counterpart is :func:`~phisim.fluid.projection.flux_correction`). ``time``: where
+    moving bodies are (default: the layout's own time; the correction must see the bodies where ``theta`` saw
+    them)."""
     if layout is None or layout.slip is None:
         return None
     bodies = _free_slip_bodies(layout.bodies)
     if not bodies:
         return None
+    time = layout.time if time is None else time
     like = values[0]
     grid_key = ("free_slip_flux", like.dtype, str(like.device))
     cache = layout.solvers if all(b.static for b in bodies) else None
