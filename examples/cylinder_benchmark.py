@@ -121,6 +121,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on small grids)")
     ap.add_argument("--integrator", default="split", help="time integrator of phisim.fluid.step")
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
+    ap.add_argument("--cfl", type=float, default=0.5,
+                    help="1.5 U_m dt / dx (default 0.5; explicit viscosity may lower dt)")
+    ap.add_argument("--dt", type=float, default=None, help="time step (instead of --cfl; rounded to divide --t-end)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -128,7 +131,8 @@ def main(argv=None) -> int:
     rec = args.record_from if args.record_from is not None else (t_end - 1.0 if args.case == "2D-1" else t_end - 4.0)
     results = []
     for ny in args.ny:
-        hist, state, meta = run(args.case, ny, t_end, record_from=rec, integrator=args.integrator, device=device)
+        hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
+                                integrator=args.integrator, device=device)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure")
