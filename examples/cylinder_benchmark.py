@@ -64,8 +64,11 @@ def setup(case: str, ny: int, dtype=torch.float64, device="cpu"):
 
 def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
         record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None,
-        integrator: str = "split", device="cpu"):
-    """Simulate a case on ``device``; returns the force history, the final state and the run's settings."""
+        integrator: str = "split", device="cpu", pressure_at: str = "cells"):
+    """Simulate a case on ``device``; returns the force history, the final state and the run's settings.
+
+    ``pressure_at``: where the forces read the pressure (:func:`~phisim.fluid.body_forces`); with ``'surface'`` the
+    front and back pressures are extrapolated quadratically as well (``probe_pressure(..., order=2)``)."""
     device = check_device(device)
     grid, body, state, um = setup(case, ny, dtype, device)
     umean = 2 * um / 3
@@ -83,16 +86,18 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
         state = step(state, dt, viscosity=NU, advection=advection, obstacles=body, viscosity_scheme=viscosity_scheme,
                      integrator=integrator)
         if state.time >= record_from - 1e-12:
-            f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time)
+            f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time,
+                            pressure_at=pressure_at)
             c = f.coefficients(umean, D)[0]
-            pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body)[0]
+            pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body,
+                                 order=1 if pressure_at == "cells" else 2)[0]
             cp = 2 * f.pressure[0] / (umean**2 * D)
             hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1])))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     wall = _time.perf_counter() - t0
     return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny,
-                                   "integrator": integrator, "device": str(device)}
+                                   "integrator": integrator, "device": str(device), "pressure_at": pressure_at}
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
@@ -124,6 +129,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cfl", type=float, default=0.5,
                     help="1.5 U_m dt / dx (default 0.5; explicit viscosity may lower dt)")
     ap.add_argument("--dt", type=float, default=None, help="time step (instead of --cfl; rounded to divide --t-end)")
+    ap.add_argument("--pressure-at", default="cells", choices=["cells", "surface"],
+                    help="where the forces read the pressure (phisim.fluid.body_forces; default cells)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -132,7 +139,7 @@ def main(argv=None) -> int:
     results = []
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
-                                integrator=args.integrator, device=device)
+                                integrator=args.integrator, device=device, pressure_at=args.pressure_at)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure")

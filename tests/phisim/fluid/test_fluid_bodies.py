@@ -213,6 +213,85 @@ def test_hydrostatic_pressure_gives_archimedes_force():
     assert errs[-1] < 2e-3 and errs[-1] < errs[0]
 
 
+def _quadratic_pressure_force_errors(n: int, pressure_at: str) -> float:
+    """Mean error (over six disc centres) of the pressure force of ``p = 3 (y - 1/2)^2 + x (y - 1/2) + 2 x^2`` on a
+    disc of radius 1/4, against ``-int grad p dV``."""
+    g = torch.Generator().manual_seed(0)
+    centres = (0.5 + 0.05 * (2 * torch.rand(6, 2, generator=g, dtype=F64) - 1)).tolist()
+    grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+    vel = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    p = CenteredGrid.from_function(lambda x: 3 * (x[..., 1] - 0.5) ** 2 + x[..., 0] * (x[..., 1] - 0.5)
+                                   + 2 * x[..., 0] ** 2, grid, "neumann", dtype=F64)
+    area = math.pi * 0.25**2
+    errs = []
+    for cx, cy in centres:
+        exact = -area * torch.tensor([cy - 0.5 + 4 * cx, 6 * (cy - 0.5) + cx], dtype=F64)
+        f = body_forces(vel, p, Body(Sphere((cx, cy), 0.25)), dt=1.0, viscosity=0.0, pressure_at=pressure_at)
+        errs.append(float((f.pressure[0] - exact).norm()))
+    return sum(errs) / len(errs)
+
+
+def test_surface_pressure_reading_is_second_order_and_more_accurate_than_the_cells():
+    """``pressure_at='surface'`` (the quadratic extrapolation along the normal to each cut cell's surface point) on a
+    smooth pressure: errors 6.8e-4 / 1.4e-4 / 2.6e-5 at 24^2 / 48^2 / 96^2 (orders 2.2, 2.5), 8-20 times below those
+    of the cut cells' own pressures (5.7e-3 / 1.5e-3 / 5.1e-4), whose centres lie off the surface."""
+    surface = [_quadratic_pressure_force_errors(n, "surface") for n in (24, 48, 96)]
+    cells = [_quadratic_pressure_force_errors(n, "cells") for n in (24, 48, 96)]
+    orders = [math.log2(a / b) for a, b in zip(surface, surface[1:])]
+    assert min(orders) > 1.8, orders
+    assert surface[1] < cells[1] / 5 and surface[2] < cells[2] / 5
+
+
+def test_surface_pressure_reading_bad_input_and_constant_pressure():
+    grid = Grid((20, 20), bounds=[(0, 1), (0, 1)])
+    vel = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    p = CenteredGrid(torch.full((1, 20, 20), 3.0, dtype=F64), grid, "neumann")
+    body = Body(Sphere((0.5, 0.48), 0.2))
+    f = body_forces(vel, p, body, dt=0.1, viscosity=0.0, pressure_at="surface")
+    assert float(f.pressure.abs().max()) < 1e-11  # the weights of the extrapolation sum to 1, the areas to 0
+    with pytest.raises(ParameterError, match="pressure_at"):
+        body_forces(vel, p, body, dt=0.1, viscosity=0.0, pressure_at="centres")
+    with pytest.raises(ParameterError, match="order"):
+        probe_pressure(p, torch.zeros(1, 2, dtype=F64), dt=0.1, bodies=body, order=3)
+
+
+def test_gradcheck_surface_pressure_force_wrt_pressure_and_radius():
+    grid = Grid((10, 9), bounds=[(0, 1), (0, 0.9)])
+    vel = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    p0 = torch.rand((1, 10, 9), generator=torch.Generator().manual_seed(4), dtype=F64)
+
+    def f(values, radius):
+        body = Body(Sphere((0.52, 0.44), radius))
+        out = body_forces(vel, CenteredGrid(values, grid, "neumann"), body, dt=0.5, viscosity=0.0,
+                          pressure_at="surface")
+        return out.pressure
+
+    values = p0.clone().requires_grad_(True)
+    radius = torch.tensor(0.21, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(f, (values, radius), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_probe_pressure_quadratic_extrapolation_is_exact_for_a_quadratic_along_the_normal():
+    """``p = (x - 0.3)(y - 0.6) + x``: bilinear (sampled exactly) and a quadratic along every line, so ``order=2``
+    extrapolates it to the surface exactly; ``order=1`` leaves ``(1.5 h)(2.5 h) p''/2`` with ``p'' = 2 n_x n_y``."""
+    grid = Grid((40, 40), bounds=[(0, 1), (0, 1)])
+    c = torch.tensor([0.51, 0.48], dtype=F64)
+
+    def exact(x):
+        return (x[..., 0] - 0.3) * (x[..., 1] - 0.6) + x[..., 0]
+
+    p = CenteredGrid.from_function(exact, grid, "neumann", dtype=F64)
+    body = Body(Sphere(tuple(c.tolist()), 0.2))
+    angles = torch.linspace(0, 2 * math.pi, 13, dtype=F64)[:-1] + 0.1
+    n = torch.stack([angles.cos(), angles.sin()], -1)
+    pts = c + 0.2 * n
+    quad = probe_pressure(p, pts, dt=1.0, bodies=body, order=2)[0]
+    lin = probe_pressure(p, pts, dt=1.0, bodies=body)[0]
+    h = 1 / 40
+    assert torch.allclose(quad, exact(pts), rtol=0, atol=1e-9)  # the normals by differences of the distance
+    assert torch.allclose(lin - exact(pts), -1.875 * h**2 * 2 * n[:, 0] * n[:, 1], rtol=0, atol=1e-9)
+
+
 def test_constant_pressure_gives_no_force():
     grid = Grid((20, 20), bounds=[(0, 1), (0, 1)])
     vel = StaggeredGrid.zeros(grid, "wall", dtype=F64)
