@@ -64,11 +64,13 @@ def setup(case: str, ny: int, dtype=torch.float64, device="cpu"):
 
 def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
         record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None,
-        integrator: str = "split", device="cpu", pressure_at: str = "cells"):
+        integrator: str = "split", device="cpu"):
     """Simulate a case on ``device``; returns the force history, the final state and the run's settings.
 
-    ``pressure_at``: where the forces read the pressure (:func:`~phisim.fluid.body_forces`); with ``'surface'`` the
-    front and back pressures are extrapolated quadratically as well (``probe_pressure(..., order=2)``)."""
+    The history's columns: ``t, cd, cl, dp, cd_pressure, cl_pressure`` with the pressure of the cut cells
+    (:func:`~phisim.fluid.body_forces`, ``pressure_at='cells'``) and ``dp`` from the linear extrapolation to the front
+    and back points; then ``cd_surface, cl_surface, dp_quadratic``: the pressure read at the surface
+    (``pressure_at='surface'``) and ``dp`` from the quadratic extrapolation (``probe_pressure(..., order=2)``)."""
     device = check_device(device)
     grid, body, state, um = setup(case, ny, dtype, device)
     umean = 2 * um / 3
@@ -86,27 +88,44 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
         state = step(state, dt, viscosity=NU, advection=advection, obstacles=body, viscosity_scheme=viscosity_scheme,
                      integrator=integrator)
         if state.time >= record_from - 1e-12:
-            f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time,
-                            pressure_at=pressure_at)
+            f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time)
             c = f.coefficients(umean, D)[0]
-            pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body,
-                                 order=1 if pressure_at == "cells" else 2)[0]
+            pfb = probe_pressure(state.pressure, front_back, dt=dt, bodies=body)[0]
             cp = 2 * f.pressure[0] / (umean**2 * D)
-            hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1])))
+            fs = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time,
+                             pressure_at="surface")
+            cs = fs.coefficients(umean, D)[0]
+            pq = probe_pressure(state.pressure, front_back, dt=dt, bodies=body, order=2)[0]
+            hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1]),
+                         float(cs[0]), float(cs[1]), float(pq[0] - pq[1])))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     wall = _time.perf_counter() - t0
     return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny,
-                                   "integrator": integrator, "device": str(device), "pressure_at": pressure_at}
+                                   "integrator": integrator, "device": str(device)}
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
-    """Benchmark quantities from a force history (columns t, cd, cl, dp, cd_p, cl_p)."""
+    """Benchmark quantities from a force history (the columns of :func:`run`; the ``*_surface`` / ``dp_quadratic``
+    entries where the history has them)."""
+    surface = hist.shape[1] > 6
     if case == "2D-1":
         t, cd, cl, dp = hist[-1, :4]
-        return {"cd": float(cd), "cl": float(cl), "dp": float(dp), "cd_pressure": float(hist[-1, 4]),
-                "drift_cd_last_unit": float(abs(hist[-1, 1] - hist[0, 1]))}
-    t, cd, cl = hist[:, 0], hist[:, 1], hist[:, 2]
+        out = {"cd": float(cd), "cl": float(cl), "dp": float(dp), "cd_pressure": float(hist[-1, 4]),
+               "drift_cd_last_unit": float(abs(hist[-1, 1] - hist[0, 1]))}
+        if surface:
+            out.update({"cd_surface": float(hist[-1, 6]), "cl_surface": float(hist[-1, 7]),
+                        "dp_quadratic": float(hist[-1, 8])})
+        return out
+    out = _periodic(hist[:, 0], hist[:, 1], hist[:, 2])
+    if surface:
+        out.update({f"{k}_surface": v for k, v in _periodic(hist[:, 0], hist[:, 6], hist[:, 7]).items()
+                    if k in ("cd_max", "cl_max")})
+    return out
+
+
+def _periodic(t: np.ndarray, cd: np.ndarray, cl: np.ndarray) -> dict:
+    """Maximum drag and lift and the Strouhal number of a periodic force history."""
     # Strouhal number from the zero up-crossings of the lift
     s = np.sign(cl - cl.mean())
     up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
@@ -129,8 +148,6 @@ def main(argv=None) -> int:
     ap.add_argument("--cfl", type=float, default=0.5,
                     help="1.5 U_m dt / dx (default 0.5; explicit viscosity may lower dt)")
     ap.add_argument("--dt", type=float, default=None, help="time step (instead of --cfl; rounded to divide --t-end)")
-    ap.add_argument("--pressure-at", default="cells", choices=["cells", "surface"],
-                    help="where the forces read the pressure (phisim.fluid.body_forces; default cells)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -139,10 +156,10 @@ def main(argv=None) -> int:
     results = []
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
-                                integrator=args.integrator, device=device, pressure_at=args.pressure_at)
+                                integrator=args.integrator, device=device)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
-                       header="t,cd,cl,dp,cd_pressure,cl_pressure")
+                       header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic")
         tail = hist[hist[:, 0] >= t_end - (1.0 if args.case == "2D-1" else 2.0)]
         res = {**meta, **summarize(args.case, tail)}
         print(json.dumps(res), flush=True)

@@ -206,8 +206,13 @@ def to_time(v: StaggeredGrid, t: float) -> StaggeredGrid:
     return v if b is v.boundary else v.with_boundary(b)
 
 
+#: Per viscosity scheme, the part of a face's wall weight ``sum 1 / (s dx^2)`` that reads the intermediate velocity.
+ANTICIPATED_PART = {"implicit": 1.0, "crank_nicolson": 0.5}
+
+
 def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | torch.Tensor | None,
-                        velocity: StaggeredGrid, time: float = 0.0, dt: float = 0.0) -> SolidLayout | None:
+                        velocity: StaggeredGrid, time: float = 0.0, dt: float = 0.0,
+                        viscosity_scheme: str = "implicit") -> SolidLayout | None:
     """``layout`` with the wall values of its sharp no-slip surfaces moved by the previous step's tangential pressure
     gradient.
 
@@ -223,7 +228,12 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     On each face with an arm to the surface (:attr:`~phisim.fluid.bodies.SolidLayout.tangents`) the face gradient of
     ``p^n`` and the other components' gradients averaged from the four faces around it (those with a wetted part)
     give ``G p``; its tangential part ``g_t = G p - (G p . n) n`` enters the viscous stencil as ``source += g_t *
-    weight``; the rest of the step is unchanged. ``p^n`` carries the previous step's ``dt``: with a constant ``dt``
+    w``; the rest of the step is unchanged. ``w`` is the part of the stencil that acts on the intermediate velocity
+    (the one the projection then shifts by ``G p``): the whole wall weight ``sum 1 / (s dx^2)`` for an implicit step,
+    half of it for Crank-Nicolson, and for an explicit step the diagonal ``coef = sum (1/s - 1) / dx^2`` alone, which
+    it treats point-implicitly (the rest of its stencil reads the stored velocity, whose wall value is ``u_s``).
+    The whole weight in an explicit step over-corrects: the split step's steady state then depends on ``dt``
+    (``docs/VALIDATION.md``, DFG 2D-1). ``p^n`` carries the previous step's ``dt``: with a constant ``dt``
     it is the gradient the projection will apply; a changing ``dt`` scales the correction by the ratio of the steps.
     Moving bodies: the previous pressure is read where each cell was relative to the body a step earlier, at ``x -
     u_s dt`` (multilinear, from the cells that held fluid then: a cell the body covered holds no fluid pressure).
@@ -234,6 +244,8 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
         velocity: The velocity of the step (its grid, and its boundary, from which the pressure's follows).
         time: The new time (the layout's).
         dt: The step (moving bodies).
+        viscosity_scheme: The viscous step's scheme: ``'implicit'`` (default), ``'crank_nicolson'`` or
+            ``'explicit'``.
 
     Returns:
         The layout with the corrected wall sources (``layout`` itself without sharp no-slip bodies or pressure).
@@ -241,9 +253,13 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     Raises:
         GridMismatchError: For a pressure on another grid than the velocity.
         ShapeError: For a pressure tensor that is not ``(B, *res)`` or ``(*res)``.
+        ParameterError: For another viscosity scheme (``'spectral'`` takes no bodies).
     """
     if layout is None or layout.walls is None or layout.tangents is None or pressure is None:
         return layout
+    if viscosity_scheme not in ANTICIPATED_PART and viscosity_scheme != "explicit":
+        raise ParameterError(f"viscosity_scheme must be 'implicit', 'crank_nicolson' or 'explicit' with sharp bodies, "
+                             f"got {viscosity_scheme!r}")
     grid = velocity.grid
     if isinstance(pressure, CenteredGrid) and pressure.grid != grid:
         raise GridMismatchError(f"pressure grid {pressure.grid} differs from the velocity grid {grid}")
@@ -267,8 +283,12 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
             if nb is not None:
                 corners, w = nb
                 dot = dot + normal[:, j] * (grads[j][:, corners] * w.to(own.dtype)).sum(-1)
-        tangential = (own - normal[:, i] * dot) * weight.to(own.dtype)
         cut, coef, source = wall
+        if viscosity_scheme == "explicit":
+            part = coef.reshape(coef.shape[0], -1)[:, index].to(own.dtype)
+        else:
+            part = weight.to(own.dtype) * ANTICIPATED_PART[viscosity_scheme]
+        tangential = (own - normal[:, i] * dot) * part
         flat = torch.zeros_like(grads[i]).index_copy(1, index, tangential)
         extra = flat.reshape(flat.shape[0], *grid.face_shape(i))
         walls.append((cut, coef, extra if source is None else source + extra))
@@ -312,7 +332,7 @@ def finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, pressu
     if layout is not None or not faces_set:
         v = impose_solids(v, layout, moved=(t_new - float(dt), t_new))
     if float(viscosity) != 0:
-        walls = anticipate_pressure(layout, pressure_guess, v, t_new, float(dt))
+        walls = anticipate_pressure(layout, pressure_guess, v, t_new, float(dt), viscosity_scheme)
         v = diffuse_velocity(v, dt, viscosity=viscosity, scheme=viscosity_scheme,
                              solve=solve if viscosity_scheme == "implicit" else None, solids=walls, time=t_new)
     if layout is None:  # no re-validation; boundary faces already set unless viscosity changed them

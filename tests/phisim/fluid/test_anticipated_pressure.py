@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from phisim import Grid, StaggeredGrid
-from phisim.errors import GridMismatchError, ShapeError
+from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid
 from phisim.fluid import (
     Body,
@@ -106,14 +106,18 @@ def test_bad_pressure_is_refused():
     with pytest.raises(ShapeError):
         anticipate_pressure(layout, torch.zeros((1, 15, 16), dtype=F64), v)
     # a bare (*res) tensor is one sample, as the steps accept it
+    with pytest.raises(ParameterError, match="viscosity_scheme"):
+        anticipate_pressure(layout, _linear_pressure(grid, (0.3, 0.2)), v, viscosity_scheme="spectral")
     plain = anticipate_pressure(layout, _linear_pressure(grid, (0.3, 0.2)).values[0], v)
     ref = anticipate_pressure(layout, _linear_pressure(grid, (0.3, 0.2)), v)
     assert all(torch.equal(a[2], b[2]) for a, b in zip(plain.walls, ref.walls))
 
 
-def _array_error(n: int, dt_cells: float, anticipate: bool) -> float:
+def _array_error(n: int, dt_cells: float, anticipate: bool, scheme: str = "implicit", weights: str | None = None,
+                 steps: int = 2000) -> float:
     """The steady split-step drag of the periodic cylinder array (examples/cylinder_array.py's set-up, c = 0.05)
-    relative to Sangani & Acrivos's 15.554."""
+    relative to Sangani & Acrivos's 15.554; ``weights``: the scheme whose anticipation weights are used (default
+    ``scheme``)."""
     radius = math.sqrt(0.05 / math.pi)
     grid = Grid((n, n), bounds=[(0.0, 1.0), (0.0, 1.0)])
     body = Body(Sphere((0.513, 0.479), radius))
@@ -121,10 +125,10 @@ def _array_error(n: int, dt_cells: float, anticipate: bool) -> float:
     layout = solid_layout([body], grid, v.boundary, 0.0, F64)
     dt = dt_cells * grid.dx[0] ** 2
     p = None
-    for _ in range(2000):
+    for _ in range(steps):
         w = impose_solids(v.with_values((v.values[0] + dt, v.values[1])), layout)
-        walls = anticipate_pressure(layout, p, w) if anticipate else layout
-        w = diffuse_velocity(w, dt, viscosity=1.0, scheme="implicit", solids=walls, solve=TIGHT)
+        walls = anticipate_pressure(layout, p, w, viscosity_scheme=weights or scheme) if anticipate else layout
+        w = diffuse_velocity(w, dt, viscosity=1.0, scheme=scheme, solids=walls, solve=TIGHT)
         new, p = make_incompressible(w, layout, solve=TIGHT, pressure_guess=p)
         change = max(float((a - b).abs().max()) for a, b in zip(new.values, v.values))
         v = new
@@ -144,6 +148,20 @@ def test_anticipated_gradient_removes_most_of_the_split_steps_slip():
     with_ = _array_error(16, 5.0, anticipate=True)
     assert -0.34 < without < -0.29
     assert -0.12 < with_ < -0.09
+
+
+def test_the_anticipated_part_follows_the_viscosity_scheme():
+    """The same array on 16^2 (the exact discrete steady state: -2.633 %) with explicit viscosity at ``nu dt / dx^2 =
+    0.2`` and Crank-Nicolson at 1: only the part of the stencil that reads the intermediate velocity gets the
+    correction (the explicit step's point-implicit diagonal ``coef``, half the wall weight for Crank-Nicolson).
+    Measured: explicit -2.757 % (the whole wall weight: -1.360 %), Crank-Nicolson -3.619 % (whole: +4.227 %)."""
+    exact = -0.02633
+    explicit = _array_error(16, 0.2, True, "explicit")
+    explicit_whole = _array_error(16, 0.2, True, "explicit", weights="implicit")
+    assert abs(explicit - exact) < 0.002 and abs(explicit_whole - exact) > 0.01
+    cn = _array_error(16, 1.0, True, "crank_nicolson")
+    cn_whole = _array_error(16, 1.0, True, "crank_nicolson", weights="implicit")
+    assert abs(cn - exact) < 0.012 and abs(cn_whole - exact) > 0.06
 
 
 def test_moving_body_reads_the_pressure_in_its_own_frame():

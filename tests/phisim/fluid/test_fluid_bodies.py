@@ -340,7 +340,7 @@ def test_moving_disc_matches_resting_disc_in_a_stream():
     drag_rest = rest[5:, 0].mean()
     drag_move = move[5:, 0].mean()  # moving towards -x, the disc is pushed towards +x: the same drag
     assert float(drag_rest) > 0
-    assert float(drag_move) == pytest.approx(float(drag_rest), rel=0.01)  # measured: 0.04 % apart (blended: 0.2 %)
+    assert float(drag_move) == pytest.approx(float(drag_rest), rel=0.01)  # measured: 0.25 % apart (blended: 0.2 %)
     assert float((move[5:, 1] - rest[5:, 1]).abs().max()) < 0.01 * float(drag_rest)
 
 
