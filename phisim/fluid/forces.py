@@ -12,7 +12,8 @@ the cell, ``A_i`` the area of a face normal to ``i``), so
 
 the same weights the pressure solve uses; a constant pressure gives exactly zero force. ``pressure_at='surface'``
 reads instead the pressure at each cut cell's surface point ``x_s = x_c - phi n``, extrapolated along the normal by
-the quadratic through the pressures 1.5, 2.5 and 3.5 cells out (no cut cell's pressure enters):
+the quadratic through the pressures 1.5, 2.5 and 3.5 cells out (cut cells enter only through the interpolation of
+the nearest probe):
 
     ``F_p = -sum_c p_phys(x_s,c) (int n dS)_c``,
 
@@ -134,7 +135,8 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
         pressure_at: ``'cells'`` (default): each cut cell's own pressure times its surface area vector (the
             formula above); ``'surface'``: the pressure at the surface point of each cut cell (``x_s = x_c - phi
             n``), extrapolated along the normal by the quadratic through the pressures 1.5, 2.5 and 3.5 cells out
-            (:func:`probe_pressure` with ``order=2``), times the same area vector: it reads no cut cell's pressure.
+            (:func:`probe_pressure` with ``order=2``), times the same area vector (cut cells enter only through the
+            interpolation of the nearest probe).
 
     Returns:
         :class:`BodyForces` with ``(B, d)`` tensors; differentiable.
@@ -203,7 +205,8 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
     on a body's surface) take the extrapolation along the body's normal from points in the fluid, 1.5 and 2.5
     cells beyond the surface (linear, ``order=1``) or 1.5, 2.5 and 3.5 cells (quadratic, ``order=2``: exact for a
     pressure quadratic along the normal, second order at the surface where the linear one leaves ``h^2 p''``
-    times about two), so that cut cells and cells inside the body never enter.
+    times about two), so that cells inside the body never enter (cut cells only through the multilinear
+    interpolation of the nearest probe).
 
     Args:
         pressure: The pressure potential (CenteredGrid ``(B, *res)``).
