@@ -177,8 +177,10 @@ def _cut_surface_points(body: Body, grid, vec: torch.Tensor, t: float):
 
 def _surface_pressure_force(pressure: CenteredGrid, body: Body, vec: torch.Tensor, t: float) -> torch.Tensor:
     """``-sum_c p(x_s) (int n dS)_c`` with ``p(x_s)`` the quadratic extrapolation along the normal (potential units)."""
-    xs, _, area = _cut_surface_points(body, pressure.grid, vec, t)
-    ps = probe_pressure(pressure, xs.to(pressure.dtype), dt=1.0, bodies=body, time=t, order=2)  # (B, S)
+    xs, n, area = _cut_surface_points(body, pressure.grid, vec, t)
+    h = min(pressure.grid.dx)
+    shift = torch.full_like(xs[:, 0], 1.5 * h)  # the surface points: the nodes 1.5, 2.5, 3.5 cells out
+    ps = _extrapolated(pressure, xs.to(pressure.dtype), n.to(pressure.dtype), shift.to(pressure.dtype), 2)  # (B, S)
     return -(ps.unsqueeze(-1) * area.to(ps.dtype)).sum(1)
 
 
@@ -245,16 +247,22 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
             sel = idx == k
             if bool(sel.any()):
                 n[sel] = unit_normal(b, x[sel], time, 1e-3 * h)
-        shift = (1.5 * h - phi).clamp_min(0.0)
-        close = shift > 0
-        q1 = x + shift.unsqueeze(-1) * n
-        q2 = q1 + h * n
-        v1, v2 = pressure.sample(q1), pressure.sample(q2)
-        if order == 1:
-            val = torch.where(close, v1 + (v1 - v2) * shift / h, v1)
-        else:  # the Lagrange weights at 0 of the nodes shift, shift + h, shift + 2h along the normal
-            v3 = pressure.sample(q1 + 2 * h * n)
-            s0, s1, s2 = shift / h, shift / h + 1, shift / h + 2
-            val = torch.where(close, v1 * (s1 * s2 / 2) - v2 * (s0 * s2) + v3 * (s0 * s1 / 2), v1)
-        return val * (density / dt)
+        return _extrapolated(pressure, x, n, (1.5 * h - phi).clamp_min(0.0), order) * (density / dt)
     return pressure.sample(x) * (density / dt)
+
+
+def _extrapolated(pressure: CenteredGrid, x: torch.Tensor, n: torch.Tensor, shift: torch.Tensor, order: int
+                  ) -> torch.Tensor:
+    """The pressure at points ``x`` ``(P, d)``: where ``shift > 0`` extrapolated along the unit normals ``n`` from
+    the nodes ``shift``, ``shift + h`` (and ``shift + 2h`` for ``order=2``) beyond ``x`` (Lagrange weights at 0),
+    elsewhere interpolated; ``(B, P)`` in the potential's units."""
+    h = min(pressure.grid.dx)
+    close = shift > 0
+    q1 = x + shift.unsqueeze(-1) * n
+    q2 = q1 + h * n
+    v1, v2 = pressure.sample(q1), pressure.sample(q2)
+    if order == 1:
+        return torch.where(close, v1 + (v1 - v2) * shift / h, v1)
+    v3 = pressure.sample(q1 + 2 * h * n)
+    s0, s1, s2 = shift / h, shift / h + 1, shift / h + 2
+    return torch.where(close, v1 * (s1 * s2 / 2) - v2 * (s0 * s2) + v3 * (s0 * s1 / 2), v1)
