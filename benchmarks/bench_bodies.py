@@ -227,6 +227,7 @@ def main(argv=None) -> int:
                     print(f"{scene:14s} {n:4d}^2 {rows[-1]['dtype']:8s} blended {a:.2f} ms, sharp {b:.2f} ms "
                           f"({b / a:.2f}x)", flush=True)
         if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
             Path(args.json).write_text(json.dumps(rows, indent=1))
         return 0
     for n in args.sizes:
@@ -252,6 +253,7 @@ def main(argv=None) -> int:
                 print(f"plume {n:4d}^2 {rows[-1]['dtype']:8s} step: PCG pressure {a:.2f} ms, direct {b:.2f} ms "
                       f"({a / b:.2f}x)", flush=True)
     if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0
 

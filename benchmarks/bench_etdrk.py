@@ -49,10 +49,12 @@ import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
+CPU = torch.device("cpu")
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
 from peer_exponax import initial_state  # noqa: E402
+from timing import synchronize  # noqa: E402
 
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError  # noqa: E402
@@ -110,28 +112,29 @@ def reps_for(case: dict) -> int:
     return int(max(3, min(300, 2e6 / max(work, 1))))
 
 
-def build_phisim(case: dict):
-    """The phisim stepper (exponax's dealiasing cut-off) and the function to time."""
+def build_phisim(case: dict, device: torch.device = CPU):
+    """The phisim stepper (exponax's dealiasing cut-off, on ``device``) and the function to time."""
     n = case["n"]
     dtype = getattr(torch, case.get("dtype", "float32"))
     fraction = (2.0 / 3.0 * (n // 2) - 1) / (n // 2)
-    u0 = torch.from_numpy(initial_state(case))
+    u0 = torch.from_numpy(initial_state(case)).to(device)
     if case["eq"] == "fft2d":
         return (lambda: torch.fft.irfftn(torch.fft.rfftn(u0, dim=(-2, -1)), s=(n, n), dim=(-2, -1))), None, u0
     if case["eq"] == "fft1d":
         return (lambda: torch.fft.irfft(torch.fft.rfft(u0), n=n)), None, u0
     if case["eq"] == "ks1d":
         stepper = KuramotoSivashinsky(ndim=1, domain=case["domain"], resolution=n, dt=case["dt"], order=case["order"],
-                                      dealias=fraction, dtype=dtype)
+                                      dealias=fraction, dtype=dtype, device=device)
     elif case["eq"] == "burgers1d":
         stepper = Burgers(ndim=1, viscosity=case["viscosity"], domain=case["domain"], resolution=n, dt=case["dt"],
-                          order=case["order"], dealias=fraction, dtype=dtype)
+                          order=case["order"], dealias=fraction, dtype=dtype, device=device)
     elif case["eq"] == "heat2d":
         stepper = Diffusion(ndim=2, diffusivity=case["viscosity"], domain=case["domain"], resolution=n, dt=case["dt"],
-                            dtype=dtype)
+                            dtype=dtype, device=device)
     else:
         stepper = NavierStokesVorticity(viscosity=case["viscosity"], domain=case["domain"], resolution=n,
-                                        dt=case["dt"], order=case["order"], dealias=fraction, dtype=dtype)
+                                        dt=case["dt"], order=case["order"], dealias=fraction, dtype=dtype,
+                                        device=device)
     if case["mode"] == "step":
         return (lambda: stepper(u0)), stepper, u0
     steps = case["steps"]
@@ -141,9 +144,12 @@ def build_phisim(case: dict):
 class Peer:
     """The exponax child process."""
 
-    def __init__(self, python: str, x64: bool = False):
-        env = dict(os.environ, XLA_FLAGS=XLA_FLAGS, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1",
-                   JAX_ENABLE_X64="1" if x64 else "0")
+    def __init__(self, python: str, x64: bool = False, device: torch.device = CPU):
+        if device.type == "cpu":
+            env = dict(os.environ, XLA_FLAGS=XLA_FLAGS, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
+        else:  # JAX on the GPU too, without taking most of its memory up front (the phisim side shares the card)
+            env = dict(os.environ, JAX_PLATFORMS="cuda", XLA_PYTHON_CLIENT_PREALLOCATE="false", OMP_NUM_THREADS="1")
+        env["JAX_ENABLE_X64"] = "1" if x64 else "0"
         self.proc = subprocess.Popen([python, str(HERE / "peer_exponax.py")], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, bufsize=1)
 
@@ -165,12 +171,15 @@ class Peer:
         self.proc.wait(timeout=30)
 
 
-def time_phisim(fn, reps: int) -> tuple[list[float], list[float]]:
-    """``reps`` timings of ``fn`` in seconds: wall times and process CPU times."""
+def time_phisim(fn, reps: int, device: torch.device = CPU) -> tuple[list[float], list[float]]:
+    """``reps`` timings of ``fn`` in seconds: wall times (up to the device's synchronisation) and process CPU
+    times."""
     wall, cpu = [], []
+    synchronize(device)
     for _ in range(reps):
         c0, t0 = time.process_time(), time.perf_counter()
         fn()
+        synchronize(device)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
     return wall, cpu
@@ -245,31 +254,35 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--only", default=",".join(EQS), help="comma-separated subset of " + ",".join(EQS))
     ap.add_argument("--peer-venv", default=str(HERE / ".venv-jax"))
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/etdrk[_float64].json)")
-    ap.add_argument("--device", default="cpu", help="torch device of the phisim side (the comparison is on the CPU)")
+    ap.add_argument("--device", default="cpu", help="torch device of the phisim side: cpu, cuda or cuda:N (exponax "
+                    "then runs on the GPU too)")
+    ap.add_argument("--peer-python", default=None, help="the interpreter holding jax and exponax (default: the "
+                    "--peer-venv's)")
     ap.add_argument("--from-json", default=None, help="print the table of an earlier results file and exit")
     args = ap.parse_args(argv)
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
         print(markdown_table(saved["rows"]))
         return saved["rows"]
-    if check_device(args.device).type != "cpu":
-        raise ParameterError("the ETDRK benchmark compares with exponax on the CPU; use --device cpu")
+    device = check_device(args.device)
     only = tuple(e.strip() for e in args.only.split(",") if e.strip())
     unknown = sorted(set(only) - set(EQS))
     if unknown:
         raise ParameterError(f"unknown cases {unknown}; known: {', '.join(EQS)}")
     suffix = "" if args.dtype == "float32" else "_" + args.dtype
+    suffix += "" if device.type == "cpu" else "_cuda"
     out_path = Path(args.out or HERE / "results" / f"etdrk{suffix}.json")
     torch.set_num_threads(1)
     load_before = os.getloadavg()
-    peer = Peer(str(Path(args.peer_venv) / "bin" / "python"), x64=args.dtype == "float64")
+    peer = Peer(args.peer_python or str(Path(args.peer_venv) / "bin" / "python"), x64=args.dtype == "float64",
+                device=device)
     info = peer.ask({"cmd": "info"})
     cases = make_cases(args.quick, args.dtype, only)
     built = {}
     agreement = {}
     tmp = tempfile.mkdtemp(prefix="etdrk-bench-")
     for i, case in enumerate(cases):
-        fn, stepper, u0 = build_phisim(case)
+        fn, stepper, u0 = build_phisim(case, device)
         for _ in range(2):
             fn()
         built[i] = fn
@@ -279,7 +292,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             theirs = np.load(path)
             # exponax's vorticity has the opposite sign (its velocity is grad(inverse Laplacian(w)) rotated the
             # other way), so its step of w0 is minus phisim's step of -w0
-            ours = (-stepper(-u0) if case["eq"] == "ns2d" else fn()).numpy()
+            ours = (-stepper(-u0) if case["eq"] == "ns2d" else fn()).cpu().numpy()
             agreement[i] = float(np.abs(ours - theirs).max() / max(np.abs(theirs).max(), 1e-30))
         else:
             peer.ask({"cmd": "time", "case": case, "reps": 1})  # compile + warm-up
@@ -291,7 +304,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for _ in range(args.rounds):
         for i, case in enumerate(cases):
             reps = reps_for(case)
-            wall, cpu = time_phisim(built[i], reps)
+            wall, cpu = time_phisim(built[i], reps, device)
             ours_rounds[i].append(wall)
             ours_cpu[i].append(cpu)
             answer = peer.ask({"cmd": "time", "case": case, "reps": reps})
@@ -312,7 +325,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     meta = dict(command="python " + " ".join([str(Path(__file__).relative_to(HERE.parent))] + (argv or sys.argv[1:])),
                 rounds=args.rounds, dtype=args.dtype, elapsed_s=elapsed, loadavg_before=load_before,
                 loadavg_after=load_after, cpu=platform.processor() or platform.machine(), cores=os.cpu_count(),
-                torch=torch.__version__, peer=info, date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
+                torch=torch.__version__, peer=info, device=str(device),
+                date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
     lines.append(f"\nloadavg before {load_before}, after {load_after}; {elapsed:.0f} s of timed rounds; "
                  f"{args.dtype}; {meta['date']}")
     table = "\n".join(lines)

@@ -32,10 +32,12 @@ import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
+CPU = torch.device("cpu")
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from peer_jaxcfd import TWO_PI, initial_velocity  # noqa: E402
+from timing import synchronize  # noqa: E402
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
@@ -110,12 +112,20 @@ def build_phisim(case: dict, device=None, variant: str = "fused"):
     return fn, energy
 
 
-class Peer:
-    """The jax-cfd child process."""
+def peer_environment(device: torch.device) -> dict:
+    """The JAX peer's environment: one thread on the CPU; on a GPU run, JAX on the GPU without taking most of its
+    memory up front (the phisim side shares the card)."""
+    if device.type == "cpu":
+        return dict(os.environ, XLA_FLAGS=XLA_ONE_THREAD, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
+    return dict(os.environ, JAX_PLATFORMS="cuda", XLA_PYTHON_CLIENT_PREALLOCATE="false", OMP_NUM_THREADS="1")
 
-    def __init__(self):
-        env = dict(os.environ, XLA_FLAGS=XLA_ONE_THREAD, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
-        self.proc = subprocess.Popen([str(PEER_PYTHON), str(HERE / "peer_jaxcfd.py")], stdin=subprocess.PIPE,
+
+class Peer:
+    """The jax-cfd child process (on the CPU, or on the GPU when the phisim side runs on CUDA)."""
+
+    def __init__(self, python: Path = PEER_PYTHON, device: torch.device = CPU):
+        env = peer_environment(device)
+        self.proc = subprocess.Popen([str(python), str(HERE / "peer_jaxcfd.py")], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, bufsize=1)
 
     def ask(self, req: dict) -> dict:
@@ -140,8 +150,15 @@ def reps_for(case: dict) -> int:
     return max(2, min(20, int(2e6 / work)))
 
 
-def _timed(fn) -> float:
-    """Seconds of this thread's CPU time for one call (the phisim-only mode: a loaded machine's waits excluded)."""
+def _timed(fn, device: torch.device) -> float:
+    """Seconds of one call in the phisim-only mode: this thread's CPU time on the CPU (a loaded machine's waits
+    excluded), the wall time up to the device's synchronisation on a GPU."""
+    if device.type != "cpu":
+        synchronize(device)
+        t = time.perf_counter()
+        fn()
+        synchronize(device)
+        return time.perf_counter() - t
     t = time.thread_time()
     fn()
     return time.thread_time() - t
@@ -160,11 +177,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="small sizes only")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--write", action="store_true", help="write benchmarks/results/jaxcfd.json and .md")
+    ap.add_argument("--write", action="store_true",
+                    help="write benchmarks/results/jaxcfd.json and .md (jaxcfd_cuda.* for a GPU run)")
     ap.add_argument("--sides", nargs="+", default=["phisim", "jaxcfd"], choices=["phisim", "jaxcfd"],
                     help="which sides to run (default both; phisim alone needs no jax environment)")
     ap.add_argument("--sizes", type=int, nargs="+", default=None, help="one-step cases of these sizes only")
-    ap.add_argument("--device", default="cpu", help="torch device of the phisim side: cpu, cuda or cuda:N")
+    ap.add_argument("--device", default="cpu", help="torch device of the phisim side: cpu, cuda or cuda:N (the "
+                    "jax-cfd side then runs on the GPU too)")
+    ap.add_argument("--peer-python", type=Path, default=PEER_PYTHON,
+                    help="the interpreter holding jax and jax-cfd (default: benchmarks/.venv-jax)")
     ap.add_argument("--variants", nargs="+", default=["fused", "general"], choices=VARIANTS,
                     help="phisim steps to time: fused (the default stepper), general (fused=False), compiled "
                          "(compile=True: inductor; each case's stepper compiled once, the first call reported)")
@@ -174,7 +195,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     device = check_device(args.device)
     torch.set_num_threads(1)
     with_peer = "jaxcfd" in args.sides
-    if with_peer and not PEER_PYTHON.exists():
+    if with_peer and not args.peer_python.exists():
         raise SystemExit("no jax-cfd environment: run bash benchmarks/setup_jaxpeers.sh first")
     cases = [c for c in make_cases(args.quick, args.sizes) if c["mode"] in args.modes]
     built, compile_s = {}, {}
@@ -184,6 +205,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             t = time.perf_counter()
             fn = build_phisim(c, device, variant)[0]
             fn()
+            synchronize(device)
             if variant == "compiled":
                 compile_s[key] = time.perf_counter() - t
             built[key, variant] = fn
@@ -192,11 +214,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
             key = json.dumps(c, sort_keys=True)
             for variant in args.variants:
                 if (key, variant) in built:
-                    best = min(_timed(built[key, variant]) for _ in range(args.rounds * reps_for(c)))
+                    best = min(_timed(built[key, variant], device) for _ in range(args.rounds * reps_for(c)))
+                    clock = "CPU time of this thread" if device.type == "cpu" else f"wall time, {device}"
                     print(f"{label(c)}: phisim {variant} {1e3 * best:.3f} ms (best of "
-                          f"{args.rounds * reps_for(c)}, CPU time of this thread)")
+                          f"{args.rounds * reps_for(c)}, {clock})")
         return []
-    peer = Peer()
+    peer = Peer(args.peer_python, device)
     info = peer.ask({"cmd": "info"})
     rows = {json.dumps(c, sort_keys=True): {"case": c, "peer": [], "compile_s": None,
                                             **{v: [] for v in args.variants}} for c in cases}
@@ -211,9 +234,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
                     if fn is None:
                         continue
                     fn()  # warm
+                    synchronize(device)
                     for _ in range(reps):
                         t = time.perf_counter()
                         fn()
+                        synchronize(device)
                         rows[key][variant].append(time.perf_counter() - t)
                 out = peer.ask({"cmd": "time", "case": c, "reps": reps})
                 rows[key]["peer"] += out["times"]
@@ -247,7 +272,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
             line += f" {compile_s[key]:.1f} |" if key in compile_s else " |"
         lines.append(line)
     rel = abs(e_ours[0] - e_peer[0]) / e_peer[0]
-    header = [f"jax {info['jax']}, jax-cfd {info['jax_cfd']}, torch {torch.__version__}; one thread per side; "
+    where = ("one thread per side" if device.type == "cpu" else
+             f"both sides on the GPU ({torch.cuda.get_device_name(device)}; jax devices {info.get('devices')})")
+    header = [f"jax {info['jax']}, jax-cfd {info['jax_cfd']}, torch {torch.__version__}; {where}; "
               f"{args.rounds} interleaved rounds, best of each side; load average {load:.2f} at the start, "
               f"{load_end:.2f} at the end.",
               f"Like-for-like check: kinetic energy after 100 float64 steps at 64²: phisim {e_ours[0]:.8f}, "
@@ -256,10 +283,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(text)
     if args.write:
         (HERE / "results").mkdir(exist_ok=True)
-        (HERE / "results" / "jaxcfd.json").write_text(json.dumps({"info": info, "rows": result, "load": load,
-                                                                   "load_end": load_end,
+        name = "jaxcfd" if device.type == "cpu" else "jaxcfd_cuda"
+        (HERE / "results" / f"{name}.json").write_text(json.dumps({"info": info, "rows": result, "load": load,
+                                                                   "load_end": load_end, "device": str(device),
                                                                    "energy": [e_ours, e_peer]}, indent=1))
-        (HERE / "results" / "jaxcfd.md").write_text(text + "\n")
+        (HERE / "results" / f"{name}.md").write_text(text + "\n")
     return result
 
 

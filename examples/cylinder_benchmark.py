@@ -153,6 +153,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     t_end = args.t_end or (6.0 if args.case == "2D-1" else 8.0)
     rec = args.record_from if args.record_from is not None else (t_end - 1.0 if args.case == "2D-1" else t_end - 4.0)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     results = []
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,

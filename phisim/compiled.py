@@ -8,7 +8,10 @@ outside the compiled function.
 
 * CPU: inductor needs a working C++ compiler. :func:`inductor_available` compiles a one-line function once per
   process to find out; without one, :func:`compile` says so in one warning and the stepper runs eager.
-* CUDA: ``mode='reduce-overhead'`` (CUDA graphs) unless another mode is asked for.
+* CUDA: ``mode='reduce-overhead'`` (CUDA graphs) unless another mode is asked for. A CUDA graph writes its
+  outputs into memory of its own that its next replay overwrites, so the compiled step copies its result out
+  (:func:`own_memory`, one copy of the state per step): states can be kept, fed back step after step (rollouts)
+  and backpropagated through many steps.
 
 Shapes and dtypes are static (``dynamic=False``): a new resolution, batch size or grad mode compiles anew, new
 values of the state do not (the stepper hands its step neither the time nor a pressure it does not use, and builds
@@ -25,6 +28,7 @@ Example:
 from __future__ import annotations
 
 import builtins
+import dataclasses
 import functools
 import itertools
 import types
@@ -34,7 +38,7 @@ import torch
 
 from phisim.errors import ParameterError
 
-__all__ = ["compile", "compile_function", "inductor_available", "is_compiling"]
+__all__ = ["compile", "compile_function", "inductor_available", "is_compiling", "own_memory"]
 
 #: Whether the code runs inside ``torch.compile``'s tracing (a constant there): steps skip checks that read a value
 #: back to the host while traced, where the stepper made them once before.
@@ -61,7 +65,35 @@ def compile_function(fn, *, device_type: str = "cpu", mode: str | None = None):
         return fn
     if mode is None and device_type == "cuda":
         mode = "reduce-overhead"
-    return torch.compile(_own_code(fn), fullgraph=True, dynamic=False, mode=mode)
+    compiled = torch.compile(_own_code(fn), fullgraph=True, dynamic=False, mode=mode)
+    if device_type != "cuda" or mode not in ("reduce-overhead", "max-autotune"):
+        return compiled
+
+    @functools.wraps(fn)
+    def step_out_of_the_graph_pool(*args, **kwargs):
+        return own_memory(compiled(*args, **kwargs))
+
+    return step_out_of_the_graph_pool
+
+
+def own_memory(out):
+    """``out`` with every tensor in it copied (``clone``, differentiable): tensors, tuples and lists of them, fields
+    (objects with ``values`` and ``with_values``) and dataclasses (a :class:`~phisim.fluid.FluidState`); anything
+    else as it is. A CUDA-graph step's result so no longer lies in the graph's memory, which its next replay
+    overwrites."""
+    if isinstance(out, torch.Tensor):
+        return out.clone()
+    if isinstance(out, (tuple, list)):
+        return type(out)(own_memory(o) for o in out)
+    trusted = getattr(type(out), "_trusted", None)  # a field: same shapes, so no second validation
+    if trusted is not None:
+        return trusted(own_memory(out.values), out.grid, out.boundary)
+    if hasattr(out, "with_values") and hasattr(out, "values"):
+        return out.with_values(own_memory(out.values))
+    if dataclasses.is_dataclass(out) and not isinstance(out, type):
+        return dataclasses.replace(out, **{f.name: own_memory(getattr(out, f.name))
+                                           for f in dataclasses.fields(out) if f.init})
+    return out
 
 
 _serial = itertools.count()

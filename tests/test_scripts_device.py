@@ -127,7 +127,7 @@ def _cylinder(out: Path, device: str) -> dict:
 
 
 def test_cylinder_benchmark_tiny_cpu(tmp_path):
-    _cylinder(tmp_path, "cpu")
+    _cylinder(tmp_path / "new", "cpu")  # a folder that does not exist yet: the script makes it
 
 
 def _bench_bodies(out: Path, device: str) -> list[dict]:
@@ -142,7 +142,7 @@ def _bench_bodies(out: Path, device: str) -> list[dict]:
 
 
 def test_bench_bodies_tiny_cpu(tmp_path):
-    _bench_bodies(tmp_path, "cpu")
+    _bench_bodies(tmp_path / "new", "cpu")
 
 
 def _bench_spectral(device: str, capsys) -> list:

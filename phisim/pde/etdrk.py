@@ -459,7 +459,8 @@ class ETDRKStepper:
                                  "(build another stepper or cast the state)")
         if u.device.type != self.grid.device.type or (
                 self.grid.device.index is not None and u.device.index != self.grid.device.index):
-            raise ParameterError(f"the state is on {u.device}; this stepper was built on {self.grid.device}")
+            raise ParameterError(f"the state is on device {u.device}; this stepper was built on device "
+                                 f"{self.grid.device} (build another stepper or move the state)")
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         """Advance ``u`` by one time step ``dt``.

@@ -39,7 +39,6 @@ in that weighted inner product).
 
 from __future__ import annotations
 
-import copy
 import math
 from functools import lru_cache
 
@@ -328,18 +327,34 @@ def _cached_component(grid, boundary, i: int) -> _Component:
     return _Component(grid, boundary, i)
 
 
+class _Bound(_Component):
+    """A cached component geometry read through, with the caller's boundary for the value terms.
+
+    Its own attributes are the geometry and the boundary; every other attribute is the geometry's (shared: the
+    arrays and the multiplier cache). Plain attribute reads, no copy of the object: ``torch.compile`` traces it on
+    every torch version (``copy.copy`` is outside what some versions trace)."""
+
+    def __init__(self, geometry: _Component, boundary):  # noqa: D107 - no _Component.__init__: nothing is rebuilt
+        self._geometry = geometry
+        self.boundary = boundary
+
+    def __getattr__(self, name: str):
+        if name == "_geometry":  # not set yet (e.g. while unpickling): no recursion
+            raise AttributeError(name)
+        return getattr(self._geometry, name)
+
+
 def _component(grid, boundary, i: int) -> _Component:
     """The (cached) geometry of component ``i``, bound to this very ``boundary`` object.
 
     Boundaries that compare equal may still hold different evaluated inflow profiles (not part of their
-    equality), so the cached geometry is copied and given the caller's boundary for the value terms.
+    equality), so the cached geometry is read through a :class:`_Bound` holding the caller's boundary.
     """
     try:
-        comp = copy.copy(_cached_component(grid, boundary, i))
+        geometry = _cached_component(grid, boundary, i)
     except TypeError:  # boundaries holding unhashable values (tensors in lists)
         return _Component(grid, boundary, i)
-    comp.boundary = boundary
-    return comp
+    return geometry if geometry.boundary is boundary else _Bound(geometry, boundary)
 
 
 def _fixed_masks(fixed, velocity):

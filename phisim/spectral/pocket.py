@@ -5,7 +5,8 @@ C++ library behind ``scipy.fft``) computes them from a real FFT vectorised acros
 CPU (1 thread) pocketfft measured faster for every float32 size of interest and for the float64 type-1 kinds;
 :func:`use_pocket` encodes that choice. Pocketfft needs no plans, so its results are the same in every
 process, which is why the default ``FFTW_ESTIMATE`` settings run every real-to-real kind here. Called through
-``scipy.fft._pocketfft.pypocketfft`` with an output buffer (in place, no per-call argument handling);
+``scipy.fft._pocketfft.pypocketfft`` (scipy up to 1.17; from 1.18 ``scipy.fft._duccfft.pyduccfft``, its successor
+with the same calls) with an output buffer (in place, no per-call argument handling);
 without that module :mod:`phisim.spectral.fft` keeps FFTW's transforms.
 """
 
@@ -18,10 +19,13 @@ import torch
 
 from phisim.spectral import settings as _settings
 
-try:  # the C++ transforms behind scipy.fft
+try:  # the C++ transforms behind scipy.fft: pocketfft up to scipy 1.17, its successor ducc (same calls) from 1.18
     from scipy.fft._pocketfft import pypocketfft as _pocket
 except ImportError:  # pragma: no cover - depends on the scipy version
-    _pocket = None
+    try:
+        from scipy.fft._duccfft import pyduccfft as _pocket
+    except ImportError:
+        _pocket = None
 
 def use_pocket(dtype: torch.dtype, kinds: tuple[str, ...], lengths: tuple[int, ...] | None = None,
                effort: str = "FFTW_ESTIMATE") -> bool:

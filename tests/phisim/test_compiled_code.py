@@ -1,13 +1,16 @@
 """Compiled steps keep graphs of their own: many steppers compiled in one process do not exhaust
-``torch.compile``'s per-code recompile limit (``phisim.compiled._own_code``)."""
+``torch.compile``'s per-code recompile limit (``phisim.compiled._own_code``); a CUDA-graph step's result is copied
+out of the graph's memory (``phisim.compiled.own_memory``)."""
 
 from __future__ import annotations
 
 import torch
 
-from phisim import Grid, StaggeredGrid
-from phisim.compiled import _own_code
+from phisim import CenteredGrid, Grid, StaggeredGrid
+from phisim.compiled import _own_code, own_memory
 from phisim.fluid import FluidState, FluidStepper
+
+F64 = torch.float64
 
 
 class _Scaled:
@@ -39,3 +42,17 @@ def test_more_steppers_than_the_recompile_limit_compile_with_fullgraph():
         ref = st.advance(state, st.dt)
         for x, y in zip(out.velocity.values, ref.velocity.values):
             assert torch.equal(x, y)
+
+
+def test_own_memory_copies_every_tensor_of_a_state():
+    grid = Grid((6, 6), bounds=[(0, 1), (0, 1)])
+    stepper = FluidStepper(grid, "wall", viscosity=1e-3, buoyancy=0.5, dt=0.02, dtype=F64)
+    state = stepper(FluidState(StaggeredGrid.zeros(grid, stepper.boundary, dtype=F64),
+                               CenteredGrid(torch.rand((1, 6, 6), dtype=F64), grid, stepper.boundary.for_scalar())))
+    copy = own_memory(state)
+    assert isinstance(copy, FluidState) and copy.time == state.time
+    pairs = list(zip(copy.velocity.values, state.velocity.values))
+    pairs += [(copy.marker.values, state.marker.values), (copy.pressure.values, state.pressure.values)]
+    for x, y in pairs:
+        assert torch.equal(x, y) and x.data_ptr() != y.data_ptr()
+    assert own_memory((1, "a", None)) == (1, "a", None)
