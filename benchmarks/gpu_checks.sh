@@ -40,8 +40,9 @@ part() { [[ " $PARTS " == *" $1 "* ]]; }
 if part tests; then
   echo "== CUDA tests"
   timeout 180 "$PY" -m pytest -q -p no:cacheprovider -p no:logging -n 8 --tb=short -m "not slow" \
-    tests/phisim/test_cuda.py tests/test_scripts_device.py tests/inverse/test_hig.py \
-    tests/phisim/solvers/test_linalg.py tests/phisim/pde/test_stepper_api.py tests/phisim/spectral/test_fft.py \
+    tests/phisim/test_cuda.py tests/phisim/test_compiled_code.py tests/test_scripts_device.py \
+    tests/inverse/test_hig.py tests/phisim/solvers/test_linalg.py tests/phisim/pde/test_stepper_api.py \
+    tests/phisim/spectral/test_fft.py \
     > "$OUT/tests.log" 2>&1
   echo "tests rc=$?"; grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests.log" | tail -25
 fi
