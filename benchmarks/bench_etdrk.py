@@ -1,4 +1,5 @@
-"""ETDRK steppers: phisim.pde against exponax 0.2.0 (JAX, CPU), one thread each, interleaved rounds.
+"""ETDRK steppers: phisim.pde against exponax 0.2.0 (JAX), one thread each on the CPU (or both sides on one GPU
+with ``--device cuda``), interleaved rounds.
 
 Run (after ``bash benchmarks/setup_jaxpeers.sh``)::
 

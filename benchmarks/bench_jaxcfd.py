@@ -15,6 +15,8 @@ stepper (``fused=False``) and, with ``--variants ... compiled``, the stepper und
 energies after 100 float64 steps at 64² are printed as the like-for-like check. One thread per side
 (``torch.set_num_threads(1)``; XLA single-threaded Eigen and intra-op), interleaved rounds; the table gives the
 best time of each side and the ratio phisim / jax-cfd (< 1: phisim faster).
+With ``--device cuda`` both sides run on the GPU (``--peer-python``: an interpreter with jax and jax-cfd; results
+to ``benchmarks/results/jaxcfd_cuda.*``; ``docs/BENCHMARKS_GPU.md``).
 """
 
 from __future__ import annotations
