@@ -55,13 +55,12 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
 from peer_exponax import initial_state  # noqa: E402
-from timing import synchronize  # noqa: E402
+from timing import jax_peer_environment, synchronize  # noqa: E402
 
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import ParameterError  # noqa: E402
 from phisim.pde import Burgers, Diffusion, KuramotoSivashinsky, NavierStokesVorticity  # noqa: E402
 
-XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 EQS = ("ks1d", "burgers1d", "ns2d", "heat2d", "fft1d", "fft2d")
 
 
@@ -146,10 +145,7 @@ class Peer:
     """The exponax child process."""
 
     def __init__(self, python: str, x64: bool = False, device: torch.device = CPU):
-        if device.type == "cpu":
-            env = dict(os.environ, XLA_FLAGS=XLA_FLAGS, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
-        else:  # JAX on the GPU too, without taking most of its memory up front (the phisim side shares the card)
-            env = dict(os.environ, JAX_PLATFORMS="cuda", XLA_PYTHON_CLIENT_PREALLOCATE="false", OMP_NUM_THREADS="1")
+        env = jax_peer_environment(device.type)
         env["JAX_ENABLE_X64"] = "1" if x64 else "0"
         self.proc = subprocess.Popen([python, str(HERE / "peer_exponax.py")], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, bufsize=1)

@@ -39,7 +39,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from peer_jaxcfd import TWO_PI, initial_velocity  # noqa: E402
-from timing import synchronize  # noqa: E402
+from timing import jax_peer_environment, synchronize  # noqa: E402
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
@@ -48,7 +48,6 @@ from phisim.fluid import FluidState, FluidStepper  # noqa: E402
 PEER_PYTHON = HERE / ".venv-jax" / "bin" / "python"
 #: The phisim steps a run can time.
 VARIANTS = ("fused", "general", "compiled")
-XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 
 
 def make_cases(quick: bool, sizes: list[int] | None = None) -> list[dict]:
@@ -114,19 +113,11 @@ def build_phisim(case: dict, device=None, variant: str = "fused"):
     return fn, energy
 
 
-def peer_environment(device: torch.device) -> dict:
-    """The JAX peer's environment: one thread on the CPU; on a GPU run, JAX on the GPU without taking most of its
-    memory up front (the phisim side shares the card)."""
-    if device.type == "cpu":
-        return dict(os.environ, XLA_FLAGS=XLA_ONE_THREAD, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
-    return dict(os.environ, JAX_PLATFORMS="cuda", XLA_PYTHON_CLIENT_PREALLOCATE="false", OMP_NUM_THREADS="1")
-
-
 class Peer:
     """The jax-cfd child process (on the CPU, or on the GPU when the phisim side runs on CUDA)."""
 
     def __init__(self, python: Path = PEER_PYTHON, device: torch.device = CPU):
-        env = peer_environment(device)
+        env = jax_peer_environment(device.type)
         self.proc = subprocess.Popen([str(python), str(HERE / "peer_jaxcfd.py")], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, bufsize=1)
 

@@ -31,6 +31,22 @@ def set_threads(n: int) -> None:
         pass
 
 
+#: XLA on one CPU thread (the JAX peers' setting beside a one-thread torch side).
+XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def jax_peer_environment(device_type: str) -> dict:
+    """The environment of a JAX peer's child process: on the CPU one XLA thread; for a GPU run JAX on the GPU,
+    without taking most of its memory up front (the phisim side shares the card).
+
+    Args:
+        device_type: ``'cpu'`` or ``'cuda'`` (the phisim side's device type).
+    """
+    if device_type == "cpu":
+        return dict(os.environ, XLA_FLAGS=XLA_ONE_THREAD, JAX_PLATFORMS="cpu", OMP_NUM_THREADS="1")
+    return dict(os.environ, JAX_PLATFORMS="cuda", XLA_PYTHON_CLIENT_PREALLOCATE="false", OMP_NUM_THREADS="1")
+
+
 def _sync_fn(device: Any) -> Callable[[], None]:
     if device is not None and str(device).startswith("cuda"):
         import torch

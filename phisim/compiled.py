@@ -33,6 +33,7 @@ import functools
 import itertools
 import types
 import warnings
+from typing import Any
 
 import torch
 
@@ -76,11 +77,11 @@ def compile_function(fn, *, device_type: str = "cpu", mode: str | None = None):
     return step_out_of_the_graph_pool
 
 
-def own_memory(out):
+def own_memory(out: Any) -> Any:
     """``out`` with every tensor in it copied (``clone``, differentiable): tensors, tuples and lists of them, fields
-    (objects with ``values`` and ``with_values``) and dataclasses (a :class:`~phisim.fluid.FluidState`); anything
-    else as it is. A CUDA-graph step's result so no longer lies in the graph's memory, which its next replay
-    overwrites."""
+    (:class:`~phisim.field.CenteredGrid`, :class:`~phisim.field.StaggeredGrid`) and dataclasses (a
+    :class:`~phisim.fluid.FluidState`); anything else as it is. A CUDA-graph step's result so no longer lies in the
+    graph's memory, which its next replay overwrites."""
     if isinstance(out, torch.Tensor):
         return out.clone()
     if isinstance(out, (tuple, list)):
@@ -88,8 +89,6 @@ def own_memory(out):
     trusted = getattr(type(out), "_trusted", None)  # a field: same shapes, so no second validation
     if trusted is not None:
         return trusted(own_memory(out.values), out.grid, out.boundary)
-    if hasattr(out, "with_values") and hasattr(out, "values"):
-        return out.with_values(own_memory(out.values))
     if dataclasses.is_dataclass(out) and not isinstance(out, type):
         return dataclasses.replace(out, **{f.name: own_memory(getattr(out, f.name))
                                            for f in dataclasses.fields(out) if f.init})

@@ -69,9 +69,7 @@ def _start(grid, stepper, dtype, smoke, seed=0):
 
 
 def _to(state: FluidState, device) -> FluidState:
-    v = state.velocity.with_values(tuple(c.to(device) for c in state.velocity.values))
-    marker = None if state.marker is None else state.marker.with_values(state.marker.values.to(device))
-    return FluidState(v, marker)
+    return FluidState(state.velocity.to(device), None if state.marker is None else state.marker.to(device))
 
 
 def _compare_states(a: FluidState, b: FluidState, dtype):
