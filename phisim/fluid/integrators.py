@@ -79,7 +79,7 @@ from phisim.solvers.diffusion import diffuse_staggered
 __all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step", "rk_advance"]
 
 #: Time integrators of incompressible flow with their order in time for the velocity.
-INTEGRATORS = {"split": 1, "rk2": 2, "rk3": 3, "imex2": 2}
+INTEGRATORS = {"split": 1, "split2": 2, "rk2": 2, "rk3": 3, "imex2": 2}
 
 # (weight of u_n, weight of the previous stage after its Euler step, time offset of the stage) per stage
 _SHU_OSHER = {

@@ -38,11 +38,12 @@ from phisim.fluid.bodies import SolidLayout, body_fraction, sharp_no_slip, solid
 from phisim.fluid.projection import check_velocity, impose_solids, make_incompressible, project_box, project_trusted
 from phisim.fluid.viscosity import diffuse_velocity
 from phisim.grid import Grid
+from phisim.ops.advection import advect_trusted
 from phisim.ops.differential import gradient
 from phisim.padding import const
 
 __all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "rescale_energy", "cfl_dt", "FluidState", "to_time",
-           "finish_step", "anticipate_pressure",
+           "finish_step", "anticipate_pressure", "split2_advection", "split2_memory",
            "scalar_values", "buoyancy_args", "apply_buoyancy"]
 
 
@@ -295,6 +296,38 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     return replace(layout, walls=tuple(walls))
 
 
+def split2_advection(src: StaggeredGrid, state: FluidState, dt, scheme: str) -> StaggeredGrid:
+    """The self-advection of the ``'split2'`` step: ``src`` (the velocity extended into the bodies) plus ``dt/2`` times
+    the previous step's acceleration by everything but the advection (:attr:`FluidState.acceleration`: pressure,
+    viscosity, forces), transported by the velocity extrapolated to the half step, ``u^n + dt/2 du/dt``
+    (:attr:`FluidState.velocity_rate`), less that half acceleration.
+
+    The split step advects ``u`` and then adds the other terms, so that the advection misses their transport during
+    the step, ``dt^2/2 (u . grad) f``, and traces with ``u^n`` instead of ``u^{n+1/2}``: two errors of first order in
+    time. Without a previous step (no rate, no acceleration) this is the split step's advection."""
+    carrier = src
+    if state.velocity_rate is not None:
+        carrier = src._with_components([u + (0.5 * dt) * r for u, r in zip(src.values, state.velocity_rate.values)])
+    if state.acceleration is None:
+        return advect_trusted(src, carrier, dt, scheme=scheme)
+    half = [(0.5 * dt) * a for a in state.acceleration.values]
+    moved = src._with_components([u + h for u, h in zip(src.values, half)])
+    v = advect_trusted(moved, carrier, dt, scheme=scheme)
+    return v._with_components([u - h for u, h in zip(v.values, half)])
+
+
+def split2_memory(new: StaggeredGrid, old: StaggeredGrid, advected: StaggeredGrid, dt,
+                  layout: SolidLayout | None) -> tuple[StaggeredGrid, StaggeredGrid]:
+    """What a ``'split2'`` step keeps for the next: the velocity's rate ``(new - old) / dt`` and the acceleration by
+    everything but the advection, ``(new - advected) / dt``, zero on the faces inside solids (``theta = 0`` in
+    ``layout``, the solids at the new time), where the stored velocity is the solid's."""
+    rate = new._with_components([(a - b) / dt for a, b in zip(new.values, old.values)])
+    acc = [(a - b) / dt for a, b in zip(new.values, advected.values)]
+    if layout is not None:
+        acc = [a * (th > 0).to(a.dtype) for a, th in zip(acc, layout.theta)]
+    return rate, new._with_components(acc)
+
+
 def _pressure_in_body_frame(q: CenteredGrid, bodies, velocity: StaggeredGrid, t: float, dt: float) -> CenteredGrid:
     """The previous pressure ``q`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
     multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others hold no fluid pressure)."""
@@ -355,9 +388,15 @@ class FluidState:
         marker: Passive scalar (smoke density / temperature) as a scalar CenteredGrid, or None.
         pressure: Last pressure (warm start of the next CG solve), or None.
         time: Simulated time.
+        velocity_rate: The velocity's change per unit time over the last step, kept by the ``'split2'`` integrator
+            (its half-step extrapolation of the advecting velocity), or None.
+        acceleration: The last step's acceleration by everything but the advection (pressure, viscosity, forces),
+            kept by the ``'split2'`` integrator, or None.
     """
 
     velocity: StaggeredGrid
     marker: CenteredGrid | None = None
     pressure: CenteredGrid | None = None
     time: float = 0.0
+    velocity_rate: StaggeredGrid | None = None
+    acceleration: StaggeredGrid | None = None

@@ -42,6 +42,8 @@ from phisim.fluid.step import (
     finish_step,
     kinetic_energy,
     scalar_values,
+    split2_advection,
+    split2_memory,
     to_time,
 )
 from phisim.fluid.viscosity import VISCOSITY_SCHEMES
@@ -50,6 +52,9 @@ from phisim.ops.advection import SCALAR_SCHEMES, SCHEMES, advect, advect_trusted
 from phisim.solvers.linalg import Solve
 
 __all__ = ["FluidStepper", "step", "navier_stokes_step", "advance"]
+
+#: The operator-split integrators (advection, forcing, viscosity, projection), as against the Runge-Kutta ones.
+SPLIT = ("split", "split2")
 
 
 def _check_schemes(advection: str, marker_advection: str | None, viscosity_scheme: str, integrator: str) -> str:
@@ -171,7 +176,7 @@ class FluidStepper:
         #: Check the new state for NaN/Inf every ``check`` calls (0: never).
         self.check = int(check or 0)
         self._calls = 0
-        if integrator != "split" and self.dt is not None:
+        if integrator not in SPLIT and self.dt is not None:
             check_viscous_number(integrator, self.viscosity, self.dt, grid.dx)
         # the checks the step's path does not repeat: fluxes that can balance, fluid left beside the solids
         faces = to_time(template, 0.0).with_boundary_faces()
@@ -233,7 +238,7 @@ class FluidStepper:
                        integrator=self.integrator, marker_advection=self.marker_advection)
         else:
             dt = check_dt(dt)
-            if dt != self.dt and self.integrator != "split":
+            if dt != self.dt and self.integrator not in SPLIT:
                 check_viscous_number(self.integrator, self.viscosity, dt, self.grid.dx)
             # the step sees only what it uses: a traced step then does not depend on the time or on whether a
             # pressure exists (no new graph per step); the time is advanced here
@@ -335,6 +340,9 @@ def navier_stokes_step(
     dt = check_dt(dt)
     if advection not in SCHEMES:
         raise ParameterError(f"unknown advection scheme {advection!r}; choose one of {SCHEMES}")
+    if integrator == "split2":
+        raise ParameterError("integrator='split2' keeps the velocity's rate and acceleration in the state: use step() "
+                             "or FluidStepper")
     if integrator != "split":
         if force is not None:
             check_velocity(force, "force")
@@ -422,7 +430,7 @@ def step(
     if marker is not None and marker_source is not None:
         source, _ = scalar_values(marker_source, marker.grid)
         source = source.to(dtype=marker.dtype, device=marker.device)
-    if integrator != "split":
+    if integrator not in SPLIT:
         check_viscous_number(integrator, check_nonnegative(viscosity, "viscosity"), dt, v0.grid.dx)
     return advance(state, dt, viscosity=viscosity, buoyancy_strength=buoyancy_strength,
                    buoyancy_direction=buoyancy_direction, advection=advection, viscosity_scheme=viscosity_scheme,
@@ -452,7 +460,7 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
         if layout is not None:  # no marker in cells entirely inside a solid
             marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
     lift = marker is not None and buoyancy_strength != 0
-    if integrator != "split":
+    if integrator not in SPLIT:
         force = None
         if lift:
             force = apply_buoyancy(StaggeredGrid.zeros(v0.grid, v0.boundary, v0.batch_size, dtype=v0.dtype,
@@ -463,11 +471,19 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
     e0 = kinetic_energy(v0) if energy_normalization else None
     src = extend_into_bodies(v0, obstacles, state.time)
-    v = advect_trusted(src, src, dt, scheme=advection)
+    if integrator == "split2":
+        v = split2_advection(src, state, dt, advection)
+    else:
+        v = advect_trusted(src, src, dt, scheme=advection)
     v = to_time(v, t_new)
+    advected = v
     if lift:  # sets the boundary faces
         strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
         v = apply_buoyancy(v, marker.values, marker.boundary, dt, strength, direction)
     v, p = finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new,
                        faces_set=lift, trusted=trusted)
-    return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
+    if integrator != "split2":
+        return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
+    layout = None if obstacles is None else solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
+    rate, acc = split2_memory(v, v0, advected, dt, layout)
+    return replace(state, velocity=v, marker=marker, pressure=p, time=t_new, velocity_rate=rate, acceleration=acc)

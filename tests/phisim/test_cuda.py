@@ -50,6 +50,8 @@ FLUID_CASES = [
      False),
     ("box-rk3", 2, "wall", dict(viscosity=1e-3, integrator="rk3"), False),
     ("channel-imex2", 2, CHANNEL, dict(viscosity=1e-2, integrator="imex2"), False),
+    ("channel-split2", 2, CHANNEL, dict(viscosity=1e-2, integrator="split2"), False),
+    ("periodic-3d-split2", 3, "periodic", dict(viscosity=1e-3, integrator="split2"), False),
 ]
 
 
@@ -94,12 +96,14 @@ def test_fluid_steps_agree_with_the_cpu(case, dtype):
     _compare_states(a, b, dtype)
 
 
+@pytest.mark.parametrize("integrator", ["split", "split2"])
 @pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
-def test_a_resting_body_with_the_direct_pressure_solve_agrees_with_the_cpu(dtype):
+def test_a_resting_body_with_the_direct_pressure_solve_agrees_with_the_cpu(dtype, integrator):
     grid = Grid((16, 16), bounds=[(0, 1), (0, 1)])
     body = Body(Sphere((0.55, 0.5), 0.2))
-    cpu = FluidStepper(grid, CHANNEL, obstacles=body, viscosity=1e-2, dt=0.01, dtype=dtype)
-    dev = FluidStepper(grid, CHANNEL, obstacles=body, viscosity=1e-2, dt=0.01, dtype=dtype, device=DEVICE)
+    kw = dict(obstacles=body, viscosity=1e-2, dt=0.01, dtype=dtype, integrator=integrator)
+    cpu = FluidStepper(grid, CHANNEL, **kw)
+    dev = FluidStepper(grid, CHANNEL, device=DEVICE, **kw)
     assert dev.obstacles.solvers is not None
     start = _start(grid, cpu, dtype, False)
     a = cpu(cpu(start))

@@ -70,6 +70,8 @@ FLUID_CASES = [
     ("box, rk3 smoke", 2, "wall", dict(viscosity=1e-3, integrator="rk3", buoyancy=0.5), True),
     ("channel, imex2", 2, CHANNEL, dict(viscosity=1e-2, integrator="imex2"), False),
     ("box, imex2", 3, "wall", dict(viscosity=1e-2, integrator="imex2"), False),
+    ("channel, split2", 2, CHANNEL, dict(viscosity=1e-2, integrator="split2"), False),
+    ("periodic, split2", 3, "periodic", dict(viscosity=1e-3, integrator="split2"), False),
 ]
 
 
@@ -114,13 +116,14 @@ def test_fluid_step_traces_as_one_graph(case, dtype):
 @pytest.mark.parametrize("no_slip", [True, False], ids=["no_slip", "free_slip"])
 @pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
 @pytest.mark.parametrize("rank", [2])  # in 3-D the direct solve does not pay at these sizes: PCG, not traced
-def test_static_body_step_traces_as_one_graph(rank, dtype, no_slip):
+@pytest.mark.parametrize("integrator", ["split", "split2"])
+def test_static_body_step_traces_as_one_graph(integrator, rank, dtype, no_slip):
     """A resting body with the direct pressure solve: the traced step takes the exact capacitance solve alone (the
     eager step lets CG check and polish it, a host loop). Free-slip bodies: their ghost values and flux correction
     keep their stencils on the stepper's layout."""
     grid = Grid((12,) * rank, bounds=[(0, 1)] * rank)
     body = Body(Sphere((0.55,) + (0.5,) * (rank - 1), 0.2), no_slip=no_slip)
-    stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=1e-2, dt=0.02, dtype=dtype)
+    stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=1e-2, dt=0.02, dtype=dtype, integrator=integrator)
     assert stepper.obstacles.solvers is not None
     state = stepper(FluidState(_velocity(grid, stepper.boundary, dtype)))
     eager = stepper(stepper(state))
