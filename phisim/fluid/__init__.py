@@ -17,7 +17,8 @@ Modules:
 * :mod:`~phisim.fluid.transport` -- :class:`AdvectionDiffusionStepper` (a scalar in a given flow) and
   :class:`BurgersStepper`;
 * :mod:`~phisim.fluid.integrators` -- second-/third-order time integrators (:func:`navier_stokes_rk_step`:
-  ``'rk2'``, ``'rk3'``, ``'imex2'``) and the MAC :func:`convection` term.
+  ``'rk2'``, ``'rk3'``, ``'imex2'``; the table of every integrator, ``'split2'`` included) and the MAC
+  :func:`convection` term.
 """
 
 from phisim.fluid.bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout

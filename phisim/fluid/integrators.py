@@ -28,6 +28,7 @@ Orders in time (velocity; measured in ``tests/phisim/fluid/test_integrators.py``
 integrator          stages                                              order        stability
 ==================  ==================================================  ===========  ========================
 ``'split'``         :func:`~phisim.fluid.navier_stokes_step`            1            unconditional (SL)
+``'split2'``        the split step, advection to second order (below)   2            as ``'split'``
 ``'rk2'``           Heun / SSP-RK2, 2 projections, explicit viscosity   2            needs viscosity *
 ``'rk3'``           Shu-Osher SSP-RK3, 3 projections, explicit visc.    3 (≥ 2)      CFL ≲ 1.7 / π per axis
 ``'imex2'``         Crank-Nicolson viscosity, Heun convection,          2            any viscous number;
@@ -39,6 +40,18 @@ integrator          stages                                              order   
 damp; prefer ``'rk3'`` for nearly inviscid flow. Viscosity is explicit in ``'rk2'`` and ``'rk3'``:
 ``ν dt Σ 4/dx² ≤ 2`` (RK2) or ``≤ 2.5`` (RK3); larger viscous numbers raise :class:`ParameterError` and
 call for ``'imex2'``.
+
+``'split2'`` (:func:`~phisim.fluid.step`, :class:`~phisim.fluid.FluidStepper`; the state keeps what it needs) is the
+split step with the two first-order errors of its advection removed: the advecting velocity is extrapolated to the
+half step, ``u^n + dt/2 du/dt`` (``du/dt`` the change over the previous step, :attr:`FluidState.velocity_rate`), and
+the previous step's acceleration by everything but the advection (pressure, viscosity, forces,
+:attr:`FluidState.acceleration`) is transported with the velocity: ``u* = A(u^n + dt/2 f^{n-1}) - dt/2 f^{n-1}``
+(:func:`~phisim.fluid.step.split2_advection`). Its first step is the split step. It keeps the split step's limited
+MacCormack transport (no wiggles at large cell Reynolds numbers) and its cost; with ``'crank_nicolson'`` viscosity
+every part is second order. Measured (Taylor-Green, dt = 0.5 dx): order 1.9-2.0 where the split step's is 0.9
+(``docs/SCHEMES.md``). Next to sharp no-slip bodies the split step's wall treatment (:func:`~phisim.fluid.step.
+anticipate_pressure`) was matched to ``'split'``; with ``'split2'`` a steady drag still depends on dt at first
+order (``docs/VALIDATION.md``).
 
 ``'imex2'`` (a pressure-correction scheme, e.g. Guermond, Minev & Shen 2006, "An overview of projection
 methods for incompressible flows", Comput. Methods Appl. Mech. Engrg. 195): with ``E(u, t) = -C(u) + f(t)``

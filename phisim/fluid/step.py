@@ -9,8 +9,9 @@ rescaling to the kinetic energy the step started with (:func:`normalize_energy`)
 Past sharp no-slip bodies the viscous step's wall values carry the previous step's tangential pressure gradient
 (:func:`anticipate_pressure`), so that the projection leaves no slip along the surface.
 First order in time (operator splitting); second order in space with MacCormack advection.
-``integrator='rk2'``, ``'rk3'`` or ``'imex2'`` selects the second-/third-order integrators of
-:mod:`phisim.fluid.integrators` instead (orders in time: split 1, rk2 2, rk3 3, imex2 2).
+``integrator='split2'`` keeps the split step and takes its advection to second order in time
+(:func:`split2_advection`); ``'rk2'``, ``'rk3'`` or ``'imex2'`` select the second-/third-order integrators of
+:mod:`phisim.fluid.integrators` instead (orders in time: split 1, split2 2, rk2 2, rk3 3, imex2 2).
 
 References: Stam (1999), "Stable fluids", SIGGRAPH; Selle et al. (2008), J. Sci. Comput. 35 (MacCormack).
 """

@@ -86,7 +86,8 @@ class FluidStepper:
         marker_advection: Marker transport scheme (one of :data:`phisim.ops.advection.SCALAR_SCHEMES`);
             default ``advection``.
         viscosity_scheme: ``'explicit'`` (default), ``'implicit'``, ``'crank_nicolson'`` or ``'spectral'``.
-        integrator: ``'split'`` (default), ``'rk2'``, ``'rk3'`` or ``'imex2'``.
+        integrator: ``'split'`` (default), ``'split2'`` (the split step with second-order advection in time; the
+            state keeps the velocity's rate and acceleration), ``'rk2'``, ``'rk3'`` or ``'imex2'``.
         buoyancy: Buoyancy per unit marker (acceleration); needs a marker in the state.
         buoyancy_direction: The "up" vector (default: y, axis 1).
         marker_source: Marker added per unit time, CenteredGrid or tensor ``(1 or B, *res)``.
@@ -326,7 +327,8 @@ def navier_stokes_step(
         time: Simulation time at the start of the step (moving bodies, time-dependent inflows).
         integrator: ``'split'`` (this function's first-order step, default), ``'rk2'``, ``'rk3'`` or
             ``'imex2'`` (see :mod:`phisim.fluid.integrators`; ``'imex2'`` treats viscosity implicitly and
-            needs the previous pressure as ``pressure_guess`` for second order at walls).
+            needs the previous pressure as ``pressure_guess`` for second order at walls). ``'split2'`` keeps
+            state between steps: :func:`step` or :class:`FluidStepper` take it.
 
     Returns:
         ``(velocity, pressure)`` after the step.
@@ -398,9 +400,9 @@ def step(
         obstacles: Obstacles (see :func:`make_incompressible`).
         solve: CG settings.
         energy_normalization: Rescale the velocity to its energy at the start of the step.
-        integrator: ``'split'`` (first order, default), ``'rk2'``, ``'rk3'`` or ``'imex2'`` (second order in
-            time for the velocity; see :mod:`phisim.fluid.integrators`). The buoyancy of the new marker is
-            then a force held constant over the step.
+        integrator: ``'split'`` (first order, default), ``'split2'``, ``'rk2'``, ``'rk3'`` or ``'imex2'`` (second
+            order in time for the velocity; see :mod:`phisim.fluid.integrators`). The buoyancy of the new marker is
+            then a force held constant over the step (the Runge-Kutta integrators).
         marker_advection: Scheme of the marker transport: one of
             :data:`phisim.ops.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
             in closed boxes and periodic domains and never makes it negative. Default: ``advection``.

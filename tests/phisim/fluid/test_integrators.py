@@ -357,8 +357,8 @@ def test_split2_taylor_green_at_a_convective_time_step_second_order():
     """Taylor-Green, ν = 0.01, dt = 0.5 dx, t = 1, against the analytic solution (its convection is a pure
     gradient: the test of the transported pressure gradient).
 
-    Measured (32² / 64² / 128²): 'split2' max error 2.55e-3 / 6.75e-4 / 1.72e-4 (orders 1.92, 1.97), kinetic energy
-    -0.45 / -0.12 / -0.03 %; 'split' 2.0e-2 / 1.1e-2 / 5.7e-3 (orders 0.86, 0.93), -4.2 / -2.3 / -1.2 %.
+    Measured (32² / 64² / 128²): 'split2' max error 2.50e-3 / 6.60e-4 / 1.68e-4 (orders 1.92, 1.97), kinetic energy
+    -0.44 / -0.11 / -0.03 %; 'split' 2.0e-2 / 1.1e-2 / 5.7e-3 (orders 0.86, 0.93), -4.2 / -2.3 / -1.2 %.
     """
     from phisim.fluid import FluidState, step
 

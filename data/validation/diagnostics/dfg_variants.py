@@ -1,0 +1,111 @@
+"""Diagnostic runs of the DFG benchmark with one part of the split step altered (docs/VALIDATION.md).
+
+    python data/validation/diagnostics/dfg_variants.py CASE VARIANT NY T_END [CFL]
+
+CASE is 2D-1 or 2D-2; prints one JSON line (the summary of examples/cylinder_benchmark.py; 2D-1: the state at T_END,
+2D-2: the last two time units). VARIANT (each a change made here by replacing a function, not a setting):
+
+  base        the benchmark as it is
+  noclamp     MacCormack without its min-max clamp
+  midtrace    the midpoint back-trace instead of the Euler one
+  noext       the transported velocity not extended into the body
+  noant       no anticipated pressure gradient at the wall
+  nofluxcorr  no flux correction on the cut faces
+  sl          semi-Lagrangian instead of MacCormack advection
+  implicit    implicit (backward Euler) viscosity;   cn: Crank-Nicolson viscosity
+  mid         the advecting velocity extrapolated to the half step, 1.5 u^n - 0.5 u^{n-1}
+  mid_p       mid, and u - G p^n / 2 transported instead of u (G p^n / 2 added back; faces between fluid cells)
+  split2      the integrator 'split2' of phisim.fluid (a setting)
+"""
+import json
+import os
+import sys
+
+ROOT = os.environ.get("REPO", os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".."))
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "examples"))
+import torch  # noqa: E402
+
+import phisim.fluid.stepper as S  # noqa: E402
+
+ST = sys.modules["phisim.fluid.step"]
+import cylinder_benchmark as cb  # noqa: E402
+
+import phisim.fluid.projection as P  # noqa: E402
+
+case, var, ny, t_end = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+cfl = float(sys.argv[5]) if len(sys.argv) > 5 else 0.5
+orig_adv = S.advect_trusted
+kw = {}
+if var == "noclamp":
+    kw = {"clamp": None}
+elif var == "midtrace":
+    kw = {"trace": "midpoint"}
+if kw:
+    S.advect_trusted = lambda f, v, dt, scheme="semi_lagrangian", **k: orig_adv(f, v, dt, scheme=scheme, **{**k, **kw})
+if var == "noext":
+    S.extend_into_bodies = lambda v, o, t=0.0: v
+if var == "noant":
+    ST.anticipate_pressure = lambda layout, *a, **k: layout
+if var == "nofluxcorr":
+    P._correction_values = lambda values, layout: None
+if var in ("mid_p", "p"):
+    from phisim.field import CenteredGrid
+    from phisim.fluid.bodies import solid_layout
+    from phisim.ops.differential import gradient
+    _adv = S.advance
+    cur = {}
+    def _advance(state, dt, **k):
+        cur["p"] = state.pressure
+        cur["obs"] = k.get("obstacles")
+        cur["t"] = state.time
+        return _adv(state, dt, **k)
+    S.advance = _advance
+    prev = {}
+    def _midp(field, velocity, dt, scheme="semi_lagrangian", **k):
+        if not (field is velocity and field.__class__.__name__ == "StaggeredGrid"):
+            return orig_adv(field, velocity, dt, scheme=scheme, **k)
+        if var == "mid_p":
+            p = prev.get("v")
+            prev["v"] = field
+            if p is not None:
+                velocity = field._with_components([1.5 * a - 0.5 * b for a, b in zip(field.values, p.values)])
+        q = cur.get("p")
+        if q is None:
+            return orig_adv(field, velocity, dt, scheme=scheme, **k)
+        grid = field.grid
+        lay = solid_layout(cur["obs"], grid, field.boundary, cur["t"], field.dtype, field.device)
+        act = (lay.cell_fraction > 0).to(field.dtype)
+        qq = CenteredGrid(q.values * act, grid, field.boundary.for_pressure())
+        g = gradient(qq, at="face").values
+        masks = []
+        for i in range(grid.rank):
+            a = act
+            d = i + 1
+            first = a.narrow(d, 0, 1)
+            last = a.narrow(d, a.shape[d] - 1, 1)
+            pa = torch.cat([first, a, last], d)
+            masks.append(torch.minimum(pa.narrow(d, 0, a.shape[d] + 1), pa.narrow(d, 1, a.shape[d] + 1)))
+        half = [0.5 * gi * mi for gi, mi in zip(g, masks)]
+        w = field._with_components([a - h for a, h in zip(field.values, half)])
+        out = orig_adv(w, velocity, dt, scheme=scheme, **k)
+        return out._with_components([a + h for a, h in zip(out.values, half)])
+    S.advect_trusted = _midp
+if var == "mid":
+    prev = {}
+    def _mid(field, velocity, dt, scheme="semi_lagrangian", **k):
+        if field is velocity and field.__class__.__name__ == "StaggeredGrid":
+            p = prev.get("v")
+            prev["v"] = field
+            if p is not None:
+                velocity = field._with_components([1.5 * a - 0.5 * b for a, b in zip(field.values, p.values)])
+        return orig_adv(field, velocity, dt, scheme=scheme, **k)
+    S.advect_trusted = _mid
+adv = "semi_lagrangian" if var == "sl" else "maccormack"
+vs = {"implicit": "implicit", "cn": "crank_nicolson"}.get(var, "explicit")
+torch.set_num_threads(1)
+rec = t_end - (1 if case == "2D-1" else 2)
+integ = "split2" if var == "split2" else "split"
+hist, state, meta = cb.run(case, ny, t_end, cfl=cfl, record_from=rec, advection=adv, viscosity_scheme=vs,
+                          integrator=integ)
+print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **cb.summarize(case, hist)}), flush=True)
