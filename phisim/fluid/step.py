@@ -305,7 +305,8 @@ def split2_advection(src: StaggeredGrid, state: FluidState, dt, scheme: str) -> 
 
     The split step advects ``u`` and then adds the other terms, so that the advection misses their transport during
     the step, ``dt^2/2 (u . grad) f``, and traces with ``u^n`` instead of ``u^{n+1/2}``: two errors of first order in
-    time. Without a previous step (no rate, no acceleration) this is the split step's advection."""
+    time. Without a previous step (no rate, no acceleration) this is the split step's advection. The marker of a
+    ``'split2'`` step is transported by the same extrapolated velocity."""
     carrier = src
     if state.velocity_rate is not None:
         carrier = src._with_components([u + (0.5 * dt) * r for u, r in zip(src.values, state.velocity_rate.values)])

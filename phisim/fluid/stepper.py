@@ -454,7 +454,10 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
     marker = state.marker
     t_new = state.time + float(dt)
     if marker is not None:
-        marker = advect_trusted(marker, v0, dt, scheme=marker_advection)
+        carrier = v0
+        if integrator == "split2" and state.velocity_rate is not None:  # the velocity at the half step
+            carrier = v0._with_components([u + (0.5 * dt) * r for u, r in zip(v0.values, state.velocity_rate.values)])
+        marker = advect_trusted(marker, carrier, dt, scheme=marker_advection)
         if marker_source is not None:
             marker = marker + dt * marker_source
         layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary, t_new,

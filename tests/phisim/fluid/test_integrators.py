@@ -436,3 +436,23 @@ def test_gradcheck_split2_through_three_steps():
         return tuple(state.velocity.values)
 
     assert torch.autograd.gradcheck(run, tuple(params), eps=1e-6, atol=1e-6)
+
+
+def test_split2_transports_the_marker_with_the_velocity_at_the_half_step():
+    from phisim import CenteredGrid
+    from phisim.fluid import FluidState, step
+    from phisim.ops.advection import advect
+
+    grid = Grid((16, 16), bounds=[(0, 1), (0, 1)])
+    v0 = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    marker = CenteredGrid.from_function(lambda x: torch.exp(-40 * ((x - 0.4) ** 2).sum(-1)), grid, "neumann",
+                                        dtype=F64)
+    kw = dict(viscosity=0.01, buoyancy_strength=1.0, integrator="split2")
+    one = step(FluidState(v0, marker), 0.05, **kw)
+    two = step(one, 0.05, **kw)
+    carrier = one.velocity._with_components([u + 0.025 * r for u, r in zip(one.velocity.values,
+                                                                         one.velocity_rate.values)])
+    expected = advect(one.marker, carrier, 0.05, scheme="maccormack")
+    assert float((two.marker.values - expected.values).abs().max()) < 1e-14
+    plain = advect(one.marker, one.velocity, 0.05, scheme="maccormack")
+    assert float((two.marker.values - plain.values).abs().max()) > 1e-6  # the rate changes it
