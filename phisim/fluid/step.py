@@ -44,7 +44,7 @@ from phisim.ops.differential import gradient
 from phisim.padding import const
 
 __all__ = ["buoyancy", "kinetic_energy", "normalize_energy", "rescale_energy", "cfl_dt", "FluidState", "to_time",
-           "finish_step", "anticipate_pressure", "split2_advection", "split2_memory",
+           "finish_step", "anticipate_pressure", "split2_advection", "split2_memory", "half_step_velocity",
            "scalar_values", "buoyancy_args", "apply_buoyancy"]
 
 
@@ -297,6 +297,13 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     return replace(layout, walls=tuple(walls))
 
 
+def half_step_velocity(velocity: StaggeredGrid, rate: StaggeredGrid | None, dt) -> StaggeredGrid:
+    """``velocity + dt/2 rate``: the velocity extrapolated to the middle of the step (``velocity`` without a rate)."""
+    if rate is None:
+        return velocity
+    return velocity._with_components([u + (0.5 * dt) * r for u, r in zip(velocity.values, rate.values)])
+
+
 def split2_advection(src: StaggeredGrid, state: FluidState, dt, scheme: str) -> StaggeredGrid:
     """The self-advection of the ``'split2'`` step: ``src`` (the velocity extended into the bodies) plus ``dt/2`` times
     the previous step's acceleration by everything but the advection (:attr:`FluidState.acceleration`: pressure,
@@ -307,9 +314,7 @@ def split2_advection(src: StaggeredGrid, state: FluidState, dt, scheme: str) -> 
     the step, ``dt^2/2 (u . grad) f``, and traces with ``u^n`` instead of ``u^{n+1/2}``: two errors of first order in
     time. Without a previous step (no rate, no acceleration) this is the split step's advection. The marker of a
     ``'split2'`` step is transported by the same extrapolated velocity."""
-    carrier = src
-    if state.velocity_rate is not None:
-        carrier = src._with_components([u + (0.5 * dt) * r for u, r in zip(src.values, state.velocity_rate.values)])
+    carrier = half_step_velocity(src, state.velocity_rate, dt)
     if state.acceleration is None:
         return advect_trusted(src, carrier, dt, scheme=scheme)
     half = [(0.5 * dt) * a for a in state.acceleration.values]

@@ -40,6 +40,7 @@ from phisim.fluid.step import (
     apply_buoyancy,
     buoyancy_args,
     finish_step,
+    half_step_velocity,
     kinetic_energy,
     scalar_values,
     split2_advection,
@@ -453,15 +454,15 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
     v0 = state.velocity
     marker = state.marker
     t_new = state.time + float(dt)
+    # the solids at the new time, rasterised once for the marker's mask and the split step (a held layout as it is)
+    layout = None
+    if obstacles is not None and (marker is not None or integrator in SPLIT):
+        layout = solid_layout(obstacles, v0.grid, v0.boundary, t_new, v0.dtype, v0.device)
     if marker is not None:
-        carrier = v0
-        if integrator == "split2" and state.velocity_rate is not None:  # the velocity at the half step
-            carrier = v0._with_components([u + (0.5 * dt) * r for u, r in zip(v0.values, state.velocity_rate.values)])
+        carrier = half_step_velocity(v0, state.velocity_rate, dt) if integrator == "split2" else v0
         marker = advect_trusted(marker, carrier, dt, scheme=marker_advection)
         if marker_source is not None:
             marker = marker + dt * marker_source
-        layout = None if obstacles is None else solid_layout(obstacles, v0.grid, v0.boundary, t_new,
-                                                             marker.dtype, marker.device)
         if layout is not None:  # no marker in cells entirely inside a solid
             marker = marker * (layout.cell_fraction > 0).to(marker.dtype)
     lift = marker is not None and buoyancy_strength != 0
@@ -485,10 +486,9 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
     if lift:  # sets the boundary faces
         strength, direction = buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank)
         v = apply_buoyancy(v, marker.values, marker.boundary, dt, strength, direction)
-    v, p = finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles, solve, state.pressure, t_new,
-                       faces_set=lift, trusted=trusted)
+    v, p = finish_step(v, dt, e0, viscosity, viscosity_scheme, obstacles if layout is None else layout, solve,
+                       state.pressure, t_new, faces_set=lift, trusted=trusted)
     if integrator != "split2":
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
-    layout = None if obstacles is None else solid_layout(obstacles, v.grid, v.boundary, t_new, v.dtype, v.device)
     rate, acc = split2_memory(v, v0, advected, dt, layout)
     return replace(state, velocity=v, marker=marker, pressure=p, time=t_new, velocity_rate=rate, acceleration=acc)
