@@ -16,6 +16,8 @@ CASE is 2D-1 or 2D-2; prints one JSON line (the summary of examples/cylinder_ben
   mid         the advecting velocity extrapolated to the half step, 1.5 u^n - 0.5 u^{n-1}
   mid_p       mid, and u - G p^n / 2 transported instead of u (G p^n / 2 added back; faces between fluid cells)
   split2      the integrator 'split2' of phisim.fluid (a setting)
+  split2ext   split2 with u^n + dt/2 a extended into the body as a whole (a -> 0 at a resting wall) instead of
+              u^n extended and dt/2 a added with a = 0 inside the body
 """
 import json
 import os
@@ -101,11 +103,28 @@ if var == "mid":
                 velocity = field._with_components([1.5 * a - 0.5 * b for a, b in zip(field.values, p.values)])
         return orig_adv(field, velocity, dt, scheme=scheme, **k)
     S.advect_trusted = _mid
+if var == "split2ext":
+    ctx = {}
+    _ext = S.extend_into_bodies
+    def _ext_capture(v, o, t=0.0):
+        ctx["o"], ctx["t"] = o, t
+        return _ext(v, o, t)
+    S.extend_into_bodies = _ext_capture
+    def _s2(src, state, dt, scheme):
+        carrier = ST.half_step_velocity(src, state.velocity_rate, dt)
+        if state.acceleration is None:
+            return S.advect_trusted(src, carrier, dt, scheme=scheme)
+        half = [(0.5 * dt) * a for a in state.acceleration.values]
+        v0 = state.velocity
+        moved = _ext(v0._with_components([u + h for u, h in zip(v0.values, half)]), ctx["o"], ctx["t"])
+        v = S.advect_trusted(moved, carrier, dt, scheme=scheme)
+        return v._with_components([u - h for u, h in zip(v.values, half)])
+    S.split2_advection = _s2
 adv = "semi_lagrangian" if var == "sl" else "maccormack"
 vs = {"implicit": "implicit", "cn": "crank_nicolson"}.get(var, "explicit")
 torch.set_num_threads(1)
 rec = t_end - (1 if case == "2D-1" else 2)
-integ = "split2" if var == "split2" else "split"
+integ = "split2" if var.startswith("split2") else "split"
 hist, state, meta = cb.run(case, ny, t_end, cfl=cfl, record_from=rec, advection=adv, viscosity_scheme=vs,
                           integrator=integ)
 print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **cb.summarize(case, hist)}), flush=True)
