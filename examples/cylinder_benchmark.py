@@ -33,7 +33,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from phisim import Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fluid import Body, FluidState, FluidStepper, Sphere, body_forces, probe_pressure  # noqa: E402
+from phisim.fluid import (  # noqa: E402
+    Body,
+    FluidState,
+    FluidStepper,
+    Sphere,
+    body_forces,
+    probe_pressure,
+    wall_pressure,
+)
 
 H, L, D, CENTER, NU = 0.41, 2.2, 0.1, (0.2, 0.2), 1e-3
 #: Reference values (Schäfer & Turek 1996, Table 3/4; the refined 2D-1 values of John & Matthies 2001).
@@ -70,7 +78,9 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     The history's columns: ``t, cd, cl, dp, cd_pressure, cl_pressure`` with the pressure of the cut cells
     (:func:`~phisim.fluid.body_forces`, ``pressure_at='cells'``) and ``dp`` from the linear extrapolation to the front
     and back points; then ``cd_surface, cl_surface, dp_quadratic``: the pressure read at the surface
-    (``pressure_at='surface'``) and ``dp`` from the quadratic extrapolation (``probe_pressure(..., order=2)``)."""
+    (``pressure_at='surface'``) and ``dp`` from the quadratic extrapolation (``probe_pressure(..., order=2)``); then
+    ``cd_momentum, cl_momentum, dp_momentum``: the pressure read through the momentum equation along the normal
+    (``pressure_at='momentum'``, :func:`~phisim.fluid.wall_pressure`, with the previous step's velocity)."""
     device = check_device(device)
     grid, body, state, um = setup(case, ny, dtype, device)
     umean = 2 * um / 3
@@ -89,6 +99,7 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     t0 = _time.perf_counter()
     front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype, device=device)
     for _ in range(n):
+        previous = state.velocity
         state = stepper(state)
         if state.time >= record_from - 1e-12:
             f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time)
@@ -99,8 +110,14 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
                              pressure_at="surface")  # its pressure part; the viscous part is f's
             cs = 2 * (fs.pressure[0] + f.viscous[0]) / (umean**2 * D)
             pq = probe_pressure(state.pressure, front_back, dt=dt, bodies=body, order=2)[0]
+            fm = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time,
+                             pressure_at="momentum", previous_velocity=previous)  # its pressure part
+            cm = 2 * (fm.pressure[0] + f.viscous[0]) / (umean**2 * D)
+            pm = wall_pressure(state.velocity, state.pressure, body, front_back, dt=dt, viscosity=NU, time=state.time,
+                               previous_velocity=previous)[0]
             hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1]),
-                         float(cs[0]), float(cs[1]), float(pq[0] - pq[1])))
+                         float(cs[0]), float(cs[1]), float(pq[0] - pq[1]), float(cm[0]), float(cm[1]),
+                         float(pm[0] - pm[1])))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     wall = _time.perf_counter() - t0
@@ -119,10 +136,16 @@ def summarize(case: str, hist: np.ndarray) -> dict:
         if surface:
             out.update({"cd_surface": float(hist[-1, 6]), "cl_surface": float(hist[-1, 7]),
                         "dp_quadratic": float(hist[-1, 8])})
+        if hist.shape[1] > 9:
+            out.update({"cd_momentum": float(hist[-1, 9]), "cl_momentum": float(hist[-1, 10]),
+                        "dp_momentum": float(hist[-1, 11])})
         return out
     out = _periodic(hist[:, 0], hist[:, 1], hist[:, 2])
     if surface:
         out.update({f"{k}_surface": v for k, v in _periodic(hist[:, 0], hist[:, 6], hist[:, 7]).items()
+                    if k in ("cd_max", "cl_max")})
+    if hist.shape[1] > 9:
+        out.update({f"{k}_momentum": v for k, v in _periodic(hist[:, 0], hist[:, 9], hist[:, 10]).items()
                     if k in ("cd_max", "cl_max")})
     return out
 
@@ -164,7 +187,8 @@ def main(argv=None) -> int:
                                 integrator=args.integrator, device=device)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
-                       header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic")
+                       header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic,"
+                       "cd_momentum,cl_momentum,dp_momentum")
         tail = hist[hist[:, 0] >= t_end - (1.0 if args.case == "2D-1" else 2.0)]
         res = {**meta, **summarize(args.case, tail)}
         print(json.dumps(res), flush=True)

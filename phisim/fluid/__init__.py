@@ -22,7 +22,7 @@ Modules:
 """
 
 from phisim.fluid.bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
-from phisim.fluid.forces import BodyForces, body_forces, probe_pressure
+from phisim.fluid.forces import BodyForces, body_forces, probe_pressure, wall_pressure
 from phisim.fluid.geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
 from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
 from phisim.fluid.projection import (
@@ -47,7 +47,7 @@ __all__ = [
     "net_boundary_flux", "solid_flux", "PRESSURE_SOLVE",
     "diffuse_velocity", "VISCOSITY_SCHEMES", "anticipate_pressure",
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
-    "BodyForces", "body_forces", "probe_pressure",
+    "BodyForces", "body_forces", "probe_pressure", "wall_pressure",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
     "FluidStepper", "AdvectionDiffusionStepper", "BurgersStepper",
 ]

@@ -19,6 +19,9 @@ the nearest probe):
 
 second order on a smooth pressure with errors 8-20 times below the cells' reading (whose centres lie up to 0.7
 cells off the surface, and whose pressures carry the cut cells' own error; ``docs/VALIDATION.md``).
+``pressure_at='momentum'`` reads it at the same surface points through the momentum equation along the normal from
+the pressure two cells out (:func:`wall_pressure`, :mod:`phisim.fluid.wall_pressure`): the pressure rise of a viscous
+stagnation layer thinner than the probes' reach is then read from the velocity.
 
 **Viscous force** ``F_v = oint tau n dS`` with ``tau = mu (grad u + grad u^T)``. On a rigid no-slip surface
 ``u - u_s`` vanishes, its tangential derivatives vanish and incompressibility removes its normal-normal
@@ -44,8 +47,9 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Body, Obstacle, body_fraction, unit_normal
 from phisim.fluid.geometry import Geometry
 from phisim.fluid.projection import check_velocity
+from phisim.fluid.wall_pressure import momentum_wall_pressure
 
-__all__ = ["BodyForces", "body_forces", "probe_pressure"]
+__all__ = ["BodyForces", "body_forces", "probe_pressure", "wall_pressure"]
 
 
 @dataclass(frozen=True)
@@ -115,12 +119,12 @@ def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
 
 
 #: Where :func:`body_forces` reads the pressure of its pressure part.
-PRESSURE_READINGS = ("cells", "surface")
+PRESSURE_READINGS = ("cells", "surface", "momentum")
 
 
 def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: float, viscosity: float,
                 density: float = 1.0, time: float = 0.0, probe_distance: float = 1.5,
-                pressure_at: str = "cells") -> BodyForces:
+                pressure_at: str = "cells", previous_velocity: StaggeredGrid | None = None) -> BodyForces:
     """Drag/lift on ``body`` from a step's velocity and pressure (formulas in the module docstring).
 
     Args:
@@ -136,7 +140,10 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
             formula above); ``'surface'``: the pressure at the surface point of each cut cell (``x_s = x_c - phi
             n``), extrapolated along the normal by the quadratic through the pressures 1.5, 2.5 and 3.5 cells out
             (:func:`probe_pressure` with ``order=2``), times the same area vector (cut cells enter only through the
-            interpolation of the nearest probe).
+            interpolation of the nearest probe); ``'momentum'``: the pressure at the same surface points read through
+            the momentum equation along the normal from two cells out (:func:`wall_pressure`; no-slip bodies).
+        previous_velocity: With ``pressure_at='momentum'``: the velocity one step ``dt`` earlier, for the
+            acceleration term of an unsteady flow (None: omitted, right for a steady flow).
 
     Returns:
         :class:`BodyForces` with ``(B, d)`` tensors; differentiable.
@@ -155,12 +162,41 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
     vec = _surface(body, grid, float(time), p)
     if pressure_at == "cells":
         fp = -(p.unsqueeze(-1) * vec.unsqueeze(0)).flatten(1, -2).sum(1)
+    elif pressure_at == "momentum":
+        _check_momentum(body, viscosity, previous_velocity, velocity)
+        xs, n, area = _cut_surface_points(body, grid, vec, float(time))
+        ps = _momentum_reading(velocity, pressure, body, xs, n, dt, viscosity, float(time), previous_velocity)
+        fp = -(ps.unsqueeze(-1) * area.to(ps.dtype)).sum(1) * density
     else:
         fp = _surface_pressure_force(pressure, body, vec, float(time)) * (density / dt)
     fv = torch.zeros_like(fp)
     if body.no_slip and float(viscosity) != 0:
         fv = _viscous(velocity, body, vec, float(time), probe_distance) * (density * float(viscosity))
     return BodyForces(fp, fv)
+
+
+#: Distance of the pressure read by the momentum reading from the surface, in cells.
+MOMENTUM_DISTANCE = 2.0
+
+
+def _check_momentum(body: Body, viscosity, previous, velocity: StaggeredGrid) -> None:
+    if not body.no_slip:
+        raise ParameterError("the momentum reading of the wall pressure needs a no-slip body")
+    if not math.isfinite(float(viscosity)) or float(viscosity) < 0:
+        raise ParameterError(f"viscosity must be a finite number >= 0, got {viscosity!r}")
+    if previous is not None:
+        check_velocity(previous)
+        if previous.grid != velocity.grid or previous.batch_size != velocity.batch_size:
+            raise ShapeError("previous_velocity must be on the velocity's grid with its batch size")
+
+
+def _momentum_reading(velocity, pressure: CenteredGrid, body: Body, xs, n, dt, viscosity, t, previous):
+    """The kinematic wall pressure ``(B, S)`` at surface points ``xs`` (normals ``n``) by the momentum reading."""
+    h = min(velocity.grid.dx)
+    x1 = (xs + MOMENTUM_DISTANCE * h * n).to(pressure.dtype)
+    p1 = pressure.sample(x1) / dt
+    return momentum_wall_pressure(velocity, p1, body, xs, n, viscosity=viscosity, time=t, previous=previous, dt=dt,
+                                  distance=MOMENTUM_DISTANCE)
 
 
 def _cut_surface_points(body: Body, grid, vec: torch.Tensor, t: float):
@@ -266,3 +302,53 @@ def _extrapolated(pressure: CenteredGrid, x: torch.Tensor, n: torch.Tensor, shif
     v3 = pressure.sample(q1 + 2 * h * n)
     s0, s1, s2 = shift / h, shift / h + 1, shift / h + 2
     return torch.where(close, v1 * (s1 * s2 / 2) - v2 * (s0 * s2) + v3 * (s0 * s1 / 2), v1)
+
+
+def wall_pressure(velocity: StaggeredGrid, pressure: CenteredGrid, body, points, *, dt: float, viscosity: float,
+                  density: float = 1.0, time: float = 0.0, previous_velocity: StaggeredGrid | None = None
+                  ) -> torch.Tensor:
+    """Physical pressure on the surface of a no-slip body, read through the momentum equation along the normal.
+
+    Each point is moved to the nearest surface point ``x_s = x - phi n``; the pressure there is the interpolated
+    pressure two cells out along the normal plus the integral of the normal momentum equation back to the surface
+    (:mod:`phisim.fluid.wall_pressure`): kinetic energy, Lamb vector, the viscous term (its normal-normal part exactly,
+    the tangential Laplacian by quadrature) and, given ``previous_velocity``, the acceleration. Unlike
+    :func:`probe_pressure`, which extrapolates the pressure alone, it reads a viscous pressure layer thinner than two
+    cells (the stagnation points of the DFG cylinder: ``docs/VALIDATION.md``).
+
+    Args:
+        velocity: MAC velocity after the step.
+        pressure: The step's pressure potential (CenteredGrid).
+        body: A no-slip :class:`~phisim.fluid.bodies.Body` (or a Geometry: a resting one).
+        points: ``(P, d)`` physical points on or near the body's surface.
+        dt: The step's time step (converts the potential; the step of ``previous_velocity``).
+        viscosity: Kinematic viscosity.
+        density: Fluid density.
+        time: Time of the velocity (position of a moving body).
+        previous_velocity: The velocity one step earlier (the acceleration term of an unsteady flow), or None.
+
+    Returns:
+        ``(B, P)`` pressures; differentiable.
+
+    Raises:
+        ParameterError: For a free-slip body or an Obstacle, non-positive dt/density, negative viscosity, NaN points.
+        ShapeError: For points of the wrong shape or fields on different grids.
+    """
+    check_velocity(velocity)
+    body = _as_body(body)
+    dt = check_positive(dt, "dt")
+    density = check_positive(density, "density")
+    _pressure_values(pressure, velocity)
+    _check_momentum(body, viscosity, previous_velocity, velocity)
+    grid = velocity.grid
+    x = torch.as_tensor(points, dtype=velocity.dtype, device=velocity.device)
+    if x.ndim != 2 or x.shape[1] != grid.rank:
+        raise ShapeError(f"points must have shape (P, {grid.rank}), got {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ParameterError("points contain NaN or Inf")
+    h = min(grid.dx)
+    t = float(time)
+    n = unit_normal(body, x, t, 1e-3 * h)
+    xs = x - body.sdf(x, t).unsqueeze(-1) * n
+    n = unit_normal(body, xs, t, 1e-3 * h)
+    return _momentum_reading(velocity, pressure, body, xs, n, dt, viscosity, t, previous_velocity) * density

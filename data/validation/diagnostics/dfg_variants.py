@@ -16,6 +16,9 @@ CASE is 2D-1 or 2D-2; prints one JSON line (the summary of examples/cylinder_ben
   mid         the advecting velocity extrapolated to the half step, 1.5 u^n - 0.5 u^{n-1}
   mid_p       mid, and u - G p^n / 2 transported instead of u (G p^n / 2 added back; faces between fluid cells)
   split2      the integrator 'split2' of phisim.fluid (a setting)
+  sw          the explicit viscous step with the Shortley-Weller second difference on the faces whose stencil arms
+              cross the surface (each axis' second difference times 2 / (s_- + s_+), the arms' fractions s; the
+              linear ghost value of the code is that difference times (s_- + s_+) / 2, locally O(1) off)
   split2ext   split2 with u^n + dt/2 a extended into the body as a whole (a -> 0 at a resting wall) instead of
               u^n extended and dt/2 a added with a = 0 inside the body
 """
@@ -120,6 +123,54 @@ if var == "split2ext":
         v = S.advect_trusted(moved, carrier, dt, scheme=scheme)
         return v._with_components([u - h for u, h in zip(v.values, half)])
     S.split2_advection = _s2
+if var in ("sw", "split2sw"):
+    import phisim.solvers.mac_diffusion as MD
+    from phisim.fluid.bodies import WALL_FRACTION_MIN
+    _sharp = MD._sharp_component
+    geo = {}
+
+    def _factors(shape, dtype):
+        key = (tuple(shape), dtype)
+        if key in geo:
+            return geo[key]
+        grid = cb.setup(case, ny)[0]
+        i = 0 if tuple(shape) == tuple(grid.face_shape(0)) else 1
+        x = grid.face_centers(i, torch.float64, "cpu")
+        phi = ((x - torch.tensor(cb.CENTER, dtype=torch.float64)) ** 2).sum(-1).sqrt() - cb.D / 2
+        h2 = [d * d for d in grid.dx]
+        out = []
+        for a in range(2):
+            ss = []
+            for side in (-1, 1):
+                pn = torch.roll(phi, -side, a)  # the neighbour at index + side
+                link = (phi > 0) & (pn <= 0)
+                gap = torch.where(link, phi - pn, torch.ones_like(phi))
+                ss.append(torch.where(link, (phi / gap).clamp(WALL_FRACTION_MIN, 1.0), torch.ones_like(phi)))
+            sm, sp = ss
+            f = 2.0 / (sm + sp)
+            ca = ((1 / sm - 1) + (1 / sp - 1)) / h2[a]
+            out.append((f.to(dtype), ca.to(dtype), h2[a]))
+        geo[key] = out
+        return out
+
+    def _sw(comp, u, mask, wall, method, alpha, theta, solve, engine, capacitance):
+        if method != "explicit":
+            return _sharp(comp, u, mask, wall, method, alpha, theta, solve, engine, capacitance)
+        cut, coef, source = wall
+        facs = _factors(u.shape[1:], u.dtype)
+        z = u.masked_fill(cut, 0)
+        num = u + alpha * comp.laplace(z)
+        den_coef = torch.zeros_like(u)
+        for a, (f, ca, h2) in enumerate(facs):
+            d = a + 1
+            d2 = (torch.roll(z, -1, d) - 2 * z + torch.roll(z, 1, d)) / h2
+            num = num + alpha * (f - 1) * d2
+            den_coef = den_coef + f * ca
+        if source is not None:
+            c0 = coef.to(u.dtype)
+            num = num + alpha * source.to(u.dtype) * torch.where(c0 > 0, den_coef / c0.clamp_min(1e-300), 1.0)
+        return torch.where(mask, u, num / (1 + alpha * den_coef))
+    MD._sharp_component = _sw
 adv = "semi_lagrangian" if var == "sl" else "maccormack"
 vs = {"implicit": "implicit", "cn": "crank_nicolson"}.get(var, "explicit")
 torch.set_num_threads(1)

@@ -1,0 +1,155 @@
+"""The pressure on a no-slip surface read through the momentum equation along the normal.
+
+Next to a no-slip wall the pressure varies on the viscous length of the flow, not on the length of the body: at a
+stagnation point the pressure rises over a layer of thickness ``sqrt(nu / a)`` (``a`` the strain rate) by about
+``nu a``, the normal viscous stress (plane stagnation flow, Hiemenz). On the DFG cylinder at D/20 that layer is two
+cells thick (Re = 20) or less than one (Re = 100), and a polynomial through the pressures 1.5-3.5 cells out
+(:func:`~phisim.fluid.probe_pressure`) misses the rise. The velocity carries it: integrating the normal component of
+the momentum equation
+
+    ``dp/dn = -du_n/dt - d(|u|^2/2)/dn + ((u x omega) . n) + nu (lap u) . n``
+
+along the straight normal line from the surface point ``x_s`` (unit normal ``n``, kept fixed) to ``x_1 = x_s + d n``
+gives
+
+    ``p(x_s) = p(x_1) + (|u(x_1)|^2 - |u_s|^2) / 2 - int_0^d (u x omega) . n - nu (d_n u_n (x_1) + int_0^d lap_t u_n)
+               + int_0^d du_n/dt``,
+
+with ``u_n = u . n``. The normal-normal part of the viscous term integrates exactly to ``d_n u_n(x_1) - d_n u_n(x_s)``
+and ``d_n u_n`` vanishes on a rigid no-slip surface (the tangential derivatives of ``u - u_s`` vanish there, and so
+does the divergence); what is left under the integrals is smooth across the layer: the tangential Laplacian
+``lap_t u_n``, the Lamb vector ``u x omega`` and the acceleration. The integrals use the three-point Gauss rule; the
+velocity is sampled after :func:`~phisim.fluid.extension.extend_into_bodies` (the linear wall profile continued into
+the body), the velocity gradient from its MAC differences (second order at their own positions, interpolated
+multilinearly), the tangential Laplacian by central differences of the sampled gradient over one cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from phisim.field import StaggeredGrid, sample_padded
+from phisim.fluid.bodies import Body
+from phisim.fluid.extension import extend_into_bodies
+
+__all__ = ["momentum_wall_pressure", "velocity_gradient"]
+
+#: The three-point Gauss-Legendre rule on [0, 1]: nodes and weights.
+_GAUSS = ((0.5 - 0.5 * math.sqrt(0.6), 5.0 / 18.0), (0.5, 8.0 / 18.0), (0.5 + 0.5 * math.sqrt(0.6), 5.0 / 18.0))
+
+
+def velocity_gradient(velocity: StaggeredGrid) -> list[list[tuple[torch.Tensor, tuple[float, ...]]]]:
+    """``G[i][j] = d u_i / d x_j`` of a MAC velocity as ``(values (B, *shape), offsets)``: node ``k`` of the values lies
+    at ``lower + (k + offsets) dx``. The diagonal lives at cell centres, ``i != j`` on the edges between faces; all
+    are central differences of neighbouring faces (second order at their nodes)."""
+    grid = velocity.grid
+    out = []
+    for i in range(grid.rank):
+        u = velocity.values[i]
+        row = []
+        for j in range(grid.rank):
+            n = u.shape[j + 1]
+            g = (u.narrow(j + 1, 1, n - 1) - u.narrow(j + 1, 0, n - 1)) / grid.dx[j]
+            off = tuple((0.5 if a == j else 0.0) if a == i else (1.0 if a == j else 0.5) for a in range(grid.rank))
+            row.append((g, off))
+        out.append(row)
+    return out
+
+
+def _sample_nodes(values: torch.Tensor, offsets, grid, x: torch.Tensor) -> torch.Tensor:
+    """Multilinear interpolation of node values ``(B, *shape)`` (node ``k`` at ``lower + (k + offsets) dx``) at
+    points ``x`` ``(P, d)``; ``(B, P)`` (indices clamped to the array)."""
+    lower = torch.tensor(grid.lower, dtype=x.dtype, device=x.device)
+    dx = torch.tensor(grid.dx, dtype=x.dtype, device=x.device)
+    off = torch.tensor(offsets, dtype=x.dtype, device=x.device)
+    index = (x - lower) / dx - off
+    b = values.shape[0]
+    return sample_padded(values.unsqueeze(1), index.unsqueeze(0).expand(b, -1, -1).contiguous())[:, 0]
+
+
+def _gradient_at(grad, grid, x: torch.Tensor) -> torch.Tensor:
+    """The velocity gradient at points ``x`` ``(P, d)``: ``(B, P, d, d)``."""
+    rows = [torch.stack([_sample_nodes(g, off, grid, x) for g, off in row], -1) for row in grad]
+    return torch.stack(rows, -2)
+
+
+def _tangents(n: torch.Tensor) -> list[torch.Tensor]:
+    """Unit tangents orthogonal to the unit normals ``n`` ``(P, d)``: one in 2-D, two in 3-D."""
+    if n.shape[-1] == 2:
+        return [torch.stack([-n[:, 1], n[:, 0]], -1)]
+    # a helper axis not parallel to n: the coordinate axis of n's smallest component
+    helper = torch.zeros_like(n)
+    helper.scatter_(1, n.abs().argmin(1, keepdim=True), 1.0)
+    t1 = torch.linalg.cross(n, helper)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    return [t1, torch.linalg.cross(n, t1)]
+
+
+def _lamb_normal(u: torch.Tensor, g: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """``(u x omega) . n`` from the velocity ``(B, d, P)`` and its gradient ``(B, P, d, d)``; ``(B, P)``."""
+    if n.shape[-1] == 2:
+        omega = g[..., 1, 0] - g[..., 0, 1]  # dv/dx - du/dy
+        t = torch.stack([-n[:, 1], n[:, 0]], -1)
+        return omega * (u * t.T.unsqueeze(0)).sum(1)
+    omega = torch.stack([g[..., 2, 1] - g[..., 1, 2], g[..., 0, 2] - g[..., 2, 0], g[..., 1, 0] - g[..., 0, 1]], 1)
+    return (torch.linalg.cross(u, omega, dim=1) * n.T.unsqueeze(0)).sum(1)
+
+
+def momentum_wall_pressure(velocity: StaggeredGrid, pressure: torch.Tensor | None, body: Body, xs: torch.Tensor,
+                           n: torch.Tensor, *, viscosity: float, time: float = 0.0,
+                           previous: StaggeredGrid | None = None, dt: float | None = None,
+                           distance: float = 2.0) -> torch.Tensor:
+    """The kinematic pressure (pressure over density) at surface points of a no-slip ``body`` (module docstring).
+
+    Args:
+        velocity: MAC velocity.
+        pressure: ``(B, P)`` kinematic pressure at ``xs + distance * h * n`` (sampled by the caller), or None for the
+            correction alone (what is added to the pressure there).
+        body: The body whose surface carries the points (its velocity on the surface; a sharp no-slip body's velocity
+            is continued into it before sampling).
+        xs: ``(P, d)`` points on the surface.
+        n: ``(P, d)`` unit outward normals of the body there.
+        viscosity: Kinematic viscosity.
+        time: Time of ``velocity``.
+        previous: The velocity one step ``dt`` earlier (the acceleration term), or None (a steady flow: omitted).
+        dt: The step between ``previous`` and ``velocity``.
+        distance: ``d`` in cells (of the smallest spacing).
+
+    Returns:
+        ``(B, P)``.
+    """
+    grid = velocity.grid
+    h = min(grid.dx)
+    d = distance * h
+    work = velocity.dtype
+    xs, n = xs.to(work), n.to(work)
+    v = extend_into_bodies(velocity, [body], time)
+    grad = velocity_gradient(v)
+    x1 = xs + d * n
+    u1 = v.sample(x1)  # (B, d, P)
+    g1 = _gradient_at(grad, grid, x1)
+    us = body.velocity_at(xs, time).to(work).T.unsqueeze(0) if not body.static else torch.zeros_like(u1)
+    out = 0.5 * ((u1 * u1).sum(1) - (us * us).sum(1))
+    out = out - float(viscosity) * torch.einsum("bpij,pi,pj->bp", g1, n, n)
+    tangents = _tangents(n)
+    rate = None
+    if previous is not None:
+        w = extend_into_bodies(previous, [body], time - float(dt))
+        rate = [(a - b) / float(dt) for a, b in zip(v.values, w.values)]
+        rate = v._with_components(rate)
+    for s, weight in _GAUSS:
+        y = xs + (s * d) * n
+        u = v.sample(y)
+        g = _gradient_at(grad, grid, y)
+        term = -_lamb_normal(u, g, n)
+        for t in tangents:  # d/dt of (d u_n / dt) over one cell, central
+            plus = _gradient_at(grad, grid, y + h * t)
+            minus = _gradient_at(grad, grid, y - h * t)
+            lap = (torch.einsum("bpij,pi,pj->bp", plus, n, t) - torch.einsum("bpij,pi,pj->bp", minus, n, t)) / (2 * h)
+            term = term - float(viscosity) * lap
+        if rate is not None:
+            term = term + (rate.sample(y) * n.T.unsqueeze(0)).sum(1)
+        out = out + (weight * d) * term
+    return out if pressure is None else pressure + out
