@@ -16,10 +16,9 @@ import sys
 ROOT = os.environ.get("REPO", os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "examples"))
+import cylinder_benchmark as cb  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-
-import cylinder_benchmark as cb  # noqa: E402
 
 XS = (0.02, 0.05, 0.08, 0.10, 0.12, 0.13, 0.14, 0.26, 0.27, 0.28, 0.30, 0.35, 0.40, 0.50)
 REF = (1.5, 0.2)
