@@ -141,7 +141,8 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
             n``), extrapolated along the normal by the quadratic through the pressures 1.5, 2.5 and 3.5 cells out
             (:func:`probe_pressure` with ``order=2``), times the same area vector (cut cells enter only through the
             interpolation of the nearest probe); ``'momentum'``: the pressure at the same surface points read through
-            the momentum equation along the normal from two cells out (:func:`wall_pressure`; no-slip bodies).
+            the momentum equation along the normal from two cells out (:func:`wall_pressure`; no-slip bodies; the
+            reading uses ``viscosity``, so pass the fluid's even where only the pressure part is wanted).
         previous_velocity: With ``pressure_at='momentum'``: the velocity one step ``dt`` earlier, for the
             acceleration term of an unsteady flow (None: omitted, right for a steady flow).
 
