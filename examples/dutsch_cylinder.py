@@ -114,9 +114,11 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     q = 0.5 * U_MAX**2 * D
     t0 = wall.thread_time()
     for k in range(1, total + 1):
+        previous = state.velocity
         state = step(state, dt, viscosity=NU, obstacles=body, advection=advection)
         t = state.time
-        f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=t, pressure_at=pressure_at)
+        f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=t, pressure_at=pressure_at,
+                        previous_velocity=previous if pressure_at == "momentum" else None)
         hist.append((t, position(t), body_velocity(t), float(f.total[0, 0]) / q, float(f.pressure[0, 0]) / q,
                      float(f.viscous[0, 0]) / q, float(f.total[0, 1]) / q))
         if k in wanted:
@@ -155,7 +157,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="prefix of the output files (CSV of forces and profiles, JSON)")
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     ap.add_argument("--progress", action="store_true")
-    ap.add_argument("--pressure-at", default="cells", choices=["cells", "surface"],
+    ap.add_argument("--pressure-at", default="cells", choices=["cells", "surface", "momentum"],
                     help="where the force reads the pressure (phisim.fluid.body_forces; default cells)")
     args = ap.parse_args(argv)
     device = check_device(args.device)

@@ -158,6 +158,8 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
     density = check_positive(density, "density")
     if pressure_at not in PRESSURE_READINGS:
         raise ParameterError(f"pressure_at must be one of {PRESSURE_READINGS}, got {pressure_at!r}")
+    if previous_velocity is not None and pressure_at != "momentum":
+        raise ParameterError("previous_velocity is read by pressure_at='momentum' alone")
     p = _pressure_values(pressure, velocity) * (density / dt)
     grid = velocity.grid
     vec = _surface(body, grid, float(time), p)

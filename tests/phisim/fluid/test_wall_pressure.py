@@ -210,6 +210,8 @@ def test_wall_pressure_bad_input():
         wall_pressure(v, p, body, pts, dt=DT, viscosity=0.1, previous_velocity=other)
     with pytest.raises(ParameterError):
         body_forces(v, p, body, dt=DT, viscosity=0.1, pressure_at="nowhere")
+    with pytest.raises(ParameterError):
+        body_forces(v, p, body, dt=DT, viscosity=0.1, pressure_at="surface", previous_velocity=v)
 
 
 def test_hiemenz_in_three_dimensions(hiemenz_profile):
