@@ -20,7 +20,7 @@ the nearest probe):
 second order on a smooth pressure with errors 8-20 times below the cells' reading (whose centres lie up to 0.7
 cells off the surface, and whose pressures carry the cut cells' own error; ``docs/VALIDATION.md``).
 ``pressure_at='momentum'`` reads it at the same surface points through the momentum equation along the normal from
-the pressure two cells out (:func:`wall_pressure`, :mod:`phisim.fluid.wall_pressure`): the pressure rise of a viscous
+the pressure two cells out (:func:`wall_pressure`, :mod:`phisim.fluid.normal_momentum`): the pressure rise of a viscous
 stagnation layer thinner than the probes' reach is then read from the velocity.
 
 **Viscous force** ``F_v = oint tau n dS`` with ``tau = mu (grad u + grad u^T)``. On a rigid no-slip surface
@@ -46,8 +46,8 @@ from phisim.errors import ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Body, Obstacle, body_fraction, unit_normal
 from phisim.fluid.geometry import Geometry
+from phisim.fluid.normal_momentum import momentum_wall_pressure
 from phisim.fluid.projection import check_velocity
-from phisim.fluid.wall_pressure import momentum_wall_pressure
 
 __all__ = ["BodyForces", "body_forces", "probe_pressure", "wall_pressure"]
 
@@ -314,8 +314,8 @@ def wall_pressure(velocity: StaggeredGrid, pressure: CenteredGrid, body, points,
 
     Each point is moved to the nearest surface point ``x_s = x - phi n``; the pressure there is the interpolated
     pressure two cells out along the normal plus the integral of the normal momentum equation back to the surface
-    (:mod:`phisim.fluid.wall_pressure`): kinetic energy, Lamb vector, the viscous term (its normal-normal part exactly,
-    the tangential Laplacian by quadrature) and, given ``previous_velocity``, the acceleration. Unlike
+    (:mod:`phisim.fluid.normal_momentum`): kinetic energy, Lamb vector, the viscous term (its normal-normal part
+    exactly, the tangential Laplacian by quadrature) and, given ``previous_velocity``, the acceleration. Unlike
     :func:`probe_pressure`, which extrapolates the pressure alone, it reads a viscous pressure layer thinner than two
     cells (the stagnation points of the DFG cylinder: ``docs/VALIDATION.md``).
 

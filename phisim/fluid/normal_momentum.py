@@ -21,7 +21,10 @@ does the divergence); what is left under the integrals is smooth across the laye
 ``lap_t u_n``, the Lamb vector ``u x omega`` and the acceleration. The integrals use the three-point Gauss rule; the
 velocity is sampled after :func:`~phisim.fluid.extension.extend_into_bodies` (the linear wall profile continued into
 the body), the velocity gradient from its MAC differences (second order at their own positions, interpolated
-multilinearly), the tangential Laplacian by central differences of the sampled gradient over one cell.
+multilinearly), the tangential Laplacian by central differences of the sampled gradient over one cell. The
+acceleration comes from the previous step's velocity: at a moving body along the path of the body's points,
+``(u(y) - u_old(y - u_s dt)) / dt - (u_s . grad) u``, so that the surface passing a fixed point does not enter the
+difference (on a translating Couette flow 1.2-1.5 times smaller errors than the difference at fixed points).
 """
 
 from __future__ import annotations
@@ -97,6 +100,19 @@ def _lamb_normal(u: torch.Tensor, g: torch.Tensor, n: torch.Tensor) -> torch.Ten
     return (torch.linalg.cross(u, omega, dim=1) * n.T.unsqueeze(0)).sum(1)
 
 
+def _acceleration(v: StaggeredGrid, old: StaggeredGrid, g: torch.Tensor, body: Body, y: torch.Tensor, t: float,
+                  dt: float) -> torch.Tensor:
+    """``du/dt`` at points ``y`` ``(B, d, P)`` from the velocity ``v`` and the one a step ``dt`` earlier (both
+    continued into the body). At a resting body the backward difference at ``y``; at a moving one the difference along
+    the path of the body's points, ``(v(y) - old(y - u_s dt)) / dt - (u_s . grad) v`` (``g`` the gradient of ``v`` at
+    ``y``), so that the surface, which passes the fixed point ``y``, does not enter the difference."""
+    if body.static:
+        return (v.sample(y) - old.sample(y)) / dt
+    us = body.velocity_at(y, t).to(y.dtype)  # (P, d)
+    moved = (v.sample(y) - old.sample(y - dt * us)) / dt
+    return moved - torch.einsum("bpij,pj->bip", g, us)
+
+
 def momentum_wall_pressure(velocity: StaggeredGrid, pressure: torch.Tensor | None, body: Body, xs: torch.Tensor,
                            n: torch.Tensor, *, viscosity: float, time: float = 0.0,
                            previous: StaggeredGrid | None = None, dt: float | None = None,
@@ -134,11 +150,9 @@ def momentum_wall_pressure(velocity: StaggeredGrid, pressure: torch.Tensor | Non
     out = 0.5 * ((u1 * u1).sum(1) - (us * us).sum(1))
     out = out - float(viscosity) * torch.einsum("bpij,pi,pj->bp", g1, n, n)
     tangents = _tangents(n)
-    rate = None
+    old = None
     if previous is not None:
-        w = extend_into_bodies(previous, [body], time - float(dt))
-        rate = [(a - b) / float(dt) for a, b in zip(v.values, w.values)]
-        rate = v._with_components(rate)
+        old = extend_into_bodies(previous, [body], time - float(dt))
     for s, weight in _GAUSS:
         y = xs + (s * d) * n
         u = v.sample(y)
@@ -149,7 +163,7 @@ def momentum_wall_pressure(velocity: StaggeredGrid, pressure: torch.Tensor | Non
             minus = _gradient_at(grad, grid, y - h * t)
             lap = (torch.einsum("bpij,pi,pj->bp", plus, n, t) - torch.einsum("bpij,pi,pj->bp", minus, n, t)) / (2 * h)
             term = term - float(viscosity) * lap
-        if rate is not None:
-            term = term + (rate.sample(y) * n.T.unsqueeze(0)).sum(1)
+        if old is not None:
+            term = term + (_acceleration(v, old, g, body, y, time, float(dt)) * n.T.unsqueeze(0)).sum(1)
         out = out + (weight * d) * term
     return out if pressure is None else pressure + out
