@@ -158,7 +158,7 @@ def momentum_wall_pressure(velocity: StaggeredGrid, pressure: torch.Tensor | Non
         u = v.sample(y)
         g = _gradient_at(grad, grid, y)
         term = -_lamb_normal(u, g, n)
-        for t in tangents:  # d/dt of (d u_n / dt) over one cell, central
+        for t in tangents:  # d/ds of d u_n / ds along the tangent t, central over one cell
             plus = _gradient_at(grad, grid, y + h * t)
             minus = _gradient_at(grad, grid, y - h * t)
             lap = (torch.einsum("bpij,pi,pj->bp", plus, n, t) - torch.einsum("bpij,pi,pj->bp", minus, n, t)) / (2 * h)
