@@ -111,8 +111,8 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
             cs = 2 * (fs.pressure[0] + f.viscous[0]) / (umean**2 * D)
             pq = probe_pressure(state.pressure, front_back, dt=dt, bodies=body, order=2)[0]
             fm = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time,
-                             pressure_at="momentum", previous_velocity=previous)  # its pressure part
-            cm = 2 * (fm.pressure[0] + f.viscous[0]) / (umean**2 * D)
+                             pressure_at="momentum", previous_velocity=previous)
+            cm = fm.coefficients(umean, D)[0]
             pm = wall_pressure(state.velocity, state.pressure, body, front_back, dt=dt, viscosity=NU, time=state.time,
                                previous_velocity=previous)[0]
             hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1]),

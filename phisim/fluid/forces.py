@@ -268,11 +268,7 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
     dt = check_positive(dt, "dt")
     density = check_positive(density, "density")
     grid = pressure.grid
-    x = torch.as_tensor(points, dtype=pressure.dtype, device=pressure.device)
-    if x.ndim != 2 or x.shape[1] != grid.rank:
-        raise ShapeError(f"points must have shape (P, {grid.rank}), got {tuple(x.shape)}")
-    if not bool(torch.isfinite(x).all()):
-        raise ParameterError("probe points contain NaN or Inf")
+    x = _points(points, grid, pressure.values)
     h = min(grid.dx)
     if bodies is not None:
         blist = [bodies] if isinstance(bodies, (Body, Geometry)) else list(bodies)
@@ -288,6 +284,16 @@ def probe_pressure(pressure: CenteredGrid, points, *, dt: float, density: float 
                 n[sel] = unit_normal(b, x[sel], time, 1e-3 * h)
         return _extrapolated(pressure, x, n, (1.5 * h - phi).clamp_min(0.0), order) * (density / dt)
     return pressure.sample(x) * (density / dt)
+
+
+def _points(points, grid, like: torch.Tensor) -> torch.Tensor:
+    """``points`` as a ``(P, d)`` tensor of ``like``'s dtype and device, checked for shape and finiteness."""
+    x = torch.as_tensor(points, dtype=like.dtype, device=like.device)
+    if x.ndim != 2 or x.shape[1] != grid.rank:
+        raise ShapeError(f"points must have shape (P, {grid.rank}), got {tuple(x.shape)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ParameterError("points contain NaN or Inf")
+    return x
 
 
 def _extrapolated(pressure: CenteredGrid, x: torch.Tensor, n: torch.Tensor, shift: torch.Tensor, order: int
@@ -344,11 +350,7 @@ def wall_pressure(velocity: StaggeredGrid, pressure: CenteredGrid, body, points,
     _pressure_values(pressure, velocity)
     _check_momentum(body, viscosity, previous_velocity, velocity)
     grid = velocity.grid
-    x = torch.as_tensor(points, dtype=velocity.dtype, device=velocity.device)
-    if x.ndim != 2 or x.shape[1] != grid.rank:
-        raise ShapeError(f"points must have shape (P, {grid.rank}), got {tuple(x.shape)}")
-    if not bool(torch.isfinite(x).all()):
-        raise ParameterError("points contain NaN or Inf")
+    x = _points(points, grid, velocity.values[0])
     h = min(grid.dx)
     t = float(time)
     n = unit_normal(body, x, t, 1e-3 * h)

@@ -81,14 +81,16 @@ NORMAL = torch.tensor([-math.sin(ALPHA), math.cos(ALPHA)], dtype=torch.float64)
 TANGENT = torch.tensor([math.cos(ALPHA), math.sin(ALPHA)], dtype=torch.float64)
 
 
-def _hiemenz(n: int, nu: float, sol):
+def _hiemenz(n: int, nu: float, sol, origin=ORIGIN, tangent=TANGENT, normal=NORMAL):
     """Exact steady Navier-Stokes flow ``u = a s f'(eta) t - sqrt(a nu) f(eta) n``, ``eta = y sqrt(a / nu)``, with
-    ``p = -a^2 s^2 / 2 - a nu (f^2 / 2 + f')``, against the wall ``y = 0`` (s, y: coordinates along / normal to it)."""
-    grid = Grid((n, n), bounds=[(-1, 1), (-1, 1)])
+    ``p = -a^2 s^2 / 2 - a nu (f^2 / 2 + f')``, against the wall ``y = 0`` (s, y: coordinates along / normal to it), on
+    the ``n^d`` grid of ``[-1, 1]^d`` (``d`` the length of ``origin``)."""
+    rank = len(origin)
+    grid = Grid((n,) * rank, bounds=[(-1, 1)] * rank)
 
     def local(x):
-        d = x - ORIGIN
-        return (d * TANGENT).sum(-1), (d * NORMAL).sum(-1)
+        d = x - origin
+        return (d * tangent).sum(-1), (d * normal).sum(-1)
 
     def f_and_fp(y):
         eta = (y * math.sqrt(STRAIN / nu)).clamp_min(0.0)
@@ -101,13 +103,13 @@ def _hiemenz(n: int, nu: float, sol):
     def vel(x):
         s, y = local(x)
         f, fp = f_and_fp(y)
-        return (STRAIN * s * fp).unsqueeze(-1) * TANGENT - (math.sqrt(STRAIN * nu) * f).unsqueeze(-1) * NORMAL
+        return (STRAIN * s * fp).unsqueeze(-1) * tangent - (math.sqrt(STRAIN * nu) * f).unsqueeze(-1) * normal
 
     v = StaggeredGrid.from_function(vel, grid, "periodic", dtype=torch.float64)
     s, y = local(grid.cell_centers(torch.float64))
     f, fp = f_and_fp(y)
     p = -(STRAIN * s) ** 2 / 2 - STRAIN * nu * (f * f / 2 + fp)
-    body = Body(SDF(lambda x: local(x)[1], center=ORIGIN.tolist(), bounds=([-1.0, -1.0], [1.0, 1.0])))
+    body = Body(SDF(lambda x: local(x)[1], center=origin.tolist(), bounds=([-1.0] * rank, [1.0] * rank)))
     return grid, v, _potential(p, grid), body
 
 
@@ -222,29 +224,7 @@ def test_hiemenz_in_three_dimensions(hiemenz_profile):
     q, _ = torch.linalg.qr(torch.tensor([[0.9, 0.3, -0.2], [0.2, 0.8, 0.4], [-0.3, 0.1, 0.7]], dtype=torch.float64))
     e_s, e_n = q[:, 0], q[:, 1]  # along the wall, normal to it (the third column: along the wall, no flow variation)
     origin = torch.tensor([0.013, -0.021, 0.017], dtype=torch.float64)
-    grid = Grid((n, n, n), bounds=[(-1, 1)] * 3)
-
-    def local(x):
-        d = x - origin
-        return (d * e_s).sum(-1), (d * e_n).sum(-1)
-
-    def f_and_fp(y):
-        eta = (y * math.sqrt(STRAIN / nu)).clamp_min(0.0)
-        e = eta.clamp(max=10.0)
-        vals = hiemenz_profile.sol(e.numpy().ravel())
-        return (torch.tensor(vals[0], dtype=y.dtype).reshape(y.shape) + (eta - e),
-                torch.tensor(vals[1], dtype=y.dtype).reshape(y.shape))
-
-    def vel(x):
-        s, y = local(x)
-        f, fp = f_and_fp(y)
-        return (STRAIN * s * fp).unsqueeze(-1) * e_s - (math.sqrt(STRAIN * nu) * f).unsqueeze(-1) * e_n
-
-    v = StaggeredGrid.from_function(vel, grid, "periodic", dtype=torch.float64)
-    s, y = local(grid.cell_centers(torch.float64))
-    f, fp = f_and_fp(y)
-    p = _potential(-(STRAIN * s) ** 2 / 2 - STRAIN * nu * (f * f / 2 + fp), grid)
-    body = Body(SDF(lambda x: local(x)[1], center=origin.tolist(), bounds=([-1.0] * 3, [1.0] * 3)))
+    grid, v, p, body = _hiemenz(n, nu, hiemenz_profile, origin, e_s, e_n)
     offsets = torch.tensor([[-0.2, 0.0], [0.0, 0.0], [0.1, 0.2], [0.2, -0.15]], dtype=torch.float64)
     pts = origin + offsets[:, :1] * e_s + offsets[:, 1:] * q[:, 2]
     exact = -(STRAIN * offsets[:, 0]) ** 2 / 2
