@@ -28,7 +28,10 @@ stagnation layer thinner than the probes' reach is then read from the velocity.
 part, so ``tau n = mu d(u - u_s)/dn``. It is evaluated at one surface point per cut cell
 (``x_s = x_c - phi n``, weight ``|(int n dS)_c|``) by the second-order one-sided difference
 ``(4 w(delta) - w(2 delta)) / (2 delta)`` of ``w = u - u_s`` sampled along the normal at ``delta = 1.5 dx``
-and ``3 dx``, outside the band of blended faces. Free-slip bodies have no viscous force.
+and ``3 dx``, outside the band of blended faces. ``shear_at='momentum'`` fits the same two samples with the profile's
+curvature taken from the momentum balance at the wall (tangential pressure gradient, surface curvature, the body's
+acceleration; :func:`~phisim.fluid.normal_momentum.momentum_wall_shear`): for boundary layers as thin as the samples'
+distance. Free-slip bodies have no viscous force.
 
 Coefficients: ``c = 2 F / (density U^2 L)`` with a reference speed ``U`` and length ``L`` (2-D; in 3-D
 ``L`` is a reference area), see :meth:`BodyForces.coefficients`.
@@ -46,7 +49,7 @@ from phisim.errors import ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Body, Obstacle, body_fraction, unit_normal
 from phisim.fluid.geometry import Geometry
-from phisim.fluid.normal_momentum import momentum_wall_pressure
+from phisim.fluid.normal_momentum import momentum_wall_pressure, momentum_wall_shear
 from phisim.fluid.projection import check_velocity
 
 __all__ = ["BodyForces", "body_forces", "probe_pressure", "wall_pressure"]
@@ -120,11 +123,14 @@ def _surface_vectors(body: Body, grid, t: float, like: torch.Tensor):
 
 #: Where :func:`body_forces` reads the pressure of its pressure part.
 PRESSURE_READINGS = ("cells", "surface", "momentum")
+#: The readings of the wall shear (``shear_at`` of :func:`body_forces`).
+SHEAR_READINGS = ("probes", "momentum")
 
 
 def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: float, viscosity: float,
                 density: float = 1.0, time: float = 0.0, probe_distance: float = 1.5,
-                pressure_at: str = "cells", previous_velocity: StaggeredGrid | None = None) -> BodyForces:
+                pressure_at: str = "cells", previous_velocity: StaggeredGrid | None = None,
+                shear_at: str = "probes") -> BodyForces:
     """Drag/lift on ``body`` from a step's velocity and pressure (formulas in the module docstring).
 
     Args:
@@ -145,6 +151,13 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
             reading uses ``viscosity``, so pass the fluid's even where only the pressure part is wanted).
         previous_velocity: With ``pressure_at='momentum'``: the velocity one step ``dt`` earlier, for the
             acceleration term of an unsteady flow (None: omitted, right for a steady flow).
+        shear_at: ``'probes'`` (default): the wall gradient of ``u - u_s`` by the one-sided difference through
+            the samples ``probe_distance`` and twice that out (the formula above); ``'momentum'``: the same samples
+            with the momentum balance at the wall, which gives the profile's curvature (the tangential pressure
+            gradient, the surface's curvature and the body's acceleration;
+            :func:`~phisim.fluid.normal_momentum.momentum_wall_shear`): for boundary layers as thin as the samples'
+            distance (on Hiemenz flow with a layer two cells thick 12 % low with the probes, 1 % with the momentum
+            balance).
 
     Returns:
         :class:`BodyForces` with ``(B, d)`` tensors; differentiable.
@@ -158,6 +171,8 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
     density = check_positive(density, "density")
     if pressure_at not in PRESSURE_READINGS:
         raise ParameterError(f"pressure_at must be one of {PRESSURE_READINGS}, got {pressure_at!r}")
+    if shear_at not in SHEAR_READINGS:
+        raise ParameterError(f"shear_at must be one of {SHEAR_READINGS}, got {shear_at!r}")
     if previous_velocity is not None and pressure_at != "momentum":
         raise ParameterError("previous_velocity is read by pressure_at='momentum' alone")
     p = _pressure_values(pressure, velocity) * (density / dt)
@@ -174,7 +189,13 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
         fp = _surface_pressure_force(pressure, body, vec, float(time)) * (density / dt)
     fv = torch.zeros_like(fp)
     if body.no_slip and float(viscosity) != 0:
-        fv = _viscous(velocity, body, vec, float(time), probe_distance) * (density * float(viscosity))
+        if shear_at == "momentum":
+            xs, n, area = _cut_surface_points(body, grid, vec, float(time))
+            dwdn = momentum_wall_shear(velocity, pressure, body, xs, n, viscosity=float(viscosity), dt=dt,
+                                       time=float(time), distance=probe_distance)
+            fv = (dwdn * area.norm(dim=-1).to(dwdn.dtype)).sum(-1) * (density * float(viscosity))
+        else:
+            fv = _viscous(velocity, body, vec, float(time), probe_distance) * (density * float(viscosity))
     return BodyForces(fp, fv)
 
 

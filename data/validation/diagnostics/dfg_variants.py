@@ -3,11 +3,14 @@
     python data/validation/diagnostics/dfg_variants.py CASE VARIANT NY T_END [CFL]
 
 CASE is 2D-1 or 2D-2; prints one JSON line (the summary of examples/cylinder_benchmark.py; 2D-1: the state at T_END,
-2D-2: the last two time units). VARIANT (each a change made here by replacing a function, not a setting):
+2D-2: the last two time units). VARIANT (each a change made here by replacing a function, not a setting; variants
+combine with '+', e.g. noclamp+split2):
 
   base        the benchmark as it is
   noclamp     MacCormack without its min-max clamp
   midtrace    the midpoint back-trace instead of the Euler one
+  probe15     the wall-profile probe of the extension, the cut-face flux and uncovered faces 1.5 cells out (not 2)
+  probe3      the same probe 3 cells out
   noext       the transported velocity not extended into the body
   noant       no anticipated pressure gradient at the wall
   nofluxcorr  no flux correction on the cut faces
@@ -41,20 +44,26 @@ import phisim.fluid.projection as P  # noqa: E402
 case, var, ny, t_end = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
 cfl = float(sys.argv[5]) if len(sys.argv) > 5 else 0.5
 orig_adv = S.advect_trusted
+parts = set(var.split("+"))  # variants combine with '+', e.g. noclamp+split2
 kw = {}
-if var == "noclamp":
-    kw = {"clamp": None}
-elif var == "midtrace":
-    kw = {"trace": "midpoint"}
-if kw:
-    S.advect_trusted = lambda f, v, dt, scheme="semi_lagrangian", **k: orig_adv(f, v, dt, scheme=scheme, **{**k, **kw})
-if var == "noext":
+if "noclamp" in parts:
+    kw["clamp"] = None
+if "midtrace" in parts:
+    kw["trace"] = "midpoint"
+if kw:  # the split step advects in the stepper's module, 'split2' in the step's
+    S.advect_trusted = ST.advect_trusted = (
+        lambda f, v, dt, scheme="semi_lagrangian", **k: orig_adv(f, v, dt, scheme=scheme, **{**k, **kw}))
+if parts & {"probe15", "probe3"}:  # the distance of the wall-profile probe (extension, cut-face flux, uncovered faces)
+    import phisim.fluid.bodies as B
+    import phisim.fluid.extension as E
+    B.PROBE_CELLS = E.PROBE_CELLS = 1.5 if "probe15" in parts else 3.0
+if "noext" in parts:
     S.extend_into_bodies = lambda v, o, t=0.0: v
-if var == "noant":
+if "noant" in parts:
     ST.anticipate_pressure = lambda layout, *a, **k: layout
-if var == "nofluxcorr":
+if "nofluxcorr" in parts:
     P._correction_values = lambda values, layout: None
-if var in ("mid_p", "p"):
+if parts & {"mid_p", "p"}:
     from phisim.field import CenteredGrid
     from phisim.fluid.bodies import solid_layout
     from phisim.ops.differential import gradient
@@ -70,7 +79,7 @@ if var in ("mid_p", "p"):
     def _midp(field, velocity, dt, scheme="semi_lagrangian", **k):
         if not (field is velocity and field.__class__.__name__ == "StaggeredGrid"):
             return orig_adv(field, velocity, dt, scheme=scheme, **k)
-        if var == "mid_p":
+        if "mid_p" in parts:
             p = prev.get("v")
             prev["v"] = field
             if p is not None:
@@ -96,7 +105,7 @@ if var in ("mid_p", "p"):
         out = orig_adv(w, velocity, dt, scheme=scheme, **k)
         return out._with_components([a + h for a, h in zip(out.values, half)])
     S.advect_trusted = _midp
-if var == "mid":
+if "mid" in parts:
     prev = {}
     def _mid(field, velocity, dt, scheme="semi_lagrangian", **k):
         if field is velocity and field.__class__.__name__ == "StaggeredGrid":
@@ -106,7 +115,7 @@ if var == "mid":
                 velocity = field._with_components([1.5 * a - 0.5 * b for a, b in zip(field.values, p.values)])
         return orig_adv(field, velocity, dt, scheme=scheme, **k)
     S.advect_trusted = _mid
-if var == "split2ext":
+if "split2ext" in parts:
     ctx = {}
     _ext = S.extend_into_bodies
     def _ext_capture(v, o, t=0.0):
@@ -123,7 +132,7 @@ if var == "split2ext":
         v = S.advect_trusted(moved, carrier, dt, scheme=scheme)
         return v._with_components([u - h for u, h in zip(v.values, half)])
     S.split2_advection = _s2
-if var in ("sw", "split2sw"):
+if parts & {"sw", "split2sw"}:
     import phisim.solvers.mac_diffusion as MD
     from phisim.fluid.bodies import WALL_FRACTION_MIN
     _sharp = MD._sharp_component
@@ -171,11 +180,11 @@ if var in ("sw", "split2sw"):
             num = num + alpha * source.to(u.dtype) * torch.where(c0 > 0, den_coef / c0.clamp_min(1e-300), 1.0)
         return torch.where(mask, u, num / (1 + alpha * den_coef))
     MD._sharp_component = _sw
-adv = "semi_lagrangian" if var == "sl" else "maccormack"
-vs = {"implicit": "implicit", "cn": "crank_nicolson"}.get(var, "explicit")
+adv = "semi_lagrangian" if "sl" in parts else "maccormack"
+vs = "implicit" if "implicit" in parts else "crank_nicolson" if "cn" in parts else "explicit"
 torch.set_num_threads(1)
 rec = t_end - (1 if case == "2D-1" else 2)
-integ = "split2" if var.startswith("split2") else "split"
+integ = "split2" if any(q.startswith("split2") for q in parts) else "split"
 hist, state, meta = cb.run(case, ny, t_end, cfl=cfl, record_from=rec, advection=adv, viscosity_scheme=vs,
                           integrator=integ)
 print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **cb.summarize(case, hist)}), flush=True)
