@@ -156,8 +156,8 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
             with the momentum balance at the wall, which gives the profile's curvature (the tangential pressure
             gradient, the surface's curvature and the body's acceleration;
             :func:`~phisim.fluid.normal_momentum.momentum_wall_shear`): for boundary layers as thin as the samples'
-            distance (on Hiemenz flow with a layer two cells thick 12 % low with the probes, 1 % with the momentum
-            balance).
+            distance (on Hiemenz flow with a layer two cells thick 12 % off with the probes, 2 % with the momentum
+            balance, which also removes the samples' interpolation error).
 
     Returns:
         :class:`BodyForces` with ``(B, d)`` tensors; differentiable.
