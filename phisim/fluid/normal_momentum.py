@@ -51,6 +51,7 @@ import math
 
 import torch
 
+from phisim.errors import ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid, sample_padded
 from phisim.fluid.bodies import Body, unit_normal
 from phisim.fluid.extension import extend_into_bodies
@@ -224,7 +225,12 @@ def momentum_wall_shear(velocity: StaggeredGrid, pressure: CenteredGrid, body: B
         time: Time of ``velocity``.
         distance: The first sample's distance from the surface in cells (of the smallest spacing); the second is
             twice as far.
+
+    Raises:
+        ParameterError: For a viscosity that is not a positive finite number.
     """
+    if not math.isfinite(float(viscosity)) or float(viscosity) <= 0:
+        raise ParameterError(f"the momentum reading of the wall shear needs a viscosity > 0, got {viscosity!r}")
     grid = velocity.grid
     h = min(grid.dx)
     work = velocity.dtype

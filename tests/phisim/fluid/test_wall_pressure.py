@@ -362,6 +362,8 @@ def test_shear_reading_bad_input():
     grid, v, p, body, _ = _couette(12)
     with pytest.raises(ParameterError, match="shear_at"):
         body_forces(v, p, body, dt=DT, viscosity=0.1, shear_at="wall")
+    with pytest.raises(ParameterError, match="viscosity"):
+        momentum_wall_shear(v, p, body, _ring(2), (_ring(2) - CENTRE) / R1, viscosity=0.0, dt=DT)
 
 
 def test_spherical_couette_wall_shear_in_three_dimensions():
