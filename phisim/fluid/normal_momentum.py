@@ -251,7 +251,8 @@ def momentum_wall_shear(velocity: StaggeredGrid, pressure: CenteredGrid, body: B
 
     raw1, raw2 = velocity.sample(x1) - us1, velocity.sample(x2) - us2  # (B, d, P)
     g = acc.T.unsqueeze(0).to(work)  # kinematic pressure gradient plus the wall's acceleration, (B, d, P)
-    for t in _tangents(n):
+    tangents = _tangents(n)
+    for t in tangents:
         ds = (pressure.sample(x1 + h * t) - pressure.sample(x1 - h * t)) / (2 * h * float(dt))  # (B, P)
         g = g + ds.unsqueeze(1) * t.T.unsqueeze(0)
     g = tangential(g) / float(viscosity)
@@ -275,7 +276,6 @@ def momentum_wall_shear(velocity: StaggeredGrid, pressure: CenteredGrid, body: B
     wn1, wn2 = (raw1 * nt).sum(1, keepdim=True), (raw2 * nt).sum(1, keepdim=True)
     beta = (wn1 * d2**3 - wn2 * d1**3) / (d1 * d1 * d2**3 - d2 * d2 * d1**3)
     gamma = (wn2 - beta * d2 * d2) / d2**3
-    tangents = _tangents(n)
     kt = k / (grid.rank - 1)
 
     def corrected(raw, x, dist):

@@ -179,21 +179,25 @@ def test_momentum_force_of_couette_flow_on_the_inner_cylinder_is_small():
     assert float(f.pressure.abs().max()) < 1e-4 * scale * perimeter  # measured 1e-5
 
 
-def test_wall_pressure_gradcheck():
+def _gradcheck_reading(read, seed: int) -> bool:
+    """gradcheck of ``read(velocity, pressure, body)`` in random float64 fields on 12^2 around a disc."""
     n = 12
     grid = Grid((n, n), bounds=[(-1, 1), (-1, 1)])
     body = Body(Sphere((0.013, -0.021), 0.35))
-    gen = torch.Generator().manual_seed(3)
+    gen = torch.Generator().manual_seed(seed)
     u0 = [torch.randn((1, *grid.face_shape(i)), dtype=torch.float64, generator=gen) for i in range(2)]
     p0 = torch.randn((1, n, n), dtype=torch.float64, generator=gen)
-    pts = torch.tensor([[0.013 + 0.35, -0.021], [0.013, 0.329]], dtype=torch.float64)
 
     def fn(ux, uy, pv):
-        v = StaggeredGrid((ux, uy), grid, "periodic")
-        return wall_pressure(v, CenteredGrid(pv, grid, "periodic"), body, pts, dt=DT, viscosity=0.05)
+        return read(StaggeredGrid((ux, uy), grid, "periodic"), CenteredGrid(pv, grid, "periodic"), body)
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (*u0, p0))
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
+    return torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
+
+
+def test_wall_pressure_gradcheck():
+    pts = torch.tensor([[0.013 + 0.35, -0.021], [0.013, 0.329]], dtype=torch.float64)
+    assert _gradcheck_reading(lambda v, p, body: wall_pressure(v, p, body, pts, dt=DT, viscosity=0.05), 3)
 
 
 def test_wall_pressure_bad_input():
@@ -342,20 +346,8 @@ def test_wall_shear_of_an_accelerating_body_carried_by_its_fluid_is_zero():
 
 
 def test_momentum_shear_force_gradcheck():
-    n = 12
-    grid = Grid((n, n), bounds=[(-1, 1), (-1, 1)])
-    body = Body(Sphere((0.013, -0.021), 0.35))
-    gen = torch.Generator().manual_seed(4)
-    u0 = [torch.randn((1, *grid.face_shape(i)), dtype=torch.float64, generator=gen) for i in range(2)]
-    p0 = torch.randn((1, n, n), dtype=torch.float64, generator=gen)
-
-    def fn(ux, uy, pv):
-        v = StaggeredGrid((ux, uy), grid, "periodic")
-        return body_forces(v, CenteredGrid(pv, grid, "periodic"), body, dt=DT, viscosity=0.05,
-                           shear_at="momentum").viscous
-
-    inputs = tuple(t.clone().requires_grad_(True) for t in (*u0, p0))
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
+    assert _gradcheck_reading(
+        lambda v, p, body: body_forces(v, p, body, dt=DT, viscosity=0.05, shear_at="momentum").viscous, 4)
 
 
 def test_shear_reading_bad_input():
