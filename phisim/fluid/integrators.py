@@ -65,7 +65,11 @@ The implicit solves are :func:`phisim.solvers.diffusion.diffuse_staggered` (exac
 faces touching obstacles held at 0 a direct capacitance solve, or PCG on the first step with a new body
 or dt). The incremental pressure ``-G q`` makes the splitting error of viscosity and projection at walls
 second order: pass the returned pressure back as ``pressure_guess``
-(``None`` on the first step is fine; without it on every step the scheme is first order at walls).
+(``None`` on the first step is fine; without it on every step the scheme is first order at walls). Next to bodies
+``-G q`` is the gradient the projection applies (:func:`~phisim.fluid.projection.applied_gradient`: the whole of it on
+the faces a sharp body keeps), and the cells that the imposition closes to everything but faces held at the body's
+velocity carry their neighbours' pressure instead of their own (:func:`carried_pressure`; there ``φ`` is a whole
+pressure difference, not an increment, and ``q + φ`` grew without bound at a steady state).
 
 The returned pressure is the potential of the last stage's correction rescaled to the convention of
 :func:`phisim.fluid.make_incompressible` (``dt * p / rho``), so it is an approximation of the pressure at
@@ -83,13 +87,13 @@ from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
-from phisim.fluid.projection import impose_solids, make_incompressible, project_trusted
+from phisim.fluid.projection import applied_gradient, impose_solids, make_incompressible, project_trusted
 from phisim.fluid.step import kinetic_energy, normalize_energy, rescale_energy, to_time
 from phisim.fluid.viscosity import body_laplace
 from phisim.ops.differential import gradient
 from phisim.solvers.diffusion import diffuse_staggered
 
-__all__ = ["INTEGRATORS", "convection", "navier_stokes_rk_step", "rk_advance"]
+__all__ = ["INTEGRATORS", "carried_pressure", "convection", "navier_stokes_rk_step", "rk_advance"]
 
 #: Time integrators of incompressible flow with their order in time for the velocity.
 INTEGRATORS = {"split": 1, "split2": 2, "rk2": 2, "rk3": 3, "imex2": 2}
@@ -280,6 +284,58 @@ def rk_advance(velocity: StaggeredGrid, dt, nu: float, integrator: str, force, t
     return stage, pressure
 
 
+def carried_pressure(q: torch.Tensor, layout) -> torch.Tensor:
+    """The part of the previous pressure potential ``q`` that ``'imex2'``'s next pressure adds its increment to.
+
+    ``q`` itself, except in the *enclosed cut cells*: cells centred inside a sharp no-slip body whose every open face
+    (``theta > 0``) is centred inside it too. The imposition holds such faces at the body's velocity (they are no
+    unknowns of the viscous step), so the predictor carries no ``-G q`` there and each projection rebuilds their
+    velocity from its own potential ``phi``: ``phi`` in an enclosed cell is a whole pressure difference to its
+    neighbours, not an increment, and ``q + phi`` would grow by it every step (a steady flow's cut-cell pressure
+    drifted linearly while its velocity stood still). There the carried part is the mean of the neighbours' ``q``
+    over those faces weighted with ``theta`` (enclosed neighbours left out; 0 where none is left), so that
+    ``q + phi`` across them has the gradient ``G phi`` that built their velocity. ``q`` in an enclosed cell reaches
+    no velocity (its faces' ``G q`` is imposed away), so this changes the pressure alone.
+    """
+    if layout is None or layout.walls is None:
+        return q
+    rank = q.ndim - 1
+    faces = []  # per axis: (theta on the held open faces, whether a face is open and not held), lower/upper per cell
+    for a in range(rank):
+        th = layout.theta[a].to(q.dtype)
+        wall = layout.walls[a]
+        held = (th > 0) & wall[0] if wall is not None else torch.zeros_like(th, dtype=torch.bool)
+        free = (th > 0) & ~held
+        w = torch.where(held, th, torch.zeros_like(th))
+        n = q.shape[1 + a]
+        faces.append((w.narrow(1 + a, 0, n), w.narrow(1 + a, 1, n), free.narrow(1 + a, 0, n), free.narrow(1 + a, 1, n)))
+    has_held = sum((lo > 0) | (hi > 0) for lo, hi, _, _ in faces) > 0
+    has_free = sum(flo | fhi for _, _, flo, fhi in faces) > 0
+    enclosed = has_held & ~has_free
+    source = torch.where(enclosed, torch.zeros_like(q), q)
+    num, den = torch.zeros_like(q), torch.zeros_like(q)
+    for a, (lo, hi, _, _) in enumerate(faces):
+        n = q.shape[1 + a]
+        if n < 2:
+            continue
+        dim = 1 + a
+        lo, hi = lo.narrow(dim, 1, n - 1), hi.narrow(dim, 0, n - 1)  # the cells with a neighbour on that side
+        below, above = source.narrow(dim, 0, n - 1), source.narrow(dim, 1, n - 1)
+        ok_below = (~enclosed.narrow(dim, 0, n - 1)).to(q.dtype)
+        ok_above = (~enclosed.narrow(dim, 1, n - 1)).to(q.dtype)
+        pad = [0] * (2 * rank)
+        # F.pad lists the last axis first: (axis rank-1 low, high, ..., axis 0 low, high)
+        k = 2 * (rank - 1 - a)
+        pad_lo, pad_hi = list(pad), list(pad)
+        pad_lo[k] = 1
+        pad_hi[k + 1] = 1
+        num = num + torch.nn.functional.pad(lo * ok_below * below, pad_lo) + torch.nn.functional.pad(
+            hi * ok_above * above, pad_hi)
+        den = den + torch.nn.functional.pad(lo * ok_below, pad_lo) + torch.nn.functional.pad(hi * ok_above, pad_hi)
+    mean = num / torch.where(den > 0, den, torch.ones_like(den))
+    return torch.where(enclosed, mean, q)
+
+
 def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization, project, rescale):
     """Crank-Nicolson viscosity, Heun convection and forcing, incremental pressure correction."""
     grid = velocity.grid
@@ -300,10 +356,9 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
         q = q.to(dtype=velocity.dtype, device=velocity.device)
         q = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
-        g = gradient(q, at="face").values
-        if layout is not None:
-            g = tuple(x * th.to(x.dtype) for x, th in zip(g, layout.theta))
-        grad_q = (q, g)
+        # the gradient the projection applies: the whole of it on the faces a sharp body keeps, theta times it on
+        # a blended body's cut faces
+        grad_q = (q, applied_gradient(gradient(q, at="face").values, layout))
 
     def stage(explicit):
         y = u0 + dt * explicit
@@ -325,7 +380,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         explicit1 = explicit1 + f1
     explicit1 = explicit1.with_boundary(u0.boundary)  # time-dependent inflows: u1 carries the new time
     u2, phi = stage(0.5 * (explicit0 + explicit1))
-    p = phi if grad_q is None else phi.with_values(phi.values + grad_q[0].values)
+    p = phi if grad_q is None else phi.with_values(phi.values + carried_pressure(grad_q[0].values, layout))
     if e0 is not None:
         u2 = rescale(u2, e0)
     return u2, p

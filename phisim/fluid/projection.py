@@ -68,7 +68,7 @@ from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "check_fits", "project_box",
            "make_incompressible", "project_trusted", "check_balance", "relative_divergence", "impose_solids",
-           "net_boundary_flux", "solid_flux"]
+           "net_boundary_flux", "solid_flux", "applied_gradient"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -305,6 +305,20 @@ def impose_solids(velocity: StaggeredGrid, layout: SolidLayout | None, moved: tu
     if moved is not None:
         values = uncover_faces(values, layout, v.grid, *moved)
     return v.with_values(values).with_boundary_faces()
+
+
+def applied_gradient(gradient: tuple, layout: SolidLayout | None) -> tuple:
+    """Per component, what a projection whose potential has the face gradient ``gradient`` subtracts from the
+    stored velocity (``stored(u) - stored(u - gradient)`` of :func:`_blend`): the whole gradient on the faces a
+    sharp or free-slip body keeps (``theta > 0``), ``theta`` times it on the cut faces of a blended body, nothing
+    inside solids. An incremental pressure ``-G q`` taken off in these terms is the gradient the next projection
+    would have applied (the pressure-correction step of ``'imex2'``)."""
+    if layout is None:
+        return tuple(gradient)
+    zero = tuple(torch.zeros_like(g) for g in gradient)
+    full = _blend(zero, layout, tuple(gradient))
+    none = _blend(zero, layout, zero)
+    return tuple(a - b for a, b in zip(full, none))
 
 
 def _solid(layout: SolidLayout, i: int, like: torch.Tensor):
