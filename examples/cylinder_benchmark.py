@@ -72,7 +72,7 @@ def setup(case: str, ny: int, dtype=torch.float64, device="cpu"):
 
 def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
         record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None,
-        integrator: str = "split", device="cpu"):
+        integrator: str = "split", device="cpu", convection: str = "central"):
     """Simulate a case on ``device``; returns the force history, the final state and the run's settings.
 
     The history's columns: ``t, cd, cl, dp, cd_pressure, cl_pressure`` with the pressure of the cut cells
@@ -94,7 +94,8 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     # a stepper holds the resting cylinder's layout and its direct pressure solve (the pure step() rasterises the
     # body and solves by PCG at every call; the two agree to the solver's tolerance)
     stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=NU, advection=advection,
-                           viscosity_scheme=viscosity_scheme, integrator=integrator, dtype=dtype, device=device, dt=dt)
+                           viscosity_scheme=viscosity_scheme, integrator=integrator, dtype=dtype, device=device, dt=dt,
+                           convection=convection)
     hist = []
     t0 = _time.perf_counter()
     front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype, device=device)
@@ -122,7 +123,8 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
         torch.cuda.synchronize(device)
     wall = _time.perf_counter() - t0
     return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny,
-                                   "integrator": integrator, "device": str(device)}
+                                   "integrator": integrator, "device": str(device),
+                                   **({"convection": convection} if convection != "central" else {})}
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
@@ -170,6 +172,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON file for the results")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on small grids)")
     ap.add_argument("--integrator", default="split", help="time integrator of phisim.fluid.step")
+    ap.add_argument("--convection", default="central", choices=["central", "quick"],
+                    help="convection scheme of the rk2 / rk3 / imex2 integrators (default central)")
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     ap.add_argument("--cfl", type=float, default=0.5,
                     help="1.5 U_m dt / dx (default 0.5; explicit viscosity may lower dt)")
@@ -184,7 +188,7 @@ def main(argv=None) -> int:
     results = []
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
-                                integrator=args.integrator, device=device)
+                                integrator=args.integrator, device=device, convection=args.convection)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic,"

@@ -32,7 +32,13 @@ from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Obstacle, as_solids, solid_layout
 from phisim.fluid.extension import extend_into_bodies
-from phisim.fluid.integrators import INTEGRATORS, check_viscous_number, navier_stokes_rk_step, rk_advance
+from phisim.fluid.integrators import (
+    INTEGRATORS,
+    check_convection,
+    check_viscous_number,
+    navier_stokes_rk_step,
+    rk_advance,
+)
 from phisim.fluid.periodic import PeriodicStep
 from phisim.fluid.projection import check_balance, check_fits, check_velocity, project_box
 from phisim.fluid.step import (
@@ -111,6 +117,9 @@ class FluidStepper:
             source or energy normalisation) states without a marker take the fused step of
             :class:`~phisim.fluid.periodic.PeriodicStep` (the same computation in a few array passes, equal to
             rounding); ``False``: always the general path.
+        convection: The convection scheme of the ``'rk2'``, ``'rk3'`` and ``'imex2'`` integrators: ``'central'``
+            (default) or ``'quick'`` (upwind-biased, for cell Reynolds numbers ``|u| dx / nu`` above about 2;
+            :func:`~phisim.fluid.integrators.convection`). The split integrators' transport is ``advection``.
 
     The step of a call (:meth:`advance`) reads nothing back to the host and branches on no tensor value: the
     settings, the balance of the prescribed boundary fluxes and the solids' coverage are checked here, once,
@@ -138,7 +147,7 @@ class FluidStepper:
                  buoyancy_direction: Sequence[float] | None = None, marker_source=None,
                  energy_normalization: bool = False, pressure: Solve | None = None, dt=None,
                  dtype: torch.dtype = torch.float32, device=None, direct: bool | str = "auto", check: int | None = None,
-                 compile: bool = False, fused: bool = True):
+                 compile: bool = False, fused: bool = True, convection: str = "central"):
         if not isinstance(grid, Grid):
             raise ParameterError(f"grid must be a phisim.Grid, got {type(grid).__name__}")
         if dtype not in (torch.float32, torch.float64):
@@ -159,6 +168,7 @@ class FluidStepper:
         self.buoyancy_direction = buoyancy_args(self.buoyancy, buoyancy_direction, grid.rank)[1]
         self.advection, self.marker_advection = advection, marker_advection
         self.viscosity_scheme, self.integrator = viscosity_scheme, integrator
+        self.convection = check_convection(convection)
         self.energy_normalization, self.pressure = energy_normalization, pressure
         self.dt = None if dt is None else check_dt(dt)
         self.marker_source = None
@@ -237,7 +247,8 @@ class FluidStepper:
                        buoyancy_direction=self.buoyancy_direction, advection=self.advection,
                        viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
                        obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
-                       integrator=self.integrator, marker_advection=self.marker_advection)
+                       integrator=self.integrator, marker_advection=self.marker_advection,
+                       convection=self.convection)
         else:
             dt = check_dt(dt)
             if dt != self.dt and self.integrator not in SPLIT:
@@ -268,10 +279,12 @@ class FluidStepper:
                        buoyancy_direction=self.buoyancy_direction, advection=self.advection,
                        viscosity_scheme=self.viscosity_scheme, marker_source=self.marker_source,
                        obstacles=self.obstacles, solve=self.pressure, energy_normalization=self.energy_normalization,
-                       integrator=self.integrator, marker_advection=self.marker_advection, trusted=True)
+                       integrator=self.integrator, marker_advection=self.marker_advection, trusted=True,
+                       convection=self.convection)
 
     def __repr__(self) -> str:
-        return (f"FluidStepper({self.grid}, integrator={self.integrator!r}, advection={self.advection!r}, "
+        scheme = f", convection={self.convection!r}" if self.integrator not in SPLIT else ""
+        return (f"FluidStepper({self.grid}, integrator={self.integrator!r}, advection={self.advection!r}{scheme}, "
                 f"viscosity={self.viscosity}, viscosity_scheme={self.viscosity_scheme!r})")
 
 
@@ -300,6 +313,7 @@ def navier_stokes_step(
     energy_normalization: bool = False,
     time: float = 0.0,
     integrator: str = "split",
+    convection: str = "central",
 ) -> tuple[StaggeredGrid, CenteredGrid]:
     """One incompressible Navier-Stokes step: advect, force, diffuse, project (and optionally renormalise).
 
@@ -311,7 +325,8 @@ def navier_stokes_step(
     ``energy_normalization`` the result is rescaled to the kinetic energy of ``u`` (E5 of the paper).
     First order in time (operator splitting); second order in space with MacCormack advection. With
     ``integrator`` other than ``'split'`` the step is :func:`~phisim.fluid.integrators.navier_stokes_rk_step`
-    (second order in time; central convection, so ``advection`` and ``viscosity_scheme`` do not apply).
+    (second order in time; ``convection`` selects its convection scheme, ``advection`` and ``viscosity_scheme`` do
+    not apply).
 
     Args:
         velocity: MAC velocity ``(B, *face_shape(i))`` per component.
@@ -330,6 +345,7 @@ def navier_stokes_step(
             ``'imex2'`` (see :mod:`phisim.fluid.integrators`; ``'imex2'`` treats viscosity implicitly and
             needs the previous pressure as ``pressure_guess`` for second order at walls). ``'split2'`` keeps
             state between steps: :func:`step` or :class:`FluidStepper` take it.
+        convection: The convection scheme of the other integrators, ``'central'`` (default) or ``'quick'``.
 
     Returns:
         ``(velocity, pressure)`` after the step.
@@ -351,7 +367,7 @@ def navier_stokes_step(
             check_velocity(force, "force")
         return navier_stokes_rk_step(velocity, dt, viscosity=viscosity, integrator=integrator, force=force,
                                      time=time, obstacles=obstacles, solve=solve, pressure_guess=pressure_guess,
-                                     energy_normalization=energy_normalization)
+                                     energy_normalization=energy_normalization, convection=convection)
     e0 = kinetic_energy(velocity) if energy_normalization else None
     src = extend_into_bodies(velocity, obstacles, float(time))
     v = advect(src, src, dt, scheme=advection)
@@ -381,6 +397,7 @@ def step(
     energy_normalization: bool = False,
     integrator: str = "split",
     marker_advection: str | None = None,
+    convection: str = "central",
 ) -> FluidState:
     """Advance a smoke simulation by ``dt``: marker transport, buoyancy, Navier-Stokes step.
 
@@ -407,6 +424,8 @@ def step(
         marker_advection: Scheme of the marker transport: one of
             :data:`phisim.ops.advection.SCALAR_SCHEMES`; ``'conservative'`` keeps the total marker to round-off
             in closed boxes and periodic domains and never makes it negative. Default: ``advection``.
+        convection: The convection scheme of the ``'rk2'``, ``'rk3'`` and ``'imex2'`` integrators, ``'central'``
+            (default) or ``'quick'`` (:func:`~phisim.fluid.integrators.convection`).
 
     Returns:
         The new state (``time + dt``).
@@ -439,12 +458,13 @@ def step(
                    buoyancy_direction=buoyancy_direction, advection=advection, viscosity_scheme=viscosity_scheme,
                    marker_source=source, obstacles=obstacles, solve=solve,
                    energy_normalization=energy_normalization, integrator=integrator,
-                   marker_advection=marker_advection, trusted=False)
+                   marker_advection=marker_advection, trusted=False, convection=check_convection(convection))
 
 
 def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float, buoyancy_direction,
             advection: str, viscosity_scheme: str, marker_source: torch.Tensor | None, obstacles, solve,
-            energy_normalization: bool, integrator: str, marker_advection: str, trusted: bool) -> FluidState:
+            energy_normalization: bool, integrator: str, marker_advection: str, trusted: bool,
+            convection: str = "central") -> FluidState:
     """:func:`step` on validated arguments (``marker_source`` a tensor of the marker's dtype and device, or None).
 
     ``trusted=True`` is the step of a :class:`FluidStepper`: nothing is read back to the host and nothing
@@ -473,7 +493,7 @@ def advance(state: FluidState, dt, *, viscosity: float, buoyancy_strength: float
                                                        device=v0.device), marker.values, marker.boundary, 1.0,
                                    *buoyancy_args(buoyancy_strength, buoyancy_direction, v0.grid.rank))
         v, p = rk_advance(v0, dt, float(viscosity), integrator, force, float(state.time), obstacles, solve,
-                          state.pressure, energy_normalization, trusted=trusted)
+                          state.pressure, energy_normalization, trusted=trusted, scheme=convection)
         return replace(state, velocity=v, marker=marker, pressure=p, time=t_new)
     e0 = kinetic_energy(v0) if energy_normalization else None
     src = extend_into_bodies(v0, obstacles, state.time)

@@ -24,6 +24,8 @@ combine with '+', e.g. noclamp+split2):
               linear ghost value of the code is that difference times (s_- + s_+) / 2, locally O(1) off)
   split2ext   split2 with u^n + dt/2 a extended into the body as a whole (a -> 0 at a resting wall) instead of
               u^n extended and dt/2 a added with a = 0 inside the body
+  imex2, rk2  the integrators 'imex2' / 'rk2' of phisim.fluid (settings; central convection)
+  quick       with imex2 or rk2: the QUICK convection (a setting: convection='quick')
 """
 import json
 import os
@@ -185,6 +187,7 @@ vs = "implicit" if "implicit" in parts else "crank_nicolson" if "cn" in parts el
 torch.set_num_threads(1)
 rec = t_end - (1 if case == "2D-1" else 2)
 integ = "split2" if any(q.startswith("split2") for q in parts) else "split"
+integ = next((q for q in ("imex2", "rk2") if q in parts), integ)
 hist, state, meta = cb.run(case, ny, t_end, cfl=cfl, record_from=rec, advection=adv, viscosity_scheme=vs,
-                          integrator=integ)
+                          integrator=integ, convection="quick" if "quick" in parts else "central")
 print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **cb.summarize(case, hist)}), flush=True)
