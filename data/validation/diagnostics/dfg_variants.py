@@ -26,6 +26,8 @@ combine with '+', e.g. noclamp+split2):
               u^n extended and dt/2 a added with a = 0 inside the body
   imex2, rk2  the integrators 'imex2' / 'rk2' of phisim.fluid (settings; central convection)
   quick       with imex2 or rk2: the QUICK convection (a setting: convection='quick')
+  convext     with imex2 or rk2: the convection reads the velocity extended into the body (the band just inside
+              a sharp no-slip body set to the extended wall profile, as the split steps' transport reads it)
 """
 import json
 import os
@@ -182,6 +184,11 @@ if parts & {"sw", "split2sw"}:
             num = num + alpha * source.to(u.dtype) * torch.where(c0 > 0, den_coef / c0.clamp_min(1e-300), 1.0)
         return torch.where(mask, u, num / (1 + alpha * den_coef))
     MD._sharp_component = _sw
+if "convext" in parts:
+    import phisim.fluid.integrators as I
+    from phisim.fluid.extension import extend_into_bodies
+    _conv, _body = I.convection, cb.setup(case, ny)[1]
+    I.convection = lambda v, scheme="central": _conv(extend_into_bodies(v, _body), scheme)
 adv = "semi_lagrangian" if "sl" in parts else "maccormack"
 vs = "implicit" if "implicit" in parts else "crank_nicolson" if "cn" in parts else "explicit"
 torch.set_num_threads(1)
