@@ -16,7 +16,9 @@ explicit Runge-Kutta methods applied to the incompressible Navier-Stokes equatio
   central differences (Harlow & Welch 1965; cell-centre products for ``j = i``, cell-edge products for
   ``j ≠ i``); boundary ghosts follow the velocity boundary (walls, moving lids, open sides, periodic).
   For a discretely divergence-free field it conserves momentum and kinetic energy in a periodic box
-  (Morinishi et al. 1998, J. Comput. Phys. 143).
+  (Morinishi et al. 1998, J. Comput. Phys. 143). ``convection='quick'`` carries the upwind-biased quadratic
+  interpolation of Leonard (1979) instead of the average (conserves momentum; damps the grid-scale modes that
+  central fluxes leave undamped where the cell Reynolds number is large; :func:`convection`).
 * ``L`` is the (2d+1)-point Laplacian per component (:func:`phisim.fluid.viscosity.body_laplace`: sharp no-slip
   bodies enter at their true surface).
 * ``f(t)`` is a body force (a StaggeredGrid, or a callable of time for time-dependent forcing).
