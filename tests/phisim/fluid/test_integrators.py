@@ -254,6 +254,18 @@ def test_quick_keeps_a_nearly_inviscid_flow_bounded_where_central_fluxes_blow_up
             w, _ = navier_stokes_rk_step(w, dt, viscosity=1e-4)
 
 
+@pytest.mark.parametrize("boundary", ["periodic", "wall"])
+def test_gradcheck_quick_convection(boundary):
+    grid = Grid((5, 4), bounds=[(0, 1.25), (0, 1)])
+    torch.manual_seed(4)
+    comps = tuple((0.5 + torch.rand(1, *grid.face_shape(i), dtype=F64)).requires_grad_(True) for i in range(2))
+
+    def run(*c):
+        return tuple(convection(StaggeredGrid(list(c), grid, boundary), "quick").values)
+
+    assert torch.autograd.gradcheck(run, comps, eps=1e-6, atol=1e-6)
+
+
 def test_the_convection_setting_reaches_every_entry_point():
     from phisim.fluid import FluidState, FluidStepper, step
 
