@@ -93,17 +93,22 @@ def solve_steady(n: int, sharp: bool = True, tol: float = 1e-11, max_steps: int 
 
 
 def solve_steady_ns(n: int, advection: str = "maccormack", nu: float = 0.02, tol: float = 1e-6,
-                    max_steps: int = 20000, extension: bool = True, device=None):
+                    max_steps: int = 20000, extension: bool = True, device=None, integrator: str = "split",
+                    convection: str = "central"):
     """The steady Navier-Stokes flow on an ``n x n`` grid over ``[-1, 1]^2``: split steps (``advection``, explicit
     viscosity ``nu``, ``dt = min(0.4 dx / (omega R1), 0.45 dx^2 / (4 nu))``) from rest until the largest change of a
-    step is below ``tol * dt / dx`` (in units of ``omega R1``); returns ``(velocity, steps)``."""
+    step is below ``tol * dt / dx`` (in units of ``omega R1``); returns ``(velocity, steps)``. ``integrator`` other
+    than ``'split'``: its steps (``convection`` its scheme); ``'imex2'`` (implicit viscosity) with
+    ``dt = 0.4 dx / (omega R1)``."""
     import phisim.fluid.stepper as stepper_module
 
     grid = Grid((n, n), bounds=[(-1.0, 1.0), (-1.0, 1.0)])
     h = grid.dx[0]
-    dt = min(0.4 * h / (OMEGA * R1), 0.45 * h * h / (4 * nu))
+    dt = 0.4 * h / (OMEGA * R1)
+    if integrator != "imex2":
+        dt = min(dt, 0.45 * h * h / (4 * nu))
     stepper = FluidStepper(grid, "wall", obstacles=bodies(True), viscosity=nu, advection=advection, dt=dt,
-                           dtype=torch.float64, device=device)
+                           dtype=torch.float64, device=device, integrator=integrator, convection=convection)
     state = FluidState(StaggeredGrid.zeros(grid, stepper.boundary, dtype=torch.float64, device=device))
     original = stepper_module.extend_into_bodies
     if not extension:  # the study's comparison: the stored field transported as it is
@@ -194,6 +199,9 @@ def main(argv=None) -> int:
     ap.add_argument("--nu", type=float, default=0.02, help="viscosity of the Navier-Stokes runs")
     ap.add_argument("--no-extension", action="store_true",
                     help="Navier-Stokes runs: transport the stored field, not the velocity extended into the bodies")
+    ap.add_argument("--integrator", default="split", help="Navier-Stokes runs: the time integrator")
+    ap.add_argument("--convection", default="central", choices=["central", "quick"],
+                    help="Navier-Stokes runs with --integrator rk2 / rk3 / imex2: the convection scheme")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = ap.parse_args(argv)
@@ -203,7 +211,8 @@ def main(argv=None) -> int:
         kw = dict(sharp=not args.blended, scheme=args.scheme, dt_cells=args.dt_cells, tol=args.tol,
                   max_steps=args.max_steps, free_slip=args.free_slip)
     else:
-        kw = dict(advection=args.advection, nu=args.nu, extension=not args.no_extension)
+        kw = dict(advection=args.advection, nu=args.nu, extension=not args.no_extension, integrator=args.integrator,
+                  convection=args.convection)
     for row in study(args.n, device=device, **kw):
         print(json.dumps({**row, "device": str(device)}), flush=True)
     return 0
