@@ -113,18 +113,20 @@ _VISCOUS_LIMIT = {"rk2": 2.0, "rk3": 2.5}  # ν dt Σ 4/dx² on the negative rea
 CONVECTION_SCHEMES = ("central", "quick")
 
 
-def _face_values(p: torch.Tensor, dim: int, count: int, a: torch.Tensor | None) -> torch.Tensor:
-    """The transported value at ``count`` points between samples of ``p`` along ``dim``.
+def _face_values(p: torch.Tensor, dim: int, width: int, a: torch.Tensor | None) -> torch.Tensor:
+    """The transported value at the points between the samples of ``p`` along ``dim``.
 
-    ``p`` holds two ghost samples before the first point's left sample (point ``e`` lies between ``p[e + 1]`` and
-    ``p[e + 2]``). ``a`` None: the central average; else QUICK (Leonard 1979): the average less an eighth of the
-    second difference centred on the upwind sample, ``a`` the advecting velocity at the points."""
-    left, right = p.narrow(dim, 1, count), p.narrow(dim, 2, count)
+    ``p`` is padded with ``width`` ghost samples per side; point ``e`` lies between ``p[e + width - 1]`` and
+    ``p[e + width]`` (``len - 2 width + 1`` points). ``a`` None: the central average; else QUICK (Leonard 1979, needs
+    ``width >= 2``): the average less an eighth of the second difference centred on the upwind sample, ``a`` the
+    advecting velocity at the points."""
+    count = p.shape[dim] - 2 * width + 1
+    left, right = p.narrow(dim, width - 1, count), p.narrow(dim, width, count)
     mean = 0.5 * (left + right)
     if a is None:
         return mean
-    lo = p.narrow(dim, 0, count) - 2 * left + right  # a > 0: upwind sample is the left one
-    hi = left - 2 * right + p.narrow(dim, 3, count)  # a < 0: the right one
+    lo = p.narrow(dim, width - 2, count) - 2 * left + right  # a > 0: upwind sample is the left one
+    hi = left - 2 * right + p.narrow(dim, width + 1, count)  # a < 0: the right one
     return mean - 0.125 * torch.where(a >= 0, lo, hi)
 
 
@@ -156,6 +158,7 @@ def convection(velocity: StaggeredGrid, scheme: str = "central") -> StaggeredGri
     if not isinstance(velocity, StaggeredGrid):
         raise GridMismatchError(f"convection needs a StaggeredGrid velocity, got {type(velocity).__name__}")
     quick = check_convection(scheme) == "quick"
+    width = 2 if quick else 1  # ghost samples the interpolation reads per side
     grid, boundary = velocity.grid, velocity.boundary
     dx = grid.dx
     out = []
@@ -164,10 +167,9 @@ def convection(velocity: StaggeredGrid, scheme: str = "central") -> StaggeredGri
         for j in range(grid.rank):
             dim_j = 1 + j
             if j == i:
-                p = pad_staggered_component(ui, i, boundary, dx, 2, axes=[i])  # faces -2 .. n+2
-                m = p.shape[dim_j] - 3  # cells -1 .. n
-                a = _face_values(p, dim_j, m, None)  # the advecting velocity at the cell centres
-                flux = a * (_face_values(p, dim_j, m, a) if quick else a)
+                p = pad_staggered_component(ui, i, boundary, dx, width, axes=[i])
+                a = _face_values(p, dim_j, width, None)  # the advecting velocity at the cell centres -1 .. n
+                flux = a * (_face_values(p, dim_j, width, a) if quick else a)
                 k = flux.shape[dim_j] - 1
                 total = total + (flux.narrow(dim_j, 1, k) - flux.narrow(dim_j, 0, k)) / dx[j]
                 continue
@@ -178,8 +180,8 @@ def convection(velocity: StaggeredGrid, scheme: str = "central") -> StaggeredGri
             m = pj.shape[dim_i] - 1
             uj_edge = 0.5 * (pj.narrow(dim_i, 0, m) + pj.narrow(dim_i, 1, m))
             # u_i at the edges: between its samples along j (u_i is cell-centred along j)
-            pi = pad_staggered_component(ui, i, boundary, dx, 2, axes=[j])
-            ui_edge = _face_values(pi, dim_j, pi.shape[dim_j] - 3, uj_edge if quick else None)
+            pi = pad_staggered_component(ui, i, boundary, dx, width, axes=[j])
+            ui_edge = _face_values(pi, dim_j, width, uj_edge if quick else None)
             flux = ui_edge * uj_edge
             k = flux.shape[dim_j] - 1
             total = total + (flux.narrow(dim_j, 1, k) - flux.narrow(dim_j, 0, k)) / dx[j]

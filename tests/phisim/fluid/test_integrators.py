@@ -166,20 +166,21 @@ def test_quick_face_values_are_exact_for_quadratics_and_upwind_biased():
     from phisim.fluid.integrators import _face_values
 
     k = torch.arange(8, dtype=F64)
-    p = (0.3 * k**2 - 1.1 * k + 0.4)[None]  # samples at x = k; point e lies at x = e + 1.5
+    p = (0.3 * k**2 - 1.1 * k + 0.4)[None]  # samples at x = k; two ghosts a side: point e lies at x = e + 1.5
     x = torch.arange(5, dtype=F64) + 1.5
     exact = 0.3 * x**2 - 1.1 * x + 0.4
     for sign in (1.0, -1.0):
-        got = _face_values(p, 1, 5, torch.full((1, 5), sign, dtype=F64))
+        got = _face_values(p, 1, 2, torch.full((1, 5), sign, dtype=F64))
         assert float((got - exact).abs().max()) < 1e-13
     # x^3: the quadratic through the upwind-biased nodes (-1.5, -0.5, 0.5 from the point for a > 0) misses it by
     # -(1.5)(0.5)(-0.5) = +3/8, through (-0.5, 0.5, 1.5) for a < 0 by -3/8
     cubic = (k**3)[None]
-    up = _face_values(cubic, 1, 5, torch.ones(1, 5, dtype=F64)) - x**3
-    down = _face_values(cubic, 1, 5, -torch.ones(1, 5, dtype=F64)) - x**3
+    up = _face_values(cubic, 1, 2, torch.ones(1, 5, dtype=F64)) - x**3
+    down = _face_values(cubic, 1, 2, -torch.ones(1, 5, dtype=F64)) - x**3
     assert torch.allclose(up, torch.full_like(up, 3 / 8), atol=1e-12)
     assert torch.allclose(down, torch.full_like(down, -3 / 8), atol=1e-12)
-    assert torch.allclose(_face_values(p, 1, 5, None), 0.5 * (p[:, 1:6] + p[:, 2:7]))
+    assert torch.allclose(_face_values(p, 1, 2, None), 0.5 * (p[:, 1:6] + p[:, 2:7]))
+    assert torch.allclose(_face_values(p, 1, 1, None), 0.5 * (p[:, :-1] + p[:, 1:]))  # one ghost a side
 
 
 def test_quick_convection_is_second_order_conserves_momentum_and_damps_energy():
