@@ -70,6 +70,7 @@ FLUID_CASES = [
     ("box, rk3 smoke", 2, "wall", dict(viscosity=1e-3, integrator="rk3", buoyancy=0.5), True),
     ("channel, imex2", 2, CHANNEL, dict(viscosity=1e-2, integrator="imex2"), False),
     ("box, imex2", 3, "wall", dict(viscosity=1e-2, integrator="imex2"), False),
+    ("channel, imex2, QUICK", 2, CHANNEL, dict(viscosity=1e-2, integrator="imex2", convection="quick"), False),
     ("channel, split2", 2, CHANNEL, dict(viscosity=1e-2, integrator="split2"), False),
     ("periodic, split2", 3, "periodic", dict(viscosity=1e-3, integrator="split2"), False),
 ]
@@ -232,3 +233,4 @@ def test_compile_without_inductor_warns_and_runs_eager(monkeypatch):
     assert stepper._advance == stepper.advance
     with pytest.raises(ParameterError):
         phisim.compile(object())
+
