@@ -10,7 +10,9 @@ above and below, an outflow on the right. ``Re = U_mean D / nu`` with ``U_mean =
 * case ``'2D-1'`` (steady, ``U_m = 0.3``, Re = 20): drag and lift coefficients and the pressure difference
   between the front and back points ``(0.15, 0.2)`` and ``(0.25, 0.2)``;
 * case ``'2D-2'`` (periodic, ``U_m = 1.5``, Re = 100): maximum drag and lift coefficients and the Strouhal
-  number ``St = D f / U_mean``.
+  number ``St = D f / U_mean``; with each maximum its change over the last period (``cl_max_growth``) and the value
+  the per-period maxima tend to (``cl_max_limit``): on fine grids the shedding takes longer than the default
+  ``--t-end 8`` to settle.
 
 Run ``python examples/cylinder_benchmark.py 2D-1 --ny 41 82`` (or ``2D-2``; ``--device cuda`` runs on a GPU);
 results are printed as JSON, with the device they ran on.
@@ -153,14 +155,39 @@ def summarize(case: str, hist: np.ndarray) -> dict:
 
 
 def _periodic(t: np.ndarray, cd: np.ndarray, cl: np.ndarray) -> dict:
-    """Maximum drag and lift and the Strouhal number of a periodic force history."""
+    """Maximum drag and lift and the Strouhal number of a periodic force history, and how far the oscillation is
+    from its periodic state: ``*_growth`` the change of the per-period maximum over the last period, ``*_limit``
+    its limit where the last maxima still grow geometrically (:func:`saturated_maximum`)."""
     # Strouhal number from the zero up-crossings of the lift
     s = np.sign(cl - cl.mean())
     up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
     tc = [t[i] + (t[i + 1] - t[i]) * (-(cl[i] - cl.mean())) / (cl[i + 1] - cl[i]) for i in up]
     period = float(np.mean(np.diff(tc))) if len(tc) >= 2 else float("nan")
-    return {"cd_max": float(cd.max()), "cl_max": float(cl.max()), "st": D / period / 1.0 if period == period else None,
-            "periods": len(tc) - 1}
+    out = {"cd_max": float(cd.max()), "cl_max": float(cl.max()), "st": D / period / 1.0 if period == period else None,
+           "periods": len(tc) - 1}
+    for name, y in (("cd_max", cd), ("cl_max", cl)):
+        maxima = [float(y[(t >= a) & (t < b)].max()) for a, b in zip(tc[:-1], tc[1:])]
+        if len(maxima) >= 2:
+            out[f"{name}_growth"] = maxima[-1] - maxima[-2]
+            out[f"{name}_limit"] = saturated_maximum(maxima)
+    return out
+
+
+def saturated_maximum(maxima) -> float | None:
+    """The limit of per-period maxima that approach it geometrically, ``m_k = m - c r^k`` (the amplitude of vortex
+    shedding saturating): from the last three, ``m_3 + d_3 r / (1 - r)`` with ``d_k = m_k - m_(k-1)`` and
+    ``r = d_3 / d_2``. The last maximum where they have stopped changing (``|d_3| <= 1e-6 |m_3|``); None where the
+    last three do not change geometrically (``r`` outside ``(0, 0.9)``)."""
+    if len(maxima) < 3:
+        return None
+    m1, m2, m3 = (float(m) for m in maxima[-3:])
+    d2, d3 = m2 - m1, m3 - m2
+    if abs(d3) <= 1e-6 * abs(m3):
+        return m3
+    r = d3 / d2 if d2 != 0 else float("nan")
+    if not 0 < r < 0.9:
+        return None
+    return m3 + d3 * r / (1 - r)
 
 
 def main(argv=None) -> int:
@@ -195,6 +222,11 @@ def main(argv=None) -> int:
                        "cd_momentum,cl_momentum,dp_momentum")
         tail = hist[hist[:, 0] >= t_end - (1.0 if args.case == "2D-1" else 2.0)]
         res = {**meta, **summarize(args.case, tail)}
+        growth = res.get("cl_max_growth")
+        if growth is not None and abs(growth) > 1e-3 * abs(res["cl_max"]):
+            print(f"ny {ny}: the lift maximum still changes by {growth:+.2e} per period (not yet periodic); "
+                  f"cl_max_limit {res.get('cl_max_limit')} is where it tends to, or run longer (--t-end)",
+                  file=sys.stderr, flush=True)
         print(json.dumps(res), flush=True)
         results.append(res)
     if args.out:

@@ -94,11 +94,13 @@ def profiles(velocity: StaggeredGrid, body: Body, t: float, ys: np.ndarray) -> l
 
 def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float = 0.4, record_from: float = 2.0,
         advection: str = "maccormack", device=None, dtype=torch.float64, progress: bool = False,
-        pressure_at: str = "cells", shear_at: str = "probes") -> dict:
+        pressure_at: str = "cells", shear_at: str = "probes", integrator: str = "split",
+        convection: str = "central") -> dict:
     """Run the case with ``res`` cells per diameter; returns the force history, the profiles and the fit.
 
     ``pressure_at`` / ``shear_at``: how the force reads the pressure and the wall shear
-    (:func:`~phisim.fluid.body_forces`)."""
+    (:func:`~phisim.fluid.body_forces`); ``integrator`` / ``convection``: the time integrator and the convection
+    scheme of :func:`~phisim.fluid.step` (``docs/SCHEMES.md``)."""
     n = int(round(2 * half_width * res))
     grid = Grid((n, n), bounds=[(-half_width, half_width), (-half_width, half_width)])
     dx = grid.dx[0]
@@ -116,7 +118,8 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     t0 = wall.thread_time()
     for k in range(1, total + 1):
         previous = state.velocity
-        state = step(state, dt, viscosity=NU, obstacles=body, advection=advection)
+        state = step(state, dt, viscosity=NU, obstacles=body, advection=advection, integrator=integrator,
+                     **({} if convection == "central" else {"convection": convection}))
         t = state.time
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=t, pressure_at=pressure_at,
                         previous_velocity=previous if pressure_at == "momentum" else None, shear_at=shear_at)
@@ -140,7 +143,8 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     rng = max(float(cd.max() - cd.min()), 1e-300)
     return {"res": res, "grid": [n, n], "half_width": half_width, "dx": dx, "dt": dt, "steps": total,
             "steps_per_period": steps_per_period, "periods": periods, "record_from_period": record_from,
-            "advection": advection, "pressure_at": pressure_at, "shear_at": shear_at,
+            "advection": advection, "pressure_at": pressure_at, "shear_at": shear_at, "integrator": integrator,
+            "convection": convection,
             "cpu_seconds": wall.thread_time() - t0, "morison": fit,
             "morison_per_period": per_period,
             "smoothness": {"max_jump_over_range": float(np.abs(np.diff(cd)).max() / rng),
@@ -163,11 +167,15 @@ def main(argv=None) -> int:
                     help="where the force reads the pressure (phisim.fluid.body_forces; default cells)")
     ap.add_argument("--shear-at", default="probes", choices=["probes", "momentum"],
                     help="how the force reads the wall shear (phisim.fluid.body_forces; default probes)")
+    ap.add_argument("--integrator", default="split", help="time integrator of phisim.fluid.step (default split)")
+    ap.add_argument("--convection", default="central", choices=["central", "quick"],
+                    help="convection scheme of the rk2 / rk3 / imex2 integrators (default central)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(1)
     out = run(args.res, args.periods, args.half_width, args.cfl, min(args.record_from, max(args.periods - 1, 0)),
-              args.advection, device, progress=args.progress, pressure_at=args.pressure_at, shear_at=args.shear_at)
+              args.advection, device, progress=args.progress, pressure_at=args.pressure_at, shear_at=args.shear_at,
+              integrator=args.integrator, convection=args.convection)
     hist, rows = out.pop("history"), out.pop("profiles")
     if args.out:
         prefix = Path(args.out)

@@ -91,7 +91,7 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import solid_layout
 from phisim.fluid.projection import applied_gradient, impose_solids, make_incompressible, project_trusted
 from phisim.fluid.step import kinetic_energy, normalize_energy, rescale_energy, to_time
-from phisim.fluid.viscosity import body_laplace
+from phisim.fluid.viscosity import _held_faces, body_laplace
 from phisim.ops.differential import gradient
 from phisim.solvers.diffusion import diffuse_staggered
 
@@ -386,9 +386,9 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     t_new = time + float(dt)
     e0 = kinetic_energy(velocity) if energy_normalization else None
     layout = solid_layout(obstacles, grid, velocity.boundary, t_new, velocity.dtype, velocity.device)
-    fixed = None
-    if layout is not None:  # faces entirely inside solids keep the solids' velocity in the viscous solve
-        fixed = tuple((th <= 0).to(velocity.dtype) for th in layout.theta)
+    # faces entirely inside solids keep the solids' velocity in the viscous solve: the layout's own masks (computed
+    # once for a stepper's layout), so that a resting body's direct viscous solve is found again in a traced step
+    fixed = None if layout is None else _held_faces(layout, beyond_cut=layout.walls is not None)
     u0 = velocity
     half_lap = 0.5 * dt * nu * body_laplace(u0, layout) if float(nu) != 0 else None
     explicit0 = -convection(u0, scheme)

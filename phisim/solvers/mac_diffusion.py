@@ -749,13 +749,15 @@ def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | N
     key = ("capacitance", comp.i, tuple(comp.face_shape), tuple(comp.dx), repr(comp.kinds), comp.first,
            comp.count, comp.odd, float(coef), str(device))
     hit = cache.get(key)
-    if hit is not None and torch.equal(hit[0], mask):
+    if hit is not None and _same(hit[0], mask):
         return hit[1] or None
+    if is_compiling():  # built by the eager steps only
+        return None
     fixed = comp.restrict(mask).detach()
     surface = _surface(comp, fixed[0])
     solver = False if surface.numel() > CAPACITANCE_MAX_FACES else _CapacitanceSolve(
         comp, surface, fixed, float(coef), device, engine)
-    cache[key] = (mask.detach().clone(), solver)
+    cache[key] = (_kept(mask), solver)
     return solver or None
 
 

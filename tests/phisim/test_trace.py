@@ -117,11 +117,13 @@ def test_fluid_step_traces_as_one_graph(case, dtype):
 @pytest.mark.parametrize("no_slip", [True, False], ids=["no_slip", "free_slip"])
 @pytest.mark.parametrize("dtype", [F32, F64], ids=["f32", "f64"])
 @pytest.mark.parametrize("rank", [2])  # in 3-D the direct solve does not pay at these sizes: PCG, not traced
-@pytest.mark.parametrize("integrator", ["split", "split2"])
+@pytest.mark.parametrize("integrator", ["split", "split2", "imex2"])
 def test_static_body_step_traces_as_one_graph(integrator, rank, dtype, no_slip):
     """A resting body with the direct pressure solve: the traced step takes the exact capacitance solve alone (the
     eager step lets CG check and polish it, a host loop). Free-slip bodies: their ghost values and flux correction
-    keep their stencils on the stepper's layout."""
+    keep their stencils on the stepper's layout. ``imex2``: its Crank-Nicolson solves find the layout's direct
+    viscous solves (no-slip: the sharp capacitance; free-slip: the held faces' capacitance) by the very masks the
+    eager steps built them from."""
     grid = Grid((12,) * rank, bounds=[(0, 1)] * rank)
     body = Body(Sphere((0.55,) + (0.5,) * (rank - 1), 0.2), no_slip=no_slip)
     stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=1e-2, dt=0.02, dtype=dtype, integrator=integrator)

@@ -73,3 +73,44 @@ def test_dfg_2d1_steady_cylinder_on_two_grids(load_example):
         errors.append(abs(res["cd"] - ref["cd"]) / ref["cd"])
         assert abs(res["dp"] - ref["dp"]) / ref["dp"] < 0.06
     assert errors[1] < errors[0] < 0.05
+
+
+def test_saturated_maximum_is_exact_for_geometric_growth(load_example):
+    cb = load_example("cylinder_benchmark")
+    assert cb.saturated_maximum([1 - 0.3 * 0.55**k for k in range(5)]) == pytest.approx(1.0, abs=1e-12)
+    assert cb.saturated_maximum([2.0, 2.0, 2.0]) == 2.0  # settled
+    assert cb.saturated_maximum([1.0, 1.1, 1.0]) is None  # not a geometric approach
+    assert cb.saturated_maximum([1.0, 1.1, 1.2]) is None  # growing linearly (r = 1)
+    assert cb.saturated_maximum([1.0, 1.1]) is None
+
+
+def test_periodic_reads_the_amplitude_a_growing_oscillation_tends_to(load_example):
+    """A lift `A(t) sin(2 pi f t)` whose amplitude approaches 1 as `1 - 0.3 r^(f t)`: the largest value of the
+    record is 1 % low, the limit read from its per-period maxima within 1e-4."""
+    cb = load_example("cylinder_benchmark")
+    f = 3.0
+    t = np.linspace(0.05, 1.45, 14001)  # four up-crossings: three periods
+    amplitude = 1 - 0.3 * 0.55 ** (f * t + 1)
+    cl = amplitude * np.sin(2 * np.pi * f * t)
+    cd = 3.0 + 0.1 * amplitude * np.cos(4 * np.pi * f * t)
+    out = cb._periodic(t, cd, cl)
+    assert out["cl_max"] < 0.99 and out["cl_max_growth"] > 1e-3
+    assert out["cl_max_limit"] == pytest.approx(1.0, abs=1e-4)
+    assert out["cd_max_limit"] == pytest.approx(3.1, abs=1e-4)
+    assert out["st"] == pytest.approx(cb.D * f, rel=1e-3)
+
+
+def test_saturation_read_from_a_short_record_agrees_with_a_long_one(load_example):
+    """DFG 2D-2 at D/20 (`imex2`, central): the limit read from t = 3-5, while the lift maximum still grew by 0.2 %
+    per period, against the settled maxima of the same run to t = 10."""
+    cb = load_example("cylinder_benchmark")
+    data = EXAMPLES.parent / "data" / "validation"
+    short = np.loadtxt(data / "dfg_2d2_imex2_sharp_ny82.ny82.csv", delimiter=",")
+    long = np.loadtxt(data / "dfg_2d2_imex2_sharp_ny82_t10.ny82.csv", delimiter=",")
+    s = cb.summarize("2D-2", short[short[:, 0] >= 3.0])
+    settled = cb.summarize("2D-2", long[long[:, 0] >= 8.0])
+    assert abs(settled["cl_max_growth"]) < 1e-5 and abs(settled["cd_max_growth"]) < 1e-5
+    assert s["cl_max_growth"] > 1e-3
+    assert s["cl_max_limit"] == pytest.approx(settled["cl_max"], abs=3e-4)
+    assert s["cd_max_limit"] == pytest.approx(settled["cd_max"], abs=1e-4)
+    assert abs(s["cl_max"] - settled["cl_max"]) > 1e-3  # what the limit corrects
