@@ -117,18 +117,22 @@ def recirculation_length(velocity: StaggeredGrid, samples: int = 2000) -> float:
 
 
 def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady_tol: float = 1e-4,
-        dtype=torch.float64, device="cpu", every: int = 5, log=None, box=(UP, DOWN, W)):
+        dtype=torch.float64, device="cpu", every: int = 5, log=None, box=(UP, DOWN, W), integrator: str = "split",
+        convection: str = "central"):
     """Advance the flow on the grid with ``n`` cells per diameter until the drag is steady (its relative change over
     one time unit below ``steady_tol``) or ``t_end``; returns the history ``(t, cd, cy, cz, cd_pressure, L/D)`` (every
-    ``every`` steps) and a summary."""
+    ``every`` steps) and a summary. ``integrator`` / ``convection``: the stepper's time integrator and convection
+    scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one)."""
     device = check_device(device)
     up, down, width = box
     grid, body, state, nu = setup(n, re, dtype, device, width=width, up=up, down=down)
     dx = grid.dx[0]
     dt = cfl * dx / U
-    dt = min(dt, 0.45 * dx**2 / (6 * nu))  # explicit viscosity: nu dt sum(2 / dx^2) <= 0.9
+    if integrator != "imex2":
+        dt = min(dt, 0.45 * dx**2 / (6 * nu))  # explicit viscosity: nu dt sum(2 / dx^2) <= 0.9
     stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=dt, dtype=dtype,
-                           device=device)
+                           device=device, integrator=integrator,
+                           **({} if convection == "central" else {"convection": convection}))
     hist = []
     per_unit = max(1, int(round(1.0 / dt)))
     steps = int(math.ceil(t_end / dt))
@@ -178,7 +182,7 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
                "wall_s": _time.perf_counter() - t0, "cpu_s": _time.thread_time() - c0, "device": str(device),
                "dtype": str(dtype).replace("torch.", ""), "cfl": cfl, "box": [-up, down, width],
-               "blockage": AREA / width**2}
+               "blockage": AREA / width**2, "integrator": integrator, "convection": convection}
 
 
 def convergence(ns, values) -> dict:
@@ -226,6 +230,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
+    ap.add_argument("--integrator", default="split", help="time integrator of the FluidStepper (default split)")
+    ap.add_argument("--convection", default="central", choices=["central", "quick"],
+                    help="convection scheme of the rk2 / rk3 / imex2 integrators (default central)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -236,7 +243,7 @@ def main(argv=None) -> int:
     runs = []
     for n in args.n:
         hist, res = run(n, args.re, args.t_end, args.cfl, args.steady_tol, dtype, device, args.every, log=log,
-                         box=tuple(args.box))
+                         box=tuple(args.box), integrator=args.integrator, convection=args.convection)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".n{n}.csv"), hist, delimiter=",",
                        header="t,cd,cy,cz,cd_pressure,recirculation")
