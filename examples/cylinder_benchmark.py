@@ -182,7 +182,7 @@ def saturated_maximum(maxima) -> float | None:
         return None
     m1, m2, m3 = (float(m) for m in maxima[-3:])
     d2, d3 = m2 - m1, m3 - m2
-    if abs(d3) <= 1e-6 * abs(m3):
+    if abs(d3) <= 1e-4 * abs(m3):
         return m3
     r = d3 / d2 if d2 != 0 else float("nan")
     if not 0 < r < 0.9:

@@ -314,7 +314,7 @@ def test_probe_pressure_extrapolates_to_the_surface():
 # ---- time steps, Galilean check, gradients ----------------------------------------------------------------------
 
 
-def _drag_history(moving: bool, n: int = 32, steps: int = 25):
+def _drag_history(moving: bool, n: int = 32, steps: int = 25, **settings):
     grid = Grid((2 * n, n), bounds=[(0, 2), (0, 1)])
     dt, nu, speed = 0.02, 0.01, 0.5
     if moving:
@@ -326,7 +326,7 @@ def _drag_history(moving: bool, n: int = 32, steps: int = 25):
     state = FluidState(v)
     out = []
     for _ in range(steps):
-        state = step(state, dt, viscosity=nu, advection="maccormack", obstacles=body)
+        state = step(state, dt, viscosity=nu, advection="maccormack", obstacles=body, **settings)
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time)
         out.append(f.total[0])
     return torch.stack(out)
@@ -342,6 +342,21 @@ def test_moving_disc_matches_resting_disc_in_a_stream():
     assert float(drag_rest) > 0
     assert float(drag_move) == pytest.approx(float(drag_rest), rel=0.01)  # measured: 0.25 % apart (blended: 0.2 %)
     assert float((move[5:, 1] - rest[5:, 1]).abs().max()) < 0.01 * float(drag_rest)
+
+
+@pytest.mark.parametrize("convection", ["central", "quick"])
+def test_moving_disc_matches_resting_disc_in_a_stream_imex2(convection):
+    """The Galilean check with ``'imex2'``, whose incremental pressure ``q`` moves with the body: read in the body's
+    frame (at ``x - u_s dt``, from cells that held fluid), the moving disc's mean drag is 1.9 % / 2.2 % below the
+    resting disc's (central / QUICK; the Eulerian convection's translation error at 7.7 cells across the disc) and
+    the histories differ by at most 5.3 % of the drag; with ``q`` read where it lay, 4.8 % / 5.2 % and 20 %."""
+    settings = {"integrator": "imex2", **({} if convection == "central" else {"convection": convection})}
+    rest = _drag_history(False, **settings)
+    move = _drag_history(True, **settings)
+    drag_rest = float(rest[5:, 0].mean())
+    assert drag_rest > 0
+    assert float(move[5:, 0].mean()) == pytest.approx(drag_rest, rel=0.03)
+    assert float((move[5:, 0] - rest[5:, 0]).abs().max()) < 0.1 * drag_rest
 
 
 def test_gradcheck_projection_wrt_velocity_and_disc():
