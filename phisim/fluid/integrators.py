@@ -90,8 +90,8 @@ from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import sharp_no_slip, solid_layout
 from phisim.fluid.projection import applied_gradient, impose_solids, make_incompressible, project_trusted
-from phisim.fluid.step import _pressure_in_body_frame, kinetic_energy, normalize_energy, rescale_energy, to_time
-from phisim.fluid.viscosity import _held_faces, body_laplace
+from phisim.fluid.step import kinetic_energy, normalize_energy, pressure_in_body_frame, rescale_energy, to_time
+from phisim.fluid.viscosity import body_laplace, held_faces
 from phisim.ops.differential import gradient
 from phisim.solvers.diffusion import diffuse_staggered
 
@@ -388,7 +388,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
     layout = solid_layout(obstacles, grid, velocity.boundary, t_new, velocity.dtype, velocity.device)
     # faces entirely inside solids keep the solids' velocity in the viscous solve: the layout's own masks (computed
     # once for a stepper's layout), so that a resting body's direct viscous solve is found again in a traced step
-    fixed = None if layout is None else _held_faces(layout, beyond_cut=layout.walls is not None)
+    fixed = None if layout is None else held_faces(layout, beyond_cut=layout.walls is not None)
     u0 = velocity
     half_lap = 0.5 * dt * nu * body_laplace(u0, layout) if float(nu) != 0 else None
     explicit0 = -convection(u0, scheme)
@@ -404,7 +404,7 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         if any(not b.static for b in sharp) and float(dt) != 0:
             # moving bodies carry their pressure field along: read it where each cell was relative to the body a
             # step earlier, from the cells that held fluid then (a freshly uncovered cell holds none)
-            q = _pressure_in_body_frame(q, sharp, velocity, t_new, float(dt))
+            q = pressure_in_body_frame(q, sharp, velocity, t_new, float(dt))
         # the gradient the projection applies: the whole of it on the faces a sharp body keeps, theta times it on
         # a blended body's cut faces
         grad_q = (q, applied_gradient(gradient(q, at="face").values, layout))

@@ -270,7 +270,7 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     q = CenteredGrid(p if p.ndim == grid.rank + 1 else p[None], grid, velocity.boundary.for_pressure())
     sharp = sharp_no_slip(layout.bodies)
     if any(not b.static for b in sharp) and float(dt) != 0:
-        q = _pressure_in_body_frame(q, sharp, velocity, float(time), float(dt))
+        q = pressure_in_body_frame(q, sharp, velocity, float(time), float(dt))
     grads = [g.reshape(g.shape[0], -1) for g in gradient(q, at="face").values]
     walls = []
     for i, (wall, stencil) in enumerate(zip(layout.walls, layout.tangents)):
@@ -335,7 +335,7 @@ def split2_memory(new: StaggeredGrid, old: StaggeredGrid, advected: StaggeredGri
     return rate, new._with_components(acc)
 
 
-def _pressure_in_body_frame(q: CenteredGrid, bodies, velocity: StaggeredGrid, t: float, dt: float) -> CenteredGrid:
+def pressure_in_body_frame(q: CenteredGrid, bodies, velocity: StaggeredGrid, t: float, dt: float) -> CenteredGrid:
     """The previous pressure ``q`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
     multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others hold no fluid pressure)."""
     grid = velocity.grid

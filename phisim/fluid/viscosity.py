@@ -82,7 +82,7 @@ def diffuse_velocity(
         velocity = free_slip_ghosts(velocity, solids, float(time), closed_only=False)
     if solids is not None and solids.walls is not None:
         walls = solids.walls
-        held = _held_faces(solids, beyond_cut=True)
+        held = held_faces(solids, beyond_cut=True)
         fixed = held if fixed is None else tuple(
             h if f is None else (torch.as_tensor(f, device=f.device if h is None else h.device) != 0) | (
                 False if h is None else h) for f, h in zip(fixed, held))
@@ -91,7 +91,7 @@ def diffuse_velocity(
                              walls=walls, capacitance=capacitance)
 
 
-def _held_faces(solids, beyond_cut: bool = False) -> tuple:
+def held_faces(solids, beyond_cut: bool = False) -> tuple:
     """Per component the faces the solids close (``theta <= 0``), or None where there are none. A layout kept by a
     stepper (its ``solvers`` dict) computes them once; its traced steps then read nothing back to the host.
 
@@ -101,7 +101,7 @@ def _held_faces(solids, beyond_cut: bool = False) -> tuple:
     key = "held_faces_beyond_cut" if beyond_cut else "held_faces"
     if cache is not None and key in cache:
         return cache[key]
-    held = _held_faces(solids) if beyond_cut else tuple(
+    held = held_faces(solids) if beyond_cut else tuple(
         m if bool(m.any()) else None for m in ((th <= 0) for th in solids.theta))
     if beyond_cut:
         walls = solids.walls
