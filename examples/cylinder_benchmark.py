@@ -166,7 +166,7 @@ def _periodic(t: np.ndarray, cd: np.ndarray, cl: np.ndarray) -> dict:
     out = {"cd_max": float(cd.max()), "cl_max": float(cl.max()), "st": D / period / 1.0 if period == period else None,
            "periods": len(tc) - 1}
     for name, y in (("cd_max", cd), ("cl_max", cl)):
-        maxima = [float(y[(t >= a) & (t < b)].max()) for a, b in zip(tc[:-1], tc[1:])]
+        maxima = [float(y[sel].max()) for a, b in zip(tc[:-1], tc[1:]) if (sel := (t >= a) & (t < b)).any()]
         if len(maxima) >= 2:
             out[f"{name}_growth"] = maxima[-1] - maxima[-2]
             out[f"{name}_limit"] = saturated_maximum(maxima)
@@ -176,7 +176,7 @@ def _periodic(t: np.ndarray, cd: np.ndarray, cl: np.ndarray) -> dict:
 def saturated_maximum(maxima) -> float | None:
     """The limit of per-period maxima that approach it geometrically, ``m_k = m - c r^k`` (the amplitude of vortex
     shedding saturating): from the last three, ``m_3 + d_3 r / (1 - r)`` with ``d_k = m_k - m_(k-1)`` and
-    ``r = d_3 / d_2``. The last maximum where they have stopped changing (``|d_3| <= 1e-6 |m_3|``); None where the
+    ``r = d_3 / d_2``. The last maximum where they have stopped changing (``|d_3| <= 1e-4 |m_3|``); None where the
     last three do not change geometrically (``r`` outside ``(0, 0.9)``)."""
     if len(maxima) < 3:
         return None
