@@ -344,7 +344,7 @@ def test_moving_disc_matches_resting_disc_in_a_stream():
     assert float((move[5:, 1] - rest[5:, 1]).abs().max()) < 0.01 * float(drag_rest)
 
 
-@pytest.mark.parametrize("convection", ["central", "quick"])
+@pytest.mark.parametrize("convection", ["central", pytest.param("quick", marks=pytest.mark.slow)])
 def test_moving_disc_matches_resting_disc_in_a_stream_imex2(convection):
     """The Galilean check with ``'imex2'``, whose incremental pressure ``q`` moves with the body: read in the body's
     frame (at ``x - u_s dt``, from cells that held fluid), the moving disc's mean drag is 1.9 % / 2.2 % below the
