@@ -8,7 +8,7 @@ one time, they are not a steady drag). ``dt = 0.5 dx / U`` (the split step also 
 
 ``python data/validation/diagnostics/cylinder_stream_integrators.py --n 8 16 32 --variants split imex2 imex2+quick
 --out data/validation/diagnostics/cylinder_stream_integrators.jsonl`` (and ``--n 8 --variants rk2 split2
-imex2+convext``).
+imex2+convext``, ``--n 64 --variants split imex2``).
 """
 
 from __future__ import annotations
