@@ -88,7 +88,7 @@ from phisim.boundary import pad_staggered_component
 from phisim.checks import check_dt, check_nonnegative
 from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.bodies import sharp_no_slip, solid_layout
+from phisim.fluid.bodies import solid_layout
 from phisim.fluid.projection import applied_gradient, impose_solids, make_incompressible, project_trusted
 from phisim.fluid.step import kinetic_energy, normalize_energy, pressure_in_body_frame, rescale_energy, to_time
 from phisim.fluid.viscosity import body_laplace, held_faces
@@ -400,11 +400,9 @@ def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energ
         q = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
         q = q.to(dtype=velocity.dtype, device=velocity.device)
         q = CenteredGrid(q if q.ndim == grid.rank + 1 else q[None], grid, velocity.boundary.for_pressure())
-        sharp = [] if layout is None else sharp_no_slip(layout.bodies)
-        if any(not b.static for b in sharp) and float(dt) != 0:
-            # moving bodies carry their pressure field along: read it where each cell was relative to the body a
-            # step earlier, from the cells that held fluid then (a freshly uncovered cell holds none)
-            q = pressure_in_body_frame(q, sharp, velocity, t_new, float(dt))
+        # moving bodies carry their pressure field along: read it where each cell was relative to the body a step
+        # earlier, from the cells that held fluid then (a freshly uncovered cell holds none)
+        q = pressure_in_body_frame(q, layout, velocity, t_new, float(dt))
         # the gradient the projection applies: the whole of it on the faces a sharp body keeps, theta times it on
         # a blended body's cut faces
         grad_q = (q, applied_gradient(gradient(q, at="face").values, layout))

@@ -268,9 +268,7 @@ def anticipate_pressure(layout: SolidLayout | None, pressure: CenteredGrid | tor
     p = pressure.values if isinstance(pressure, CenteredGrid) else torch.as_tensor(pressure)
     p = p.to(dtype=velocity.dtype, device=velocity.device)
     q = CenteredGrid(p if p.ndim == grid.rank + 1 else p[None], grid, velocity.boundary.for_pressure())
-    sharp = sharp_no_slip(layout.bodies)
-    if any(not b.static for b in sharp) and float(dt) != 0:
-        q = pressure_in_body_frame(q, sharp, velocity, float(time), float(dt))
+    q = pressure_in_body_frame(q, layout, velocity, float(time), float(dt))
     grads = [g.reshape(g.shape[0], -1) for g in gradient(q, at="face").values]
     walls = []
     for i, (wall, stencil) in enumerate(zip(layout.walls, layout.tangents)):
@@ -335,9 +333,15 @@ def split2_memory(new: StaggeredGrid, old: StaggeredGrid, advected: StaggeredGri
     return rate, new._with_components(acc)
 
 
-def pressure_in_body_frame(q: CenteredGrid, bodies, velocity: StaggeredGrid, t: float, dt: float) -> CenteredGrid:
-    """The previous pressure ``q`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest body),
-    multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others hold no fluid pressure)."""
+def pressure_in_body_frame(q: CenteredGrid, layout: SolidLayout | None, velocity: StaggeredGrid, t: float,
+                           dt: float) -> CenteredGrid:
+    """The previous pressure ``q`` read at ``x - u_s(x) dt`` in every cell (``u_s`` the velocity of the nearest sharp
+    no-slip body of ``layout``), multilinear over the cells whose fluid fraction was positive at ``t - dt`` (the others
+    hold no fluid pressure): near a moving body its pressure field moves with it. ``q`` itself where ``layout`` has
+    no moving sharp no-slip body or ``dt`` is 0."""
+    bodies = [] if layout is None else sharp_no_slip(layout.bodies)
+    if not any(not b.static for b in bodies) or float(dt) == 0:
+        return q
     grid = velocity.grid
     work = velocity.dtype
     x = grid.cell_centers(work, velocity.device)

@@ -10,6 +10,8 @@ DST/DCT/FFT pair per component (about the cost of an explicit step at small size
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from phisim.checks import check_dt, check_nonnegative
@@ -19,6 +21,9 @@ from phisim.fluid.extension import free_slip_ghosts
 from phisim.fluid.projection import check_velocity
 from phisim.ops.differential import laplace
 from phisim.solvers.diffusion import diffuse_staggered, staggered_laplace
+
+if TYPE_CHECKING:  # annotations only
+    from phisim.fluid.bodies import SolidLayout
 from phisim.solvers.linalg import Solve
 
 __all__ = ["diffuse_velocity", "body_laplace", "VISCOSITY_SCHEMES"]
@@ -91,7 +96,7 @@ def diffuse_velocity(
                              walls=walls, capacitance=capacitance)
 
 
-def held_faces(solids, beyond_cut: bool = False) -> tuple:
+def held_faces(solids: SolidLayout, beyond_cut: bool = False) -> tuple:
     """Per component the faces the solids close (``theta <= 0``), or None where there are none. A layout kept by a
     stepper (its ``solvers`` dict) computes them once; its traced steps then read nothing back to the host.
 

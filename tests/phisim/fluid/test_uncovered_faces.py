@@ -195,3 +195,46 @@ def test_faces_closed_by_another_solid_are_left_alone():
             closed = th.reshape(-1)[st[0]] <= 0
             assert bool(closed.any()) or i == 1  # some uncovered faces lie in the obstacle
     assert changed > 0  # the others still take the profile
+
+
+def test_pressure_in_body_frame_translates_a_linear_pressure_with_the_body():
+    """A disc translating at ``u``: a linear pressure ``q`` read at ``x - u dt`` is ``q - (grad q . u) dt`` exactly in
+    every cell whose multilinear stencil holds only cells that were fluid a step earlier; with a resting body, or
+    ``dt = 0``, ``q`` itself (the same object)."""
+    from phisim import CenteredGrid
+    from phisim.fluid.step import pressure_in_body_frame
+
+    grid = Grid((24, 20), bounds=[(0.0, 1.2), (0.0, 1.0)])
+    u, dt = (0.8, -0.3), 0.02
+    x = grid.cell_centers(F64)
+    q = CenteredGrid((1.5 * x[..., 0] - 2.0 * x[..., 1] + 0.3)[None], grid, Boundary.create("wall", 2).for_pressure())
+    v = StaggeredGrid.zeros(grid, "wall", dtype=F64)
+    body = Body(Sphere((0.55, 0.5), 0.2), velocity=u)
+    layout = solid_layout(body, grid, Boundary.create("wall", 2), dt, F64)
+    out = pressure_in_body_frame(q, layout, v, dt, dt).values[0]
+    expected = q.values[0] - (1.5 * u[0] - 2.0 * u[1]) * dt
+    far = (x - torch.tensor([0.55 + u[0] * dt, 0.5 + u[1] * dt], dtype=F64)).norm(dim=-1) > 0.2 + 2 * grid.dx[0]
+    far &= (x[..., 0] > 0.1) & (x[..., 0] < 1.1) & (x[..., 1] > 0.1) & (x[..., 1] < 0.9)  # away from the walls too
+    torch.testing.assert_close(out[far], expected[far], rtol=0, atol=1e-13)
+    assert not torch.allclose(out[far], q.values[0][far])  # it did move
+    resting = solid_layout(Body(Sphere((0.55, 0.5), 0.2)), grid, Boundary.create("wall", 2), dt, F64)
+    assert pressure_in_body_frame(q, resting, v, dt, dt) is q
+    assert pressure_in_body_frame(q, layout, v, dt, 0.0) is q
+    assert pressure_in_body_frame(q, None, v, dt, dt) is q
+
+
+def test_held_faces_are_the_closed_faces_and_a_kept_layout_returns_the_same_masks():
+    """``held_faces``: per component the faces with ``theta <= 0``; a stepper's layout (kept for reuse) hands back the
+    very same mask objects every call, which the traced ``imex2`` step relies on to find its direct viscous solves."""
+    from phisim.fluid.viscosity import held_faces
+
+    grid = Grid((16, 12), bounds=[(0.0, 1.0), (0.0, 0.75)])
+    body = Body(Sphere((0.5, 0.37), 0.2), sharp=False)
+    layout = solid_layout(body, grid, Boundary.create("wall", 2), 0.0, F64)
+    held = held_faces(layout)
+    for h, th in zip(held, layout.theta):
+        assert h is not None and torch.equal(h, th <= 0) and bool(h.any())
+    kept = layout.persistent(False)
+    first, second = held_faces(kept), held_faces(kept)
+    assert all(a is b for a, b in zip(first, second))
+    assert all(torch.equal(a, b) for a, b in zip(first, held))
