@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One entry point that does all set-up on a fresh machine, then runs a job.
 #   bash run.sh demo   -> small simulate + train demo; writes HDF5 and PNGs to out/demo/
-#   bash run.sh test   -> the test suite (fast tests; set PHISIM_SLOW=1 to include slow ones)
+#   bash run.sh test   -> the test suite (fast tests; set PHISIM_SLOW=1 to include slow ones), in
+#                         PHISIM_TEST_WORKERS worker processes (default 2, one torch thread each; 0: one process)
 set -euo pipefail
 cd "$(dirname "$0")"
 VENV=${PHISIM_VENV:-.venv}
@@ -35,6 +36,10 @@ case "$cmd" in
   demo) setup_env; python examples/demo.py "$@" ;;
   test)
     setup_env
-    if [ "${PHISIM_SLOW:-0}" = "1" ]; then python -m pytest -q "$@"; else python -m pytest -q -m "not slow" "$@"; fi ;;
+    workers=${PHISIM_TEST_WORKERS:-2}
+    par=()
+    if [ "$workers" != "0" ]; then par=(-n "$workers"); fi
+    if [ "${PHISIM_SLOW:-0}" = "1" ]; then python -m pytest -q ${par[@]+"${par[@]}"} "$@"
+    else python -m pytest -q -m "not slow" ${par[@]+"${par[@]}"} "$@"; fi ;;
   *) echo "usage: bash run.sh {demo|test|setup} [args...]"; exit 2 ;;
 esac

@@ -23,9 +23,11 @@ setup(
     extras_require={
         # the-well: its loader reads our HDF5 files in a test (small pure-Python dependencies)
         # nbclient, nbformat, ipykernel: a test executes the quickstart notebook (inline pictures)
-        "test": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "nbclient>=0.7", "nbformat>=5", "ipykernel>=6"],
-        "dev": ["pytest>=7", "hypothesis>=6", "ruff>=0.4", "the-well", "pytest-timeout>=2", "nbclient>=0.7",
-                "nbformat>=5", "ipykernel>=6"],
+        # pytest-xdist: `bash run.sh test` runs the suite in two worker processes
+        "test": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "ruff>=0.4", "the-well", "nbclient>=0.7",
+                 "nbformat>=5", "ipykernel>=6"],
+        "dev": ["pytest>=7", "pytest-xdist>=3", "hypothesis>=6", "ruff>=0.4", "the-well", "pytest-timeout>=2",
+                "nbclient>=0.7", "nbformat>=5", "ipykernel>=6"],
         "well": ["the-well"],
     },
     entry_points={"console_scripts": ["phisim=phisim_cli:main"]},

@@ -3,6 +3,8 @@
 * ``repo_root``: the repository's root folder;
 * ``load_example``: ``load_example("karman")`` imports ``examples/karman.py`` as a fresh module (a script with
   a ``main``), ``load_example("benchmarks/bench_cg.py")`` any script by its path.
+
+Every test process runs torch with one thread.
 """
 
 from __future__ import annotations
@@ -12,6 +14,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
+
+# One torch thread per test process: `bash run.sh test` runs two worker processes on two cores, and a pool of two
+# threads per worker would oversubscribe them (tests that compare thread counts set their own).
+torch.set_num_threads(1)
 
 ROOT = Path(__file__).resolve().parents[1]
 
