@@ -128,6 +128,7 @@ def test_gradcheck_step_wrt_shape_and_motion(scheme):
     assert torch.autograd.gradcheck(drag, (radius, center, omega), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.slow  # about 30 s (48^2 to its steady state)
 def test_free_slip_outer_cylinder_turns_with_the_inner_one(load_example):
     """A rotating no-slip cylinder inside a free-slip one: the steady Stokes flow is the rigid rotation (no shear
     stress anywhere). Measured: largest error 0.16 % / 0.99 % of omega R1 on 24^2 / 48^2, rms 0.04 % / 0.06 %; before

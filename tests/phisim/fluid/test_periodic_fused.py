@@ -132,7 +132,8 @@ def test_the_opaque_sampler_matches_grid_sampler_with_its_gradients():
         assert torch.autograd.gradcheck(grid_sample_border, (src, coords))
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+# 3-D compiles for about 30 s: a long validation (the 2-D case stays in the default run)
+@pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)])
 def test_the_compiled_graph_matches_the_eager_step_forward_and_backward(dim):
     """``aot_eager`` runs what inductor receives (the concatenation wraps, the opaque sampler and its backward)
     without a C++ compiler."""
