@@ -340,7 +340,7 @@ def pressure_in_body_frame(q: CenteredGrid, layout: SolidLayout | None, velocity
     hold no fluid pressure): near a moving body its pressure field moves with it. ``q`` itself where ``layout`` has
     no moving sharp no-slip body or ``dt`` is 0."""
     bodies = [] if layout is None else sharp_no_slip(layout.bodies)
-    if not any(not b.static for b in bodies) or float(dt) == 0:
+    if all(b.static for b in bodies) or float(dt) == 0:
         return q
     grid = velocity.grid
     work = velocity.dtype

@@ -21,10 +21,10 @@ from phisim.fluid.extension import free_slip_ghosts
 from phisim.fluid.projection import check_velocity
 from phisim.ops.differential import laplace
 from phisim.solvers.diffusion import diffuse_staggered, staggered_laplace
+from phisim.solvers.linalg import Solve
 
 if TYPE_CHECKING:  # annotations only
     from phisim.fluid.bodies import SolidLayout
-from phisim.solvers.linalg import Solve
 
 __all__ = ["diffuse_velocity", "body_laplace", "VISCOSITY_SCHEMES"]
 

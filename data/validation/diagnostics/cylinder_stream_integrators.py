@@ -31,20 +31,9 @@ NU, U = 0.01, 1.0
 body = Body(Sphere((0.0, 0.0), 0.5))
 
 
-def run(n: int, variant: str, t_end: float = 10.0) -> dict:
-    """One run; ``variant`` is an integrator, ``integrator+quick`` (QUICK convection) or ``integrator+convext``
-    (central convection reading the velocity extended into the body, as the split steps' transport reads it)."""
-    integrator, _, convection = variant.partition("+")
-    if convection == "convext":
-        import phisim.fluid.integrators as integrators
-        from phisim.fluid.extension import extend_into_bodies
-
-        plain = integrators.convection
-        integrators.convection = lambda v, scheme="central": plain(extend_into_bodies(v, body), scheme)
-        try:
-            return {**run(n, integrator, t_end), "variant": variant}
-        finally:
-            integrators.convection = plain
+def simulate(n: int, integrator: str, convection: str = "", t_end: float = 10.0):
+    """The cylinder started in the stream on the grid of ``n`` cells per diameter, stepped to ``t_end``: returns the
+    final ``FluidState``, the step ``dt`` and the seconds it took. ``convection`` '' is the integrator's default."""
     dx = 1.0 / n
     nx, ny = int(round(14 / dx)), int(round(8 / dx))
     half = ny * dx / 2
@@ -61,12 +50,30 @@ def run(n: int, variant: str, t_end: float = 10.0) -> dict:
     t0 = time.perf_counter()
     while state.time < t_end - 1e-9:
         state = stepper(state)
+    return state, dt, time.perf_counter() - t0
+
+
+def run(n: int, variant: str, t_end: float = 10.0) -> dict:
+    """One run; ``variant`` is an integrator, ``integrator+quick`` (QUICK convection) or ``integrator+convext``
+    (central convection reading the velocity extended into the body, as the split steps' transport reads it)."""
+    integrator, _, convection = variant.partition("+")
+    if convection == "convext":
+        import phisim.fluid.integrators as integrators
+        from phisim.fluid.extension import extend_into_bodies
+
+        plain = integrators.convection
+        integrators.convection = lambda v, scheme="central": plain(extend_into_bodies(v, body), scheme)
+        try:
+            return {**run(n, integrator, t_end), "variant": variant}
+        finally:
+            integrators.convection = plain
+    state, dt, seconds = simulate(n, integrator, convection, t_end)
     f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time)
     fs = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=state.time, pressure_at="surface")
     q = 0.5 * U**2 * 1.0
     return {"n": n, "variant": variant, "t": state.time, "dt": dt, "cd": float(f.total[0, 0]) / q,
             "cd_pressure": float(f.pressure[0, 0]) / q, "cd_viscous": float(f.viscous[0, 0]) / q,
-            "cd_surface": float(fs.total[0, 0]) / q, "wall_s": time.perf_counter() - t0}
+            "cd_surface": float(fs.total[0, 0]) / q, "wall_s": seconds}
 
 
 def main(argv=None) -> int:

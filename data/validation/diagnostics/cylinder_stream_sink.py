@@ -23,9 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import cylinder_stream_integrators as stream  # noqa: E402
 
-from phisim import Grid, StaggeredGrid  # noqa: E402
-from phisim.boundary import Inflow, Open  # noqa: E402
-from phisim.fluid import FluidState, FluidStepper, body_forces  # noqa: E402
+from phisim.fluid import body_forces  # noqa: E402
 from phisim.fluid.bodies import solid_layout  # noqa: E402
 from phisim.fluid.integrators import convection  # noqa: E402
 
@@ -33,19 +31,9 @@ from phisim.fluid.integrators import convection  # noqa: E402
 def run(n: int, variant: str, t_end: float = 10.0) -> dict:
     integrator, _, scheme = variant.partition("+")
     scheme = scheme or "central"
-    dx = 1.0 / n
-    nx, ny = int(round(14 / dx)), int(round(8 / dx))
-    half = ny * dx / 2
-    grid = Grid((nx, ny), bounds=[(-4, -4 + nx * dx), (-half, half)])
-    boundary = {"x": (Inflow((stream.U, 0.0)), Open()), "y": "slip"}
-    v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], stream.U), 0 * x[..., 0]], -1),
-                                    grid, boundary, dtype=torch.float64).with_boundary_faces()
-    dt = 0.5 * dx / stream.U
-    stepper = FluidStepper(grid, v.boundary, obstacles=stream.body, viscosity=stream.NU, dt=dt, dtype=torch.float64,
-                           integrator=integrator, convection=scheme)
-    state = FluidState(v)
-    while state.time < t_end - 1e-9:
-        state = stepper(state)
+    state, dt, _ = stream.simulate(n, integrator, scheme, t_end)
+    grid = state.velocity.grid
+    dx = grid.dx[0]
     q = 0.5 * stream.U**2 * 1.0
     f = body_forces(state.velocity, state.pressure, stream.body, dt=dt, viscosity=stream.NU, time=state.time)
     layout = solid_layout(stream.body, grid, state.velocity.boundary, state.time, torch.float64, "cpu")
