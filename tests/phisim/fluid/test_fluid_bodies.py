@@ -396,14 +396,16 @@ def test_moving_disc_matches_resting_disc_in_a_stream_imex2(convection):
     assert float((move[5:, 0] - rest[5:, 0]).abs().max()) < 0.1 * drag_rest
 
 
-def test_gradcheck_projection_wrt_velocity_and_disc():
+@pytest.mark.parametrize("no_slip", [True, False])
+def test_gradcheck_projection_wrt_velocity_and_disc(no_slip):
+    """No-slip and free-slip (whose cut faces' wetted fractions are the mean of planar sub-cuts) discs."""
     grid = Grid((8, 7), bounds=[(0, 1), (0, 0.875)])
     radius = torch.tensor(0.21, dtype=F64, requires_grad=True)
     center = torch.tensor([0.48, 0.41], dtype=F64, requires_grad=True)
     u0 = _random(grid, {"x": (Inflow(1.0), Open()), "y": "wall"}, batch=1, seed=3)
 
     def f(r, c, a):
-        body = Body(Sphere(c, r))
+        body = Body(Sphere(c, r), no_slip=no_slip)
         v = u0.with_values((u0.values[0] * a, u0.values[1]))
         out, p = make_incompressible(v, body, solve=TIGHT)
         return out.values[0].sum() + (out.values[1] ** 2).sum() + p.values.sum()
