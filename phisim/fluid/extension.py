@@ -236,7 +236,9 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
     # over the face), at most half a face's diagonal away
     reach = 0.5 * h * math.sqrt(max(grid.rank - 1, 1))
     offset = ((mean - thf * pf) / (thf.clamp_min(1e-12) * gn)).clamp(-reach, reach)
-    amount = thf * offset / gn  # times g_j: theta times the centroid's offset along axis j
+    # times g_j: theta times the centroid's offset along axis j; theta the layout's (the wetted fraction the projection
+    # weighs the face with, from sub-cuts on curved free-slip surfaces), so that the correction vanishes with it
+    amount = layout.theta[i][0].reshape(-1)[index].to(dtype) * offset / gn
     strides = [math.prod(shape[a + 1:]) for a in range(grid.rank)]
     coords = torch.stack([(index // strides[a]) % shape[a] for a in range(grid.rank)], -1)
     neighbours, weights = [], []
