@@ -147,21 +147,24 @@ def _sphere_quadrature(m: int, device):
     return nrm, tang, w
 
 
-def _g(v: StaggeredGrid, nrm, tang, radius: float) -> torch.Tensor:
-    """``u_phi sin(theta)`` at the points ``c + radius n``."""
-    c = torch.tensor(CENTER, dtype=torch.float64, device=v.device)
-    return (v.sample(c + radius * nrm)[0].T * tang).sum(-1)
+def _g(v: StaggeredGrid, nrm, tang, radius: float, center=CENTER, frame=(0.0, 0.0, 0.0)) -> torch.Tensor:
+    """``u_phi sin(theta)`` of the velocity relative to ``frame`` at the points ``center + radius n``."""
+    c = torch.as_tensor(center, dtype=torch.float64, device=v.device)
+    rel = v.sample(c + radius * nrm)[0].T - torch.as_tensor(frame, dtype=torch.float64, device=v.device)
+    return (rel * tang).sum(-1)
 
 
-def torque(v: StaggeredGrid, m: int = 24) -> float:
+def torque(v: StaggeredGrid, m: int = 24, center=CENTER, frame=(0.0, 0.0, 0.0)) -> float:
     """The viscous torque of the fluid on the inner sphere about the axis, from the one-sided wall shear (probes at
-    1.5 and 3 cells from the surface, as :func:`phisim.fluid.body_forces`)."""
+    1.5 and 3 cells from the surface, as :func:`phisim.fluid.body_forces`); ``center``: where the spheres are,
+    ``frame``: their common translation velocity (the shear of the velocity relative to it)."""
     h = v.grid.dx[0]
     nrm, tang, w = _sphere_quadrature(m, v.device)
     d1 = 1.5 * h
     s2 = (tang * tang).sum(-1)  # sin(theta)^2
     wall = OMEGA * R1 * s2  # the wall's u_phi sin(theta), constant along the normal
-    g1, g2 = _g(v, nrm, tang, R1 + d1) - wall, _g(v, nrm, tang, R1 + 2 * d1) - wall
+    g1 = _g(v, nrm, tang, R1 + d1, center, frame) - wall
+    g2 = _g(v, nrm, tang, R1 + 2 * d1, center, frame) - wall
     dudr = (4 * g1 - g2) / (2 * d1)  # d(u_phi)/dr sin(theta) at the surface
     tau = NU * (dudr - OMEGA * s2)  # tau_r_phi sin(theta) = mu (du_phi/dr - u_phi / r) sin(theta)
     return float((tau * w).sum()) * R1**3  # oint R1 sin(theta) tau_r_phi dS, dS = R1^2 d(cos theta) d(phi)
