@@ -457,20 +457,18 @@ def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor
     return g / g.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-#: Sub-faces per in-face axis (by dimension) of the wetted fraction of a resting FREE-SLIP body's faces, each a planar
+#: Sub-faces per in-face axis (by dimension) of the wetted fraction of a FREE-SLIP body's faces, each a planar
 #: cut. On a curved surface one planar cut of a face errs by ``O(kappa dx)`` of its area, and at the O(1) tangential
 #: velocity a free-slip surface carries that is an ``O(kappa u)`` flux error in the cut cell, which held the free-slip
 #: Couette flows near first order; ``m`` sub-faces divide it by ``m^2`` (docs/VALIDATION.md, "Free-slip bodies").
-#: No-slip bodies keep one cut (their relative velocity vanishes at the surface), and so do moving free-slip bodies:
-#: with the sub-cuts the pressure CG of a carried free-slip sphere stalled at 32^3 (not understood; in 2-D they
-#: converged, docs/VALIDATION.md).
+#: No-slip bodies keep one cut (their relative velocity vanishes at the surface).
 FREE_SLIP_SUBFACES = {1: 1, 2: 8, 3: 4}
 
 
 def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: int | None = None) -> torch.Tensor:
     """Fluid fraction at ``points``: for sharp no-slip and free-slip bodies the exact fraction of a planar cut
     (:func:`~phisim.fluid.geometry.cut_fractions`) of the square/cube of side ``dx`` (``axis`` None) or of the face
-    of side ``dx`` normal to ``axis`` (the wetted area of a MAC face; a resting free-slip body's faces within ``dx`` of
+    of side ``dx`` normal to ``axis`` (the wetted area of a MAC face; a free-slip body's faces within ``dx`` of
     its surface: the mean of the planar cuts of ``FREE_SLIP_SUBFACES`` sub-faces per in-face axis); for blended no-slip
     bodies the linear ramp of :func:`~phisim.fluid.geometry.fluid_fraction` over the control volume of side
     ``dx``."""
@@ -479,7 +477,7 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     if body.sharp or not body.no_slip:
         theta = cut_fractions(phi, face_normal(grad, axis), dx)[0]
         m = FREE_SLIP_SUBFACES[points.shape[-1]]
-        if axis is None or body.no_slip or not body.static or m == 1:  # moving bodies: see FREE_SLIP_SUBFACES
+        if axis is None or body.no_slip or m == 1:
             return theta
         band = phi.abs() < dx
         if torch.compiler.is_compiling():  # no host read in a traced step: every face, the band selected after

@@ -70,10 +70,34 @@ __all__ = ["MaskedPoisson"]
 DIRECT_CHOICES = ("auto", True, False)
 
 #: Cells whose diagonal is at most this fraction of the open-box diagonal are eliminated exactly in the
-#: preconditioner when they couple to no other such cell (0: off). 0.2 measured best over a cold solve with a
+#: preconditioner, the weakest of neighbouring ones first (0: off). 0.2 measured best over a cold solve with a
 #: disc and two boxes and the warm-started plume and cylinder wake at 128^2 and 256^2 (0.4-0.5 leave the
 #: warm solves as fast but double the cold iterations; 0.1 gains less).
 LEAF_THRESHOLD = 0.2
+
+
+def _weakest_first(cand: torch.Tensor, diag: torch.Tensor, src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
+    """A maximal set of candidate cells no two of which are neighbours, taken weakest first: in rounds, every
+    remaining candidate whose diagonal (then flat index) is below that of each remaining candidate neighbour joins the
+    set, and it and its neighbours leave the candidates. Every candidate left out thus has a neighbour in the set with
+    a smaller diagonal, so the weakest cells of a layout (a face fraction of 1e-7 leaves a cell a diagonal that small)
+    are always eliminated; leaving out every candidate that touches another one (the first rule) left such cells to
+    the box preconditioner, whose eigenvalue there is their diagonal over the open one (CG of a moving free-slip
+    sphere's layout stalled at 1.7e-4 after 1355 iterations; 26 with them eliminated). ``src -> dst`` lists each
+    coupling both ways. Deterministic: no randomness, ties broken by index."""
+    free = cand.clone()
+    leaf = torch.zeros_like(cand)
+    order = torch.arange(cand.numel(), device=cand.device)
+    smaller = (diag[dst] < diag[src]) | ((diag[dst] == diag[src]) & (order[dst] < order[src]))
+    while bool(free.any()):
+        beaten = torch.zeros_like(cand)
+        beaten[src[free[src] & free[dst] & smaller]] = True
+        win = free & ~beaten  # the smallest free candidate always wins: every round adds at least one
+        leaf |= win
+        near = torch.zeros_like(cand)
+        near[dst[win[src]]] = True
+        free &= ~(win | near)
+    return leaf
 
 
 def _scatter_add(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor,
@@ -324,15 +348,17 @@ class MaskedPoisson:
     def _leaves(self):
         """Weakly connected cells eliminated exactly in the preconditioner, or None.
 
-        A *leaf* is an active cell whose diagonal is at most half the open-box one (mostly solid: a cell whose
-        centre lies in a body but which a cut face still ties to the fluid) and which couples to no other
-        leaf. Leaves only couple to non-leaves, so the leaf block of the operator is diagonal and they can be
-        eliminated exactly (a block LDL^T step): see :meth:`_precondition`. Built once; shared layouts only
-        (weights of batch 1).
+        A *leaf* is an active cell whose diagonal is at most :data:`LEAF_THRESHOLD` of the open-box one (mostly
+        solid: a cell whose centre lies in a body but which a cut face still ties to the fluid) and which couples
+        to no other leaf; among neighbouring candidates the weakest are taken (:func:`_weakest_first`). Leaves only
+        couple to non-leaves, so the leaf block of the operator is diagonal and they can be eliminated exactly (a
+        block LDL^T step): see :meth:`_precondition`. The candidates left out (``weak``) take the additive Jacobi
+        term there instead. Built once; shared layouts only (weights of batch 1).
 
         Returns:
-            None, or ``(leaf, inv_d, src, dst, frac)``: flat leaf indices ``(L,)``, their inverse diagonal
-            ``(L,)`` and the couplings leaf ``src`` -> neighbour ``dst`` with ``frac = c / d_leaf`` ``(P,)``.
+            None, or ``(leaf, inv_d, src, dst, frac, mask, weak)``: flat leaf indices ``(L,)``, their inverse
+            diagonal ``(L,)``, the couplings leaf ``src`` -> neighbour ``dst`` with ``frac = c / d_leaf`` ``(P,)``,
+            and the leaves and the candidates left out as masks ``(1, *res)``.
         """
         hit = self._casts.get("leaves", False)
         if hit is not False:
@@ -359,14 +385,13 @@ class MaskedPoisson:
                         dst += [hi.flatten()[keep], lo.flatten()[keep]]
                         cpl += [c[keep], c[keep]]
                 src, dst, cpl = torch.cat(src), torch.cat(dst), torch.cat(cpl)
-                touching = torch.zeros_like(cand)
-                touching[src[cand[src] & cand[dst]]] = True
-                leaf = cand & ~touching
+                leaf = _weakest_first(cand, diag, src, dst)
                 if bool(leaf.any()):
                     sel = leaf[src]
                     src, dst, cpl = src[sel], dst[sel], cpl[sel]
                     leaf_idx = torch.nonzero(leaf).flatten()
-                    out = (leaf_idx, 1.0 / diag[leaf_idx], src, dst, cpl / diag[src], leaf.view(1, *res))
+                    out = (leaf_idx, 1.0 / diag[leaf_idx], src, dst, cpl / diag[src], leaf.view(1, *res),
+                           (cand & ~leaf).view(1, *res))
         self._casts["leaves"] = out
         return out
 
@@ -395,12 +420,15 @@ class MaskedPoisson:
         # Without leaves: additive Jacobi on the cut cells (whose diagonal the unweighted box operator
         # overestimates): 58 -> 19 iterations at 128^2 with a disc and two boxes, still symmetric positive
         # definite. Inactive cells keep r: y * active + (inactive + 1 / diag on cut cells) * r.
-        # With leaves the Jacobi term is left out: the elimination handles the weakly tied cells better, and
-        # the term on the remaining cut cells slows warm-started solves (plume 4.8 -> 6.2 iterations at 128^2).
+        # With leaves the Jacobi term is kept only on the weak cells that are not leaves (neighbours of a weaker
+        # leaf, ``_leaves``): the elimination handles the weakly tied cells better, and the term on every other
+        # cut cell slows warm-started solves (plume 4.8 -> 6.2 iterations at 128^2); without it a weak cell left
+        # out keeps an eigenvalue of the preconditioned operator near its diagonal over the open one (1.8e-3
+        # measured in a 3-D layout: 117 iterations instead of 19). M stays D_L^-1 + R^T (B + J) R: symmetric.
         key = ("rest", dtype)
         rest = self._casts.get(key)
         if rest is None:
-            cut = self._cut_inv if leaves is None else torch.zeros_like(self._cut_inv)
+            cut = self._cut_inv if leaves is None else self._cut_inv * leaves[6]
             rest = self._casts[key] = ((~self.active).to(dtype) + cut.to(dtype)).contiguous()
         y = y.mul_(act).addcmul_(rest, rt) if not y.requires_grad else y * act + rest * rt
         if leaves is not None:

@@ -187,14 +187,15 @@ def test_moving_couette_orders_32_64():
 
 
 def test_moving_free_slip_cylinder():
-    """The outer cylinder free-slip and both carried at ``W``: the exact flow is the carried rigid rotation. A moving
-    free-slip body keeps one planar cut per face (``FREE_SLIP_SUBFACES`` serves resting ones), whose O(kappa dx) error
-    holds the errors near the surface at first order: 24^2 -> 48^2 near max 1.8e-2 -> 8.2e-3, near rms order 1.10, all
-    rms 1.59 (96^2: 0.85 / 1.26). With the sub-cuts this flow converged at 2.28 / 2.66 (docs/VALIDATION.md)."""
+    """The outer cylinder free-slip and both carried at ``W``: the exact flow is the carried rigid rotation. The moving
+    free-slip body's faces take the sub-cuts of ``FREE_SLIP_SUBFACES`` as resting ones do: 24^2 -> 48^2 near max
+    3.4e-3 -> 5.2e-4, near rms 2.5e-4 -> 4.8e-5 (order 2.40), all rms order 2.77 (96^2: near rms order 1.46, all rms
+    2.02). One planar cut per face, as before, held the near errors at first order (near max 1.8e-2 -> 8.2e-3, near
+    rms order 1.10): that code fails the bounds below."""
     rows = study([24, 48], free_slip=True, rtol=1e-9)
     order = rows[1]["order"]
-    assert order["near_rms"] > 0.9 and order["all_rms"] > 1.3, rows
-    assert rows[1]["near_max"] < 1e-2 and rows[1]["near_rms"] < 1e-3, rows
+    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8, rows
+    assert rows[1]["near_max"] < 1e-3 and rows[1]["near_rms"] < 1e-4, rows
 
 
 if __name__ == "__main__":

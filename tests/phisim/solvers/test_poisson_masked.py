@@ -97,7 +97,7 @@ def test_leaves_are_weak_cells_that_touch_no_other_leaf():
     op = _disc_and_box_operator()
     leaves = op._leaves()
     assert leaves is not None
-    leaf_idx, inv_d, src, dst, frac, mask = leaves
+    leaf_idx, inv_d, src, dst, frac, mask, weak = leaves
     w = tuple(wi.detach() for wi in op.weights)
     diag = op._diagonal(w)[0].flatten()
     d0 = op._diagonal(tuple(torch.ones_like(wi) for wi in w))[0].flatten()
@@ -108,6 +108,55 @@ def test_leaves_are_weak_cells_that_touch_no_other_leaf():
     # the couplings of each leaf sum to its diagonal (no Dirichlet face here): fractions sum to 1 per leaf
     sums = torch.zeros_like(diag).index_add_(0, src, frac)
     torch.testing.assert_close(sums[leaf_idx], torch.ones_like(inv_d))
+    # maximal and weakest first: every weak cell left out has a leaf neighbour with a smaller diagonal
+    cand = op.active[0].flatten() & (diag > 0) & (diag <= 0.2 * d0)
+    out = cand & ~mask.flatten()
+    assert bool(out.any()) and torch.equal(weak.flatten(), out)  # the weak cells kept take the Jacobi term
+    rows, cols = _couplings(op)
+    beaten = torch.zeros_like(out)
+    beaten[rows[mask.flatten()[cols] & (diag[cols] <= diag[rows])]] = True
+    assert bool(beaten[out].all())
+
+
+def _couplings(op):
+    """The pairs ``(row, col)`` of flat cell indices coupled by a face of positive weight (both ways)."""
+    res = op.resolution
+    idx = torch.arange(res[0] * res[1]).view(res)
+    rows, cols = [], []
+    for a, w in enumerate(op.weights):
+        inner = w[0].detach().narrow(a, 1, res[a] - 1) > 0
+        lo, hi = idx.narrow(a, 0, res[a] - 1)[inner], idx.narrow(a, 1, res[a] - 1)[inner]
+        rows += [lo, hi]
+        cols += [hi, lo]
+    return torch.cat(rows), torch.cat(cols)
+
+
+def test_a_cell_tied_to_the_fluid_by_a_sliver_next_to_a_weak_cell_is_eliminated():
+    """A face fraction of 1e-7 (a surface grazing a face, as a moving curved body makes) gives the cell behind it a
+    diagonal of 1e-7 of the open one. Next to another weak cell, the rule that left out every weak cell touching
+    another one handed it to the box preconditioner: the preconditioned operator had an eigenvalue of 3e-8 there
+    (measured; CG of a moving free-slip sphere's layout stalled). Weakest first it is eliminated: the spectrum of
+    ``M A`` stays within [0.2, 1.4] (measured 0.215 and 1.35, with the additive Jacobi term on the weak cells
+    that are not eliminated)."""
+    op = _disc_and_box_operator()
+    w = [x.detach().clone() for x in op.weights]
+    act, res = op.active[0], op.resolution
+    diag = op._diagonal(tuple(w))[0]
+    d0 = op._diagonal(tuple(torch.ones_like(x) for x in w))[0]
+    slivers = [(i + 1, j) for i in range(res[0] - 1) for j in range(res[1])
+               if act[i, j] and diag[i, j] <= 0.2 * d0[i, j] and not act[i + 1, j]]
+    assert slivers
+    for i, j in slivers:
+        w[0][0, i, j] = 1e-7  # face i along x: between the weak cell (i - 1, j) and the inactive cell (i, j)
+    sliver = MaskedPoisson(w, op.dx, op.kinds, direct=False)
+    leaf = sliver._leaves()[5][0]
+    assert all(bool(sliver.active[0][c]) and bool(leaf[c]) for c in slivers)
+    n = res[0] * res[1]
+    basis = torch.eye(n, dtype=torch.float64).view(n, *res)
+    a = sliver.active[0].flatten()
+    ma = sliver._precondition(basis).reshape(n, n)[a][:, a] @ sliver.apply(basis).reshape(n, n)[a][:, a]
+    ev = torch.linalg.eigvals(ma).real
+    assert float(ev.min()) > 0.2 and float(ev.max()) < 1.4, (float(ev.min()), float(ev.max()))
 
 
 def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_the_range():
