@@ -28,6 +28,7 @@ combine with '+', e.g. noclamp+split2):
   quick       with imex2 or rk2: the QUICK convection (a setting: convection='quick')
   convext     with imex2 or rk2: the convection reads the velocity extended into the body (the band just inside
               a sharp no-slip body set to the extended wall profile, as the split steps' transport reads it)
+  long        the channel 3.3 long instead of 2.2 (the outflow 31 diameters behind the cylinder instead of 20)
 """
 import json
 import os
@@ -189,6 +190,8 @@ if "convext" in parts:
     from phisim.fluid.extension import extend_into_bodies
     _conv, _body = I.convection, cb.setup(case, ny)[1]
     I.convection = lambda v, scheme="central": _conv(extend_into_bodies(v, _body), scheme)
+if "long" in parts:
+    cb.L = 3.3
 adv = "semi_lagrangian" if "sl" in parts else "maccormack"
 vs = "implicit" if "implicit" in parts else "crank_nicolson" if "cn" in parts else "explicit"
 torch.set_num_threads(1)
