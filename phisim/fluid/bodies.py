@@ -490,18 +490,42 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
 def _subface_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int) -> torch.Tensor:
     """The mean wetted fraction of the ``m^(d-1)`` sub-faces of side ``dx / m`` of the faces normal to ``axis``
     centred at ``points`` ``(..., d)``, each the planar cut at its own centre."""
+    return subface_cuts(body, points, t, dx, axis, m)[0]
+
+
+def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The wetted fraction and the wetted part's centroid of the faces normal to ``axis`` centred at ``points``
+    ``(..., d)``, from the planar cuts of their ``m^(d-1)`` sub-faces of side ``dx / m`` (each cut at its own centre).
+
+    Returns:
+        ``(theta, centroid)``: the mean of the sub-faces' fractions ``(...)`` and the centroid of the wetted part
+        relative to the face centre ``(..., d)`` (each sub-face's wetted centroid, its centre moved along the cut's
+        in-face normal by ``(E[phi_+] / theta - phi) / |g|``, weighted by its fraction; the face centre where nothing
+        is wetted). On a curved surface a single planar cut places that centroid ``O(kappa dx^2 / |g|)`` off, which
+        on faces nearly parallel to the surface (small ``|g|``) is a large part of the face.
+    """
     rank = points.shape[-1]
     others = [a for a in range(rank) if a != axis]
     offsets = [((j + 0.5) / m - 0.5) * dx for j in range(m)]
+    reach = 0.5 * dx / m * math.sqrt(max(rank - 1, 1))
     total = points.new_zeros(points.shape[:-1])
+    moment = torch.zeros_like(points)
     for combo in itertools.product(offsets, repeat=len(others)):
         shift = [0.0] * rank
         for a, o in zip(others, combo):
             shift[a] = o
-        x = points + torch.tensor(shift, dtype=points.dtype, device=points.device)
-        grad = sdf_gradient(body, x, t, 1e-3 * dx)
-        total = total + cut_fractions(body.sdf(x, t), face_normal(grad, axis), dx / m)[0]
-    return total / m ** len(others)
+        sh = torch.tensor(shift, dtype=points.dtype, device=points.device)
+        x = points + sh
+        g = face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis)
+        phi = body.sdf(x, t)
+        theta, mean = cut_fractions(phi, g, dx / m)
+        total = total + theta
+        gn = g.norm(dim=-1).clamp_min(1e-12)
+        along = ((mean - theta * phi) / (theta.clamp_min(1e-12) * gn)).clamp(-reach, reach)
+        moment = moment + theta.unsqueeze(-1) * (sh + g / gn.unsqueeze(-1) * along.unsqueeze(-1))
+    centroid = moment / total.clamp_min(1e-12).unsqueeze(-1)
+    return total / m ** len(others), centroid
 
 
 def face_normal(grad: torch.Tensor, axis: int | None) -> torch.Tensor:

@@ -24,6 +24,7 @@ import torch
 
 from phisim.field import StaggeredGrid
 from phisim.fluid.bodies import (
+    FREE_SLIP_SUBFACES,
     PROBE_CELLS,
     Body,
     SolidLayout,
@@ -33,6 +34,7 @@ from phisim.fluid.bodies import (
     sdf_gradient,
     set_from_probes,
     sharp_no_slip,
+    subface_cuts,
     unit_normal,
 )
 from phisim.fluid.geometry import cut_fractions
@@ -210,7 +212,8 @@ def free_slip_ghosts(velocity: StaggeredGrid, layout: SolidLayout | None, time: 
 def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device, t: float):
     """``(index, neighbours, weights)`` of the free-slip flux correction of component ``i`` (or None): for each face
     cut by a free-slip body, the neighbours one face towards the fluid along each axis ``j != i`` and the weights
-    ``(E[phi_+] - theta phi_F) g_j / |g|^2 * sign / dx_j`` (see :func:`free_slip_flux`)."""
+    ``theta c_j * sign / dx_j``, ``c`` the wetted part's centroid relative to the face centre: ``(E[phi_+] / theta -
+    phi_F) g / |g|^2`` for one planar cut, the sub-cuts' within a cell of the surface (see :func:`free_slip_flux`)."""
     h = min(grid.dx)
     th = layout.theta[i].detach()[0]
     x = grid.face_centers(i, dtype, device)
@@ -236,9 +239,16 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
     # over the face), at most half a face's diagonal away
     reach = 0.5 * h * math.sqrt(max(grid.rank - 1, 1))
     offset = ((mean - thf * pf) / (thf.clamp_min(1e-12) * gn)).clamp(-reach, reach)
-    # times g_j: theta times the centroid's offset along axis j; theta the layout's (the wetted fraction the projection
-    # weighs the face with, from sub-cuts on curved free-slip surfaces), so that the correction vanishes with it
-    amount = layout.theta[i][0].reshape(-1)[index].to(dtype) * offset / gn
+    centroid = g / gn.unsqueeze(-1) * offset.unsqueeze(-1)
+    m = FREE_SLIP_SUBFACES[grid.rank]
+    if m > 1:  # faces within a cell of the surface: the centroid of the sub-cuts the layout's fraction comes from
+        for k, b in enumerate(bodies):
+            sel = ((owner == k) & (pf.detach().abs() < h)).nonzero().squeeze(1)
+            if sel.numel():
+                centroid = centroid.index_put((sel,), subface_cuts(b, xs[sel], t, h, i, m)[1])
+    # theta times the centroid's offset along axis j; theta the layout's (the wetted fraction the projection weighs
+    # the face with, from sub-cuts on curved free-slip surfaces), so that the correction vanishes with it
+    amount = layout.theta[i][0].reshape(-1)[index].to(dtype)
     strides = [math.prod(shape[a + 1:]) for a in range(grid.rank)]
     coords = torch.stack([(index // strides[a]) % shape[a] for a in range(grid.rank)], -1)
     neighbours, weights = [], []
@@ -250,7 +260,7 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
         ok = (cj >= 0) & (cj < shape[j])
         sign = torch.where(ok, sign, -sign)  # at the grid's edge: the other side
         neighbours.append(index + sign * strides[j])
-        weights.append(amount * g[:, j] * sign.to(dtype) / grid.dx[j])
+        weights.append(amount * centroid[:, j] * sign.to(dtype) / grid.dx[j])
     return index, torch.stack(neighbours, 1), torch.stack(weights, 1).to(dtype)
 
 
@@ -259,9 +269,12 @@ def free_slip_flux(values, layout: SolidLayout | None, grid, time: float | None 
     (None without free-slip bodies): the fluid velocity is not constant over a face, and its mean over the wetted part
     is its value at the wetted part's centroid, ``u_F + (grad u . g) (E[phi_+] - theta phi_F) / |g|^2`` for a planar
     cut (``g`` the unit normal's part in the face, ``E[phi_+]`` the face's mean positive distance,
-    :func:`~phisim.fluid.geometry.cut_fractions`), the in-face derivative taken one face towards the fluid. Without
-    it the cut cells' divergence is off by O(1) and the velocity next to a curved free-slip surface does not
-    converge (the no-slip bodies' counterpart is :func:`~phisim.fluid.projection.flux_correction`). ``time``: where
+    :func:`~phisim.fluid.geometry.cut_fractions`), the in-face derivative taken one face towards the fluid. Faces
+    within a cell of the surface take the centroid of the sub-cuts their wetted fraction comes from
+    (:func:`~phisim.fluid.bodies.subface_cuts`): one planar cut misplaces it on faces nearly parallel to a curved
+    surface, which held the 3-D free-slip errors near first order (docs/VALIDATION.md, "Free-slip bodies"). Without
+    the correction the cut cells' divergence is off by O(1) and the velocity next to a curved free-slip surface does
+    not converge (the no-slip bodies' counterpart is :func:`~phisim.fluid.projection.flux_correction`). ``time``: where
     moving bodies are (default: the layout's own time; the correction must see the bodies where ``theta`` saw
     them)."""
     if layout is None or layout.slip is None:

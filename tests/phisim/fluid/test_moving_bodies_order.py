@@ -188,14 +188,15 @@ def test_moving_couette_orders_32_64():
 
 def test_moving_free_slip_cylinder():
     """The outer cylinder free-slip and both carried at ``W``: the exact flow is the carried rigid rotation. The moving
-    free-slip body's faces take the sub-cuts of ``FREE_SLIP_SUBFACES`` as resting ones do: 24^2 -> 48^2 near max
-    3.4e-3 -> 5.2e-4, near rms 2.5e-4 -> 4.8e-5 (order 2.40), all rms order 2.77 (96^2: near rms order 1.46, all rms
-    2.02). One planar cut per face, as before, held the near errors at first order (near max 1.8e-2 -> 8.2e-3, near
-    rms order 1.10): that code fails the bounds below."""
+    free-slip body's faces take the fractions and the flux correction's centroids of the sub-cuts of
+    ``FREE_SLIP_SUBFACES`` as resting ones do: 24^2 -> 48^2 near max 4.8e-4 -> 1.6e-4, near rms 1.35e-4 -> 3.6e-5
+    (order 1.92), all rms order 2.12 (96^2: near rms order 1.70, all rms 2.12). One planar cut per face held the near
+    errors at first order (near max 1.8e-2 -> 8.2e-3, near rms order 1.10) and the sub-cuts' fractions with one planar
+    cut's centroid left near max 5.2e-4 at 48^2: both fail the bounds below."""
     rows = study([24, 48], free_slip=True, rtol=1e-9)
     order = rows[1]["order"]
     assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8, rows
-    assert rows[1]["near_max"] < 1e-3 and rows[1]["near_rms"] < 1e-4, rows
+    assert rows[1]["near_max"] < 3e-4 and rows[1]["near_rms"] < 6e-5, rows
 
 
 if __name__ == "__main__":
