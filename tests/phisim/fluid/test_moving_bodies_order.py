@@ -186,6 +186,16 @@ def test_moving_couette_orders_32_64():
     assert order["near_max"] > 1.7 and order["near_rms"] > 1.7 and order["torque"] > 1.5, rows
 
 
+def test_moving_free_slip_cylinder_coarse():
+    """The carried free-slip Couette flow below on 16^2 -> 32^2 (the default suite's check, a third of the time):
+    measured near max 1.0e-3 -> 3.1e-4, near rms 3.3e-4 -> 8.4e-5 (order 1.99), all rms order 2.15."""
+    rows = study([16, 32], free_slip=True, rtol=1e-9)
+    order = rows[1]["order"]
+    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8, rows
+    assert rows[1]["near_max"] < 5e-4 and rows[1]["near_rms"] < 1.2e-4, rows
+
+
+@pytest.mark.slow
 def test_moving_free_slip_cylinder():
     """The outer cylinder free-slip and both carried at ``W``: the exact flow is the carried rigid rotation. The moving
     free-slip body's faces take the fractions and the flux correction's centroids of the sub-cuts of
