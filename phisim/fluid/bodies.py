@@ -481,16 +481,10 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
             return theta
         band = phi.abs() < dx
         if torch.compiler.is_compiling():  # no host read in a traced step: every face, the band selected after
-            return torch.where(band, _subface_fraction(body, points, t, dx, axis, m), theta)
+            return torch.where(band, subface_cuts(body, points, t, dx, axis, m)[0], theta)
         idx = band.nonzero(as_tuple=True)
-        return theta.index_put(idx, _subface_fraction(body, points[idx], t, dx, axis, m))
+        return theta.index_put(idx, subface_cuts(body, points[idx], t, dx, axis, m)[0])
     return fluid_fraction(phi, grad.abs().sum(-1), dx)
-
-
-def _subface_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int) -> torch.Tensor:
-    """The mean wetted fraction of the ``m^(d-1)`` sub-faces of side ``dx / m`` of the faces normal to ``axis``
-    centred at ``points`` ``(..., d)``, each the planar cut at its own centre."""
-    return subface_cuts(body, points, t, dx, axis, m)[0]
 
 
 def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int

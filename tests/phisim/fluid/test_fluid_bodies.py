@@ -199,6 +199,53 @@ def test_free_slip_wetted_fractions_of_a_curved_surface(n):
     assert worst[False] < 1e-2 and rms[False] < 1.5e-3, (worst, rms)
 
 
+
+def _exact_wetted_centroid_outside_disc(pi, lo, hi, c, r):
+    """(wetted length, its centroid) of the face ``[lo, hi]`` on the line ``x_i = pi`` outside the disc."""
+    d = pi - c[0]
+    s = math.sqrt(r * r - d * d) if abs(d) < r else 0.0
+    parts = [(a, b) for a, b in ((lo, min(hi, c[1] - s)), (max(lo, c[1] + s), hi)) if b > a] if s else [(lo, hi)]
+    length = sum(b - a for a, b in parts)
+    return length, (sum((b - a) * (a + b) / 2 for a, b in parts) / length if length else (lo + hi) / 2)
+
+
+@pytest.mark.parametrize("n", [16, 64])
+def test_free_slip_wetted_centroids_of_a_curved_surface(n):
+    """The wetted part's centroid that the free-slip flux correction reads (``subface_cuts``) against the exact
+    centroid of the wetted part of each face a disc cuts, both components, as ``theta`` times its offset (the weight
+    of the correction), in face lengths; beside one planar cut of the whole face. Measured at 16^2 / 32^2 / 64^2,
+    largest and rms: sub-cuts 1.3e-3 / 5.7e-4 / 5.8e-4 and 2.1e-4 / 8.9e-5 / 5.0e-5; one cut 2.0e-2 / 2.7e-2 /
+    1.7e-2 (not converging: faces nearly parallel to the surface) and 4.3e-3 / 3.4e-3 / 1.8e-3."""
+    from phisim.fluid.bodies import FREE_SLIP_SUBFACES, face_normal, sdf_gradient, subface_cuts
+    from phisim.fluid.geometry import cut_fractions
+
+    c, r = (0.513, 0.471), 0.3
+    grid = Grid((n, n), bounds=[(0, 1), (0, 1)])
+    h = grid.dx[0]
+    body = Body(Sphere(c, r), no_slip=False)
+    err = {"sub": [], "planar": []}
+    for i in range(2):
+        j = 1 - i
+        x = grid.face_centers(i, torch.float64).reshape(-1, 2)
+        x = x[body.sdf(x, 0.0).abs() < h]  # the band the sub-cuts serve
+        ex = [_exact_wetted_centroid_outside_disc(float(p[i]), float(p[j]) - h / 2, float(p[j]) + h / 2,
+                                                  (c[i], c[j]), r) for p in x]
+        theta = torch.tensor([e[0] for e in ex], dtype=torch.float64) / h
+        exact = torch.tensor([e[1] for e in ex], dtype=torch.float64) - x[:, j]
+        sub = subface_cuts(body, x, 0.0, h, i, FREE_SLIP_SUBFACES[2])[1][:, j]
+        g = face_normal(sdf_gradient(body, x, 0.0, 1e-3 * h), i)
+        gn = g.norm(dim=-1)
+        phi = body.sdf(x, 0.0)
+        one, mean = cut_fractions(phi, g, h)
+        planar = (g[:, j] / gn) * ((mean - one * phi) / (one.clamp_min(1e-12) * gn)).clamp(-h / 2, h / 2)
+        cut = (theta > 0) & (theta < 1)
+        err["sub"].append(((sub - exact) * theta)[cut] / h)
+        err["planar"].append(((planar - exact) * theta)[cut] / h)
+    worst = {k: float(torch.cat(e).abs().max()) for k, e in err.items()}
+    rms = {k: float(torch.cat(e).pow(2).mean().sqrt()) for k, e in err.items()}
+    assert worst["sub"] < worst["planar"] / 10 and rms["sub"] < rms["planar"] / 10, (worst, rms)
+    assert worst["sub"] < 2e-3 and rms["sub"] < 3e-4, (worst, rms)
+
 def test_bad_bodies():
     grid = Grid((16, 16), bounds=[(0, 1), (0, 1)])
     v = StaggeredGrid.zeros(grid, {"x": (Inflow(1.0), Open()), "y": "wall"})
