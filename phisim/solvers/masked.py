@@ -433,6 +433,9 @@ class MaskedPoisson:
             rest = self._casts[key] = ((~self.active).to(dtype) + cut.to(dtype)).contiguous()
         y = y.mul_(act).addcmul_(rest, rt) if not y.requires_grad else y * act + rest * rt
         if leaves is not None:
+            # the box inverse's transforms may return a strided result (on CUDA, with a periodic axis in 3-D);
+            # the leaves are written into y in place through its flat view
+            y = y.contiguous()
             y2 = y.view(B, -1)
             y2.index_copy_(1, leaf_idx, r2.index_select(1, leaf_idx) * inv_d)
             _scatter_add(y2, src, y2.index_select(1, dst) * frac)
