@@ -101,16 +101,13 @@ def _weakest_first(cand: torch.Tensor, diag: torch.Tensor, src: torch.Tensor, ds
     return leaf
 
 
-def _scatter_add(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor,
-                 in_rounds: bool | None = None) -> torch.Tensor:
-    """``out[:, index] += values`` in place, in a fixed order on every device.
-
-    On the CPU ``index_add_`` accumulates repeated indices in order. Elsewhere it uses atomic additions whose
-    order varies between runs, so the values are added in rounds in which no index repeats (each element then
-    gets one addition per round, a result that does not depend on scheduling). ``in_rounds`` forces either way.
-    """
-    if not (out.device.type != "cpu" if in_rounds is None else in_rounds):
-        return out.index_add_(1, index, values)
+def scatter_rounds(index: torch.Tensor) -> tuple[tuple[torch.Tensor, torch.Tensor], ...]:
+    """The rounds of a deterministic ``out[:, index] += values``: pairs ``(index_k, sel_k)``, the positions
+    ``sel_k`` of the ``k``-th occurrence of each index and the indices there, so that no index repeats within a
+    round. Built once per index (a sort and a host read of the largest repetition); :func:`_scatter_add` then adds
+    without host synchronisation."""
+    if not len(index):
+        return ()
     order = torch.argsort(index, stable=True)
     sorted_index = index[order]
     first = torch.ones_like(sorted_index, dtype=torch.bool)
@@ -118,9 +115,26 @@ def _scatter_add(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor,
     start = torch.cummax(torch.where(first, torch.arange(len(index), device=index.device), 0), 0).values
     occurrence = torch.empty_like(index)
     occurrence[order] = torch.arange(len(index), device=index.device) - start
-    for k in range(int(occurrence.max()) + 1 if len(index) else 0):
+    rounds = []
+    for k in range(int(occurrence.max()) + 1):
         sel = torch.nonzero(occurrence == k).flatten()
-        out.index_add_(1, index[sel], values.index_select(1, sel))
+        rounds.append((index[sel], sel))
+    return tuple(rounds)
+
+
+def _scatter_add(out: torch.Tensor, index: torch.Tensor, values: torch.Tensor,
+                 in_rounds: bool | None = None, rounds=None) -> torch.Tensor:
+    """``out[:, index] += values`` in place, in a fixed order on every device.
+
+    On the CPU ``index_add_`` accumulates repeated indices in order. Elsewhere it uses atomic additions whose
+    order varies between runs, so the values are added in rounds in which no index repeats (each element then
+    gets one addition per round, a result that does not depend on scheduling): ``rounds`` from
+    :func:`scatter_rounds` (built here when not given). ``in_rounds`` forces either way.
+    """
+    if not (out.device.type != "cpu" if in_rounds is None else in_rounds):
+        return out.index_add_(1, index, values)
+    for index_k, sel_k in (scatter_rounds(index) if rounds is None else rounds):
+        out.index_add_(1, index_k, values.index_select(1, sel_k))
     return out
 
 
@@ -396,6 +410,22 @@ class MaskedPoisson:
         self._casts["leaves"] = out
         return out
 
+    #: Whether the leaves' scatter-adds run in rounds without repeated indices (deterministic, see
+    #: :func:`_scatter_add`); None: on devices other than the CPU, where ``index_add_`` uses atomic additions.
+    deterministic_rounds: bool | None = None
+
+    def _rounds(self, device: torch.device):
+        """The rounds (:func:`scatter_rounds`) of the leaves' two scatter-adds, to ``dst`` and to ``src``, built once
+        per layout; None where ``index_add_`` is used as it is."""
+        use = device.type != "cpu" if self.deterministic_rounds is None else self.deterministic_rounds
+        if not use:
+            return None
+        hit = self._casts.get("rounds")
+        if hit is None:
+            leaves = self._leaves()
+            hit = self._casts["rounds"] = (scatter_rounds(leaves[3]), scatter_rounds(leaves[2]))
+        return hit
+
     def _precondition(self, r: torch.Tensor) -> torch.Tensor:
         # ``r`` is a CG residual, already projected onto the range (cg applies ``project`` to every residual
         # before the preconditioner), so only the output is projected.
@@ -412,7 +442,9 @@ class MaskedPoisson:
                                                for k, t in enumerate(leaves[:5]))
             B = r.shape[0]
             r2 = r.reshape(B, -1)
-            rt = _scatter_add(r2.index_fill(1, leaf_idx, 0.0), dst, r2.index_select(1, src) * frac).view_as(r)
+            rounds = self._rounds(r.device)
+            rt = _scatter_add(r2.index_fill(1, leaf_idx, 0.0), dst, r2.index_select(1, src) * frac,
+                              rounds is not None, None if rounds is None else rounds[0]).view_as(r)
             act = self._cast("act_nonleaf", self.active & ~leaves[5], dtype)
         else:
             rt = r
@@ -438,7 +470,8 @@ class MaskedPoisson:
             y = y.contiguous()
             y2 = y.view(B, -1)
             y2.index_copy_(1, leaf_idx, r2.index_select(1, leaf_idx) * inv_d)
-            _scatter_add(y2, src, y2.index_select(1, dst) * frac)
+            _scatter_add(y2, src, y2.index_select(1, dst) * frac, rounds is not None,
+                         None if rounds is None else rounds[1])
         return self.project(y)
 
     # ---- direct solve of a layout that keeps coming back --------------------------------------------------

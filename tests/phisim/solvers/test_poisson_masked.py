@@ -182,7 +182,7 @@ def test_preconditioner_with_leaf_elimination_is_symmetric_positive_definite_on_
 
 
 def test_scatter_add_in_rounds_equals_index_add():
-    from phisim.solvers.masked import _scatter_add
+    from phisim.solvers.masked import _scatter_add, scatter_rounds
 
     gen = torch.Generator().manual_seed(9)
     index = torch.randint(0, 7, (40,), generator=gen)
@@ -193,6 +193,30 @@ def test_scatter_add_in_rounds_equals_index_add():
     torch.testing.assert_close(rounds, ref, rtol=1e-14, atol=1e-14)
     # each round adds one value per index, in the order the values come: bit for bit on a second call
     assert torch.equal(rounds, _scatter_add(out.clone(), index, values, in_rounds=True))
+    # rounds built once: no index repeats within a round, every position is used once, the same sums
+    plan = scatter_rounds(index)
+    assert len(plan) == int(torch.bincount(index).max())
+    assert all(len(torch.unique(ik)) == len(ik) and torch.equal(index[sk], ik) for ik, sk in plan)
+    assert torch.equal(torch.sort(torch.cat([sk for _, sk in plan])).values, torch.arange(len(index)))
+    assert torch.equal(rounds, _scatter_add(out.clone(), index, values, in_rounds=True, rounds=plan))
+    assert scatter_rounds(index[:0]) == ()
+
+
+def test_preconditioner_in_rounds_equals_the_cpu_scatter():
+    """The deterministic scatter of other devices (rounds built once per layout), forced on the CPU: the same
+    preconditioner and the same solve as ``index_add_``."""
+    from phisim.solvers.linalg import Solve
+
+    plain, rounds = _disc_and_box_operator(), _disc_and_box_operator()
+    rounds.deterministic_rounds = True
+    assert plain._rounds(torch.device("cpu")) is None and len(rounds._rounds(torch.device("cpu"))[0]) >= 2
+    gen = torch.Generator().manual_seed(4)
+    r = plain.project(torch.randn(3, *plain.resolution, dtype=torch.float64, generator=gen) * plain.active)
+    torch.testing.assert_close(rounds._precondition(r), plain._precondition(r), rtol=1e-14, atol=1e-14)
+    x1, i1 = plain.solve(r[:1], solve=Solve(rtol=1e-10))
+    x2, i2 = rounds.solve(r[:1], solve=Solve(rtol=1e-10))
+    assert int(i1.iterations[0]) == int(i2.iterations[0])
+    torch.testing.assert_close(x1, x2, rtol=1e-12, atol=1e-12)
 
 
 # ---- the direct (capacitance) solve of a layout that keeps coming back ----------------------------------------
