@@ -11,7 +11,11 @@ On a GPU (``--device cuda``) the floor's transform is torch's FFT (pyfftw is CPU
 bracketed by CUDA synchronisations.
 
 Run:  python benchmarks/bench_bodies.py [--sizes 128 256] [--repeat 5] [--threads 1] [--device cpu] [--wake]
-      [--sharp] [--json out.json]
+      [--sharp] [--cylinder NY ...] [--json out.json]
+
+``--cylinder NY [NY ...]`` counts the torch operations and host reads (numbers read back, ``nonzero``) of one step of
+the DFG 2D-2 cylinder with PCG pressure, the path a GPU takes, and times it; on CUDA also the kernel launches, memory
+copies and the GPU's busy time (profiler): where a step is bound by the host rather than the GPU.
 
 ``--sharp`` times whole steps of the wake (implicit and explicit viscosity) and the plume with sharp and with
 blended no-slip bodies instead (direct pressure solve, interleaved, best of ``--repeat`` medians of the step's
@@ -188,6 +192,60 @@ def plume_step_ms(n: int, dtype, direct: bool, steps: int = 160, sharp: bool = T
     return _median_step_ms(step, (smoke, v, None), steps, clock)
 
 
+#: Operations that make the host wait for a GPU: a number read back (``item``, ``bool``, ``float``) and ``nonzero``
+#: (whose output size the host must know), also behind boolean indexing.
+_HOST_READS = ("_local_scalar_dense", "nonzero", "masked_select")
+
+
+def cylinder_step_counts(ny: int, integrator: str, convection: str, device, steps: int = 20) -> dict:
+    """Operations, host reads and ms per step of the DFG 2D-2 cylinder (``examples/cylinder_benchmark.py``,
+    float64, CFL 0.5) with the pressure solved by PCG, the path a GPU takes (the direct solve is CPU-only): after
+    ``steps`` steps to warm up, the mean over ``steps`` timed steps, then one step's torch operations and host reads
+    counted (and on CUDA, from the profiler over that step, kernel launches and memory copies)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from cylinder_benchmark import NU, setup
+
+    class Count(TorchDispatchMode):
+        ops = reads = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = func.__name__.split(".")[0]
+            self.ops += 1
+            self.reads += name in _HOST_READS or (name == "index" and any(
+                isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] or ())))
+            return func(*args, **(kwargs or {}))
+
+    grid, body, state, um = setup("2D-2", ny, torch.float64, device)
+    stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=NU, integrator=integrator,
+                           convection=convection, dtype=torch.float64, device=device,
+                           dt=0.5 * grid.dx[0] / (1.5 * um), direct=False)
+    for _ in range(steps):
+        state = stepper(state)
+    synchronize(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        state = stepper(state)
+    synchronize(device)
+    out = {"cylinder": f"{grid.resolution[0]}x{ny}", "integrator": integrator, "convection": convection,
+           "device": str(device), "step_ms": 1e3 * (time.perf_counter() - t0) / steps}
+    with Count() as count:
+        state = stepper(state)
+    out.update(operations=count.ops, host_reads=count.reads)
+    if device.type == "cuda":
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            state = stepper(state)
+            synchronize(device)
+        events = prof.key_averages()
+        out["kernel_launches"] = sum(e.count for e in events if "LaunchKernel" in e.key)
+        out["memory_copies"] = sum(e.count for e in events if e.key.startswith("cudaMemcpy"))
+        out["gpu_busy_ms"] = sum(e.self_device_time_total for e in events if e.device_type.name == "CUDA") / 1e3
+    return out
+
+
 def main(argv=None) -> int:
     """Command-line entry point: prints one line per size and dtype, optionally writes the rows as JSON.
 
@@ -204,10 +262,24 @@ def main(argv=None) -> int:
                     help="also time wake and plume steps with PCG and with the direct solve")
     ap.add_argument("--sharp", action="store_true",
                     help="only time whole steps (direct pressure) with sharp and with blended no-slip bodies")
+    ap.add_argument("--cylinder", type=int, nargs="+", default=None, metavar="NY",
+                    help="only count the operations and host reads of a DFG 2D-2 cylinder step (PCG pressure) "
+                         "with NY cells across the channel, 'imex2' + QUICK and 'split', and time it")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
     rows = []
+    if args.cylinder:
+        for ny in args.cylinder:
+            for integrator, convection in (("imex2", "quick"), ("split", "central")):
+                r = cylinder_step_counts(ny, integrator, convection, device)
+                rows.append(r)
+                print(" ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()),
+                      flush=True)
+        if args.json:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(json.dumps(rows, indent=1))
+        return 0
     if args.sharp:  # thread time: the CPU time of this thread, robust to other jobs on the machine
         for n in args.sizes:
             for dtype in (torch.float64, torch.float32):

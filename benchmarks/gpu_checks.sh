@@ -8,7 +8,8 @@
 #   jaxcfd    the periodic fluid step against jax-cfd, both sides on the GPU (benchmarks/bench_jaxcfd.py)
 #   compiled  phisim.compile (inductor, CUDA graphs) against jax-cfd: one step, batches, rollouts, gradients
 #   etdrk     the ETDRK steppers against exponax, both sides on the GPU (benchmarks/bench_etdrk.py)
-#   bodies    flows past bodies: sharp against blended bodies, PCG against the direct pressure solve
+#   bodies    flows past bodies: sharp against blended bodies, PCG against the direct pressure solve; the DFG
+#             cylinder step's kernel launches, host reads and GPU time (bench_bodies.py --cylinder)
 #   stepcost  the fixed cost of one smoke step on small grids (benchmarks/bench_simulate.py --step-cost)
 #
 # Wheels in .whl/ (pyfftw, jax-cfd, tree-math, exponax for the running Python) are installed to /tmp/site first
@@ -68,6 +69,9 @@ if part bodies; then
   echo "== flows past bodies on the GPU"
   timeout 100 "$PY" benchmarks/bench_bodies.py --device cuda --wake --sizes 128 256 512 > "$OUT/bodies.log" 2>&1
   echo "bodies rc=$?"; tail -30 "$OUT/bodies.log"
+  timeout 120 "$PY" benchmarks/bench_bodies.py --device cuda --cylinder 82 164 --json "$OUT/cylinder_step.json" \
+    > "$OUT/cylinder_step.log" 2>&1
+  echo "cylinder step rc=$?"; cat "$OUT/cylinder_step.log"
 fi
 if part stepcost; then
   echo "== the fixed cost of one smoke step"

@@ -145,6 +145,16 @@ def test_bench_bodies_tiny_cpu(tmp_path):
     _bench_bodies(tmp_path / "new", "cpu")
 
 
+def test_bench_bodies_counts_a_cylinder_step(tmp_path):
+    bb = load("benchmarks/bench_bodies.py")
+    out = tmp_path / "new" / "cyl.json"
+    assert bb.main(["--cylinder", "8", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert [(r["cylinder"], r["integrator"]) for r in rows] == [("43x8", "imex2"), ("43x8", "split")]
+    for r in rows:
+        assert r["step_ms"] > 0 and r["operations"] > 100 and 0 <= r["host_reads"] < r["operations"]
+
+
 def _bench_spectral(device: str, capsys) -> list:
     bs = load("benchmarks/bench_spectral.py")
     rows = bs.main(argv("benchmarks/bench_spectral.py", Path("unused"), device))

@@ -213,6 +213,21 @@ def test_preconditioner_in_rounds_equals_the_cpu_scatter():
     gen = torch.Generator().manual_seed(4)
     r = plain.project(torch.randn(3, *plain.resolution, dtype=torch.float64, generator=gen) * plain.active)
     torch.testing.assert_close(rounds._precondition(r), plain._precondition(r), rtol=1e-14, atol=1e-14)
+    # after the first call (which builds the rounds) the preconditioner reads nothing back from the device: no
+    # numbers, no nonzero (each would stall a GPU's queue once per CG iteration)
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Reads(TorchDispatchMode):
+        names: list = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.__name__.split(".")[0] in ("_local_scalar_dense", "nonzero", "masked_select"):
+                self.names.append(func.__name__)
+            return func(*args, **(kwargs or {}))
+
+    with Reads() as reads:
+        rounds._precondition(r)
+    assert reads.names == []
     x1, i1 = plain.solve(r[:1], solve=Solve(rtol=1e-10))
     x2, i2 = rounds.solve(r[:1], solve=Solve(rtol=1e-10))
     assert int(i1.iterations[0]) == int(i2.iterations[0])
