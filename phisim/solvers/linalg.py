@@ -86,6 +86,11 @@ Preconditioner = Callable[[Tensor], Tensor]
 Projector = Callable[[Tensor], Tensor]
 
 # Per-sample status codes used inside the iteration (int8 tensors on the solve's device).
+#: Whether tensors on the CPU take the CPU's loops (a scalar loop for one sample, host reads where a sample
+#: stopped); False runs the loop of other devices on the CPU too (no host reads but every ``check_every``
+#: iterations), which the tests use to check that loop without a GPU.
+_CPU_LOOPS = True
+
 _RUNNING = 0
 _CONVERGED = 1
 _MAX_ITER = 2
@@ -403,13 +408,15 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         ``(x, iterations, status)``; status is ``_RUNNING`` for samples that were not active.
 
     Per iteration the bookkeeping is a handful of ``(B,)`` operations: one "keeps going" flag combines
-    convergence, stagnation, budget and the finite/positive-curvature checks, and the reason a sample
-    stopped is worked out only in an iteration where some sample stopped (on the CPU, where asking the
-    host is free) or every iteration without a host synchronisation (on other devices).
+    convergence, stagnation, budget and the finite/positive-curvature checks. A sample that stops keeps the
+    iteration, residual norm and curvature it stopped with (in an iteration where some sample stopped on the
+    CPU, where asking the host is free; every iteration, without a host synchronisation, on other devices);
+    the reasons are worked out once, after the loop (a stopped sample's ``alpha`` is zero, so its
+    ``last_improved`` no longer changes).
     """
     B = x.shape[0]
     dev = x.device
-    on_cpu = dev.type == "cpu"
+    on_cpu = dev.type == "cpu" and _CPU_LOOPS
     if B == 1 and on_cpu:
         return _cg_single(A, M, P, x, r, tol, active, budget, window)
     iters = torch.zeros(B, dtype=torch.int64, device=dev)
@@ -431,6 +438,12 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
     # iteration number is the Python counter k; a sample's count is recorded when it stops (k, or k - 1 when
     # that iteration broke down), and k for the samples still active at the end.
     last_improved = torch.zeros(B, dtype=torch.int64, device=dev)
+    # what a sample stopped with: the iteration (0: has not stopped in the loop), whether its curvature broke
+    # down there (and the curvature), its residual norm
+    stop_at = torch.zeros(B, dtype=torch.int64, device=dev)
+    broke = torch.zeros(B, dtype=torch.bool, device=dev)
+    pq_stop = torch.zeros(B, dtype=rnorm.dtype, device=dev)
+    rnorm_stop = rnorm.clone()
     n_max = int(budget.max())
     k = 0
     while k < n_max:
@@ -454,13 +467,11 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         # going implies active: some sample stopped iff the two differ (one host read on the CPU)
         if not on_cpu or not torch.equal(going, active):
             stopped = active & ~going
-            reason = torch.where(
-                ~ok, torch.where(torch.isfinite(pq), _BREAKDOWN, _NONFINITE),
-                torch.where(rnorm <= tol, _CONVERGED,
-                            torch.where(~torch.isfinite(rnorm), _NONFINITE,
-                                        torch.where(k - last_improved >= window, _STAGNATED, _MAX_ITER))))
-            status = torch.where(stopped, reason.to(torch.int8), status)
-            iters = torch.where(stopped, ok.to(torch.int64) + (k - 1), iters)
+            broken = active & ~ok  # a breakdown stops its sample in the same iteration
+            stop_at = torch.where(stopped, k, stop_at)
+            rnorm_stop = torch.where(stopped, rnorm, rnorm_stop)
+            pq_stop = torch.where(broken, pq, pq_stop)
+            broke |= broken
             active = going
             if (on_cpu or k % check_every == 0) and not bool(active.any()):
                 break
@@ -468,6 +479,14 @@ def _cg_core(A: Callable[[Tensor], Tensor], M: Preconditioner | None, P: Project
         # stopped samples get p = z, which alpha = 0 keeps from acting; written into the second buffer
         p, spare = torch.addcmul(z, beta, p, out=spare), p
         rz = rz_new
+    ended = stop_at > 0
+    reason = torch.where(
+        broke, torch.where(torch.isfinite(pq_stop), _BREAKDOWN, _NONFINITE),
+        torch.where(rnorm_stop <= tol, _CONVERGED,
+                    torch.where(~torch.isfinite(rnorm_stop), _NONFINITE,
+                                torch.where(stop_at - last_improved >= window, _STAGNATED, _MAX_ITER))))
+    status = torch.where(ended, reason.to(torch.int8), status)
+    iters = torch.where(ended, stop_at - broke.to(torch.int64), iters)
     iters = torch.where(active, k, iters)
     status = torch.where(active, _MAX_ITER, status)
     return x, iters, status

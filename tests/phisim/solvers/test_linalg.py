@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -399,6 +401,17 @@ def test_public_names_have_docstrings():
         assert getattr(m, name).__doc__, name
 
 
+@contextlib.contextmanager
+def _device_loop():
+    from phisim.solvers import linalg
+
+    linalg._CPU_LOOPS = False
+    try:
+        yield
+    finally:
+        linalg._CPU_LOOPS = True
+
+
 @pytest.mark.parametrize("case", ["plain", "preconditioned", "projected", "breakdown", "stagnated", "max_iter",
                                   "float32"])
 def test_single_sample_loop_equals_the_batched_loop(case):
@@ -423,6 +436,24 @@ def test_single_sample_loop_equals_the_batched_loop(case):
     x2, i2 = cg(op, torch.cat([b, b]), return_info=True, **kw)
     assert i1.status[0] == i2.status[0] == i2.status[1]
     assert int(i1.iterations[0]) == int(i2.iterations[0])
+    # the loop of other devices (no host reads; stopping reasons worked out after the loop), here on the CPU, with
+    # a sample beside it that converges sooner (b / 1e6 of the same operator: the stopping rule is relative) and with
+    # host checks every 1 and 7 iterations: the same iterations, statuses and solutions
+    for every in (1, 7):
+        solve = kw["solve"]
+        dkw = dict(kw, solve=Solve(rtol=solve.rtol, atol=solve.atol, max_iter=solve.max_iter, raise_on_failure=False,
+                                   refine=False, stagnation_window=solve.stagnation_window, check_every=every))
+        other = torch.zeros_like(b)
+        other.view(-1)[::3] = 1.0
+        with _device_loop():
+            x3, i3 = cg(op, torch.cat([b, other]), return_info=True, **dkw)
+        x4, i4 = cg(op, torch.cat([b, other]), return_info=True, **dkw)
+        assert i3.status == i4.status and i3.status[0] == i1.status[0]
+        assert i3.iterations.tolist() == i4.iterations.tolist() and int(i3.iterations[0]) == int(i1.iterations[0])
+        assert torch.equal(x3, x4)
+        if case != "stagnated":  # (an incompatible right-hand side: where rounding ends it differs between loops)
+            _, i5 = cg(op, other, return_info=True, **dkw)  # the scalar loop: the second sample on its own
+            assert i3.status[1] == i5.status[0] and int(i3.iterations[1]) == int(i5.iterations[0])
     expected = {"breakdown": "breakdown", "max_iter": "max_iter"}.get(case)
     if expected:
         assert i1.status[0] == expected
@@ -431,3 +462,53 @@ def test_single_sample_loop_equals_the_batched_loop(case):
     if case != "stagnated":  # a stagnated iterate is garbage in both loops
         scale = float(x2[0].abs().max())
         torch.testing.assert_close(x1[0], x2[0], rtol=0, atol=(1e-10 if dtype == torch.float64 else 1e-4) * scale)
+
+
+@pytest.mark.parametrize("case", ["converged", "max_iter", "stagnated", "breakdown", "nonfinite"])
+def test_the_device_loop_stops_like_the_scalar_loop(case):
+    """The CG loop of other devices works out why each sample stopped after the loop, from what it stopped with;
+    run on the CPU it gives the scalar loop's iterations and reasons, also beside a sample that keeps going."""
+    from phisim.solvers import linalg
+
+    gen = torch.Generator().manual_seed(3)
+    b = torch.randn(1, 12, 10, dtype=torch.float64, generator=gen)
+    op, window, budget, tol = neg_laplace, 50, 200, 1e-9 * float(torch.linalg.vector_norm(b))
+    calls = [0]
+    if case == "max_iter":
+        budget = 9
+    if case == "stagnated":
+        op, window = neg_laplace_periodic, 4  # no projection: the residual's mean never goes
+        b = b + 1.0
+    if case == "breakdown":
+        op = lambda x: -neg_laplace(x)  # noqa: E731
+    if case == "nonfinite":
+        def op(x):  # NaN from the sixth application on, in the first sample only
+            calls[0] += 1
+            y = neg_laplace(x)
+            if calls[0] >= 6:
+                y = y.clone()
+                y[0, 0, 0] = float("nan")
+            return y
+
+    def run(loop, batch):
+        calls[0] = 0
+        rhs = b if batch == 1 else torch.cat([b, torch.randn(1, 12, 10, dtype=torch.float64, generator=gen)])
+        n = rhs.shape[0]
+        args = (op, None, None, torch.zeros_like(rhs), rhs.clone(), torch.full((n,), tol, dtype=torch.float64),
+                torch.ones(n, dtype=torch.bool), torch.full((n,), budget, dtype=torch.int64), window, 3)
+        linalg._CPU_LOOPS = loop
+        try:
+            x, iters, status = linalg._cg_core(*args)
+        finally:
+            linalg._CPU_LOOPS = True
+        return x[:1], int(iters[0]), int(status[0])
+
+    xs, ks, ss = run(True, 1)  # the scalar loop
+    expected = {"converged": linalg._CONVERGED, "max_iter": linalg._MAX_ITER, "stagnated": linalg._STAGNATED,
+                "breakdown": linalg._BREAKDOWN, "nonfinite": linalg._NONFINITE}[case]
+    assert ss == expected
+    for batch in (1, 2):
+        x, k, s = run(False, batch)
+        assert (k, s) == (ks, ss)
+        if case in ("converged", "max_iter"):
+            torch.testing.assert_close(x, xs, rtol=1e-12, atol=1e-12)
