@@ -85,12 +85,12 @@ Operator = Callable[..., Tensor]
 Preconditioner = Callable[[Tensor], Tensor]
 Projector = Callable[[Tensor], Tensor]
 
-# Per-sample status codes used inside the iteration (int8 tensors on the solve's device).
 #: Whether tensors on the CPU take the CPU's loops (a scalar loop for one sample, host reads where a sample
 #: stopped); False runs the loop of other devices on the CPU too (no host reads but every ``check_every``
 #: iterations), which the tests use to check that loop without a GPU.
 _CPU_LOOPS = True
 
+# Per-sample status codes used inside the iteration (int8 tensors on the solve's device).
 _RUNNING = 0
 _CONVERGED = 1
 _MAX_ITER = 2
