@@ -204,7 +204,9 @@ def cylinder_step_counts(ny: int, integrator: str, convection: str, device, step
     counted (and on CUDA, from the profiler over that step, kernel launches and memory copies)."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    examples = str(Path(__file__).resolve().parents[1] / "examples")
+    if examples not in sys.path:
+        sys.path.insert(0, examples)
     from cylinder_benchmark import NU, setup
 
     class Count(TorchDispatchMode):

@@ -487,10 +487,29 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     return fluid_fraction(phi, grad.abs().sum(-1), dx)
 
 
+def planar_cut(phi: torch.Tensor, g: torch.Tensor, side: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The wetted fraction and the wetted part's centroid of square faces of side ``side`` cut by the plane on which
+    the signed distance, ``phi`` at the face centre, changes with the in-face gradient ``g`` ``(..., d)`` (the unit
+    normal's part in the face; its own axis 0).
+
+    Returns:
+        ``(theta, centroid)``: :func:`~phisim.fluid.geometry.cut_fractions`' fraction, and the wetted part's centroid
+        relative to the face centre as far as the flux correction uses it: its component along ``g / |g|``,
+        ``(E[phi_+] / theta - phi) / |g|`` (exact: ``phi`` is linear over the face), at most half the face's diagonal;
+        the component across ``g`` (nonzero in 3-D where the cut is not symmetric about ``g``) is not kept.
+    """
+    theta, mean = cut_fractions(phi, g, side)
+    gn = g.norm(dim=-1).clamp_min(1e-12)
+    reach = 0.5 * side * math.sqrt(max(g.shape[-1] - 1, 1))
+    along = ((mean - theta * phi) / (theta.clamp_min(1e-12) * gn)).clamp(-reach, reach)
+    return theta, g / gn.unsqueeze(-1) * along.unsqueeze(-1)
+
+
 def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The wetted fraction and the wetted part's centroid of the faces normal to ``axis`` centred at ``points``
-    ``(..., d)``, from the planar cuts of their ``m^(d-1)`` sub-faces of side ``dx / m`` (each cut at its own centre).
+    ``(..., d)``, from the planar cuts (:func:`planar_cut`) of their ``m^(d-1)`` sub-faces of side ``dx / m`` (each cut
+    at its own centre).
 
     Returns:
         ``(theta, centroid)``: the mean of the sub-faces' fractions ``(...)`` and the centroid of the wetted part
@@ -502,7 +521,6 @@ def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: in
     rank = points.shape[-1]
     others = [a for a in range(rank) if a != axis]
     offsets = [((j + 0.5) / m - 0.5) * dx for j in range(m)]
-    reach = 0.5 * dx / m * math.sqrt(max(rank - 1, 1))
     total = points.new_zeros(points.shape[:-1])
     moment = torch.zeros_like(points)
     for combo in itertools.product(offsets, repeat=len(others)):
@@ -511,13 +529,9 @@ def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: in
             shift[a] = o
         sh = torch.tensor(shift, dtype=points.dtype, device=points.device)
         x = points + sh
-        g = face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis)
-        phi = body.sdf(x, t)
-        theta, mean = cut_fractions(phi, g, dx / m)
+        theta, c = planar_cut(body.sdf(x, t), face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis), dx / m)
         total = total + theta
-        gn = g.norm(dim=-1).clamp_min(1e-12)
-        along = ((mean - theta * phi) / (theta.clamp_min(1e-12) * gn)).clamp(-reach, reach)
-        moment = moment + theta.unsqueeze(-1) * (sh + g / gn.unsqueeze(-1) * along.unsqueeze(-1))
+        moment = moment + theta.unsqueeze(-1) * (sh + c)
     centroid = moment / total.clamp_min(1e-12).unsqueeze(-1)
     return total / m ** len(others), centroid
 

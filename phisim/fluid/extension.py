@@ -31,13 +31,13 @@ from phisim.fluid.bodies import (
     as_solids,
     extension_stencil,
     face_normal,
+    planar_cut,
     sdf_gradient,
     set_from_probes,
     sharp_no_slip,
     subface_cuts,
     unit_normal,
 )
-from phisim.fluid.geometry import cut_fractions
 
 __all__ = ["BAND_CELLS", "extend_into_bodies", "free_slip_flux", "free_slip_ghosts"]
 
@@ -233,13 +233,7 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
         if sel.numel():
             grad = grad.index_put((sel,), sdf_gradient(b, xs[sel], t, 1e-3 * h))
     g = face_normal(grad, i)
-    thf, mean = cut_fractions(pf, g, h)
-    gn = g.norm(dim=-1).clamp_min(1e-12)
-    # the wetted part's centroid lies (E[phi_+] / theta - phi_F) / |g| from the face centre along g / |g| (phi is linear
-    # over the face), at most half a face's diagonal away
-    reach = 0.5 * h * math.sqrt(max(grid.rank - 1, 1))
-    offset = ((mean - thf * pf) / (thf.clamp_min(1e-12) * gn)).clamp(-reach, reach)
-    centroid = g / gn.unsqueeze(-1) * offset.unsqueeze(-1)
+    centroid = planar_cut(pf, g, h)[1]  # the wetted part's centroid relative to the face centre
     m = FREE_SLIP_SUBFACES[grid.rank]
     if m > 1:  # faces within a cell of the surface: the centroid of the sub-cuts the layout's fraction comes from
         for k, b in enumerate(bodies):

@@ -629,3 +629,33 @@ def test_a_stepper_solves_static_bodies_directly_and_agrees_with_the_pcg_of_the_
     # the fluid's mass is conserved (each projection makes the flux divergence-free with the flux correction of its
     # input velocity, see test_projection_with_inflow_is_divergence_free_everywhere)
     assert float(net_boundary_flux(out).abs().max()) < 1e-9
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_planar_cut_is_exact_for_a_plane(rank):
+    """One planar cut: the wetted fraction and the centroid's component along the in-face normal (the part the flux
+    correction uses) of a face that a plane cuts, against dense sampling of the face (points where the signed distance
+    ``phi + g . y`` is positive; faces normal to axis 0, so ``g[0] = 0``); the centroid returned lies along ``g``."""
+    from phisim.fluid.bodies import planar_cut
+
+    gen = torch.Generator().manual_seed(5)
+    k = 8
+    side = 0.3
+    g = torch.nn.functional.normalize(torch.randn(k, rank, dtype=F64, generator=gen), dim=-1)
+    g[:, 0] = 0.0
+    g[0] = 0.0  # a face parallel to the plane: all wetted or none
+    phi = (torch.rand(k, dtype=F64, generator=gen) - 0.5) * side
+    phi[0] = 0.01
+    theta, centroid = planar_cut(phi, g, side)
+    s = (torch.arange(400, dtype=F64) + 0.5) / 400 * side - side / 2
+    ys = torch.stack(torch.meshgrid(*([s] * (rank - 1)), indexing="ij"), -1).reshape(-1, rank - 1)
+    y = torch.cat([torch.zeros(len(ys), 1, dtype=F64), ys], -1)  # points of a face centred at 0
+    for j in range(k):
+        wet = phi[j] + y @ g[j] > 0
+        assert float(theta[j]) == pytest.approx(float(wet.double().mean()), abs=3e-3)
+        if wet.any() and float(g[j].norm()) > 0:
+            gh = g[j] / g[j].norm()
+            assert float(centroid[j] @ gh) == pytest.approx(float((y[wet] @ gh).mean()), abs=2e-3 * side)
+            torch.testing.assert_close(centroid[j], (centroid[j] @ gh) * gh, rtol=0, atol=1e-15)
+        else:
+            assert float(centroid[j].abs().max()) == 0.0
