@@ -36,7 +36,7 @@ import torch
 
 from phisim.boundary import Boundary, Inflow
 from phisim.errors import BoundaryError, ParameterError, ShapeError
-from phisim.fluid.geometry import Geometry, cut_fractions, fluid_fraction, rotation_matrix
+from phisim.fluid.geometry import Geometry, cut_centroid, cut_fractions, fluid_fraction, rotation_matrix
 from phisim.grid import Grid
 
 __all__ = ["Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks"]
@@ -494,29 +494,84 @@ def planar_cut(phi: torch.Tensor, g: torch.Tensor, side: float) -> tuple[torch.T
 
     Returns:
         ``(theta, centroid)``: :func:`~phisim.fluid.geometry.cut_fractions`' fraction, and the wetted part's centroid
-        relative to the face centre as far as the flux correction uses it: its component along ``g / |g|``,
-        ``(E[phi_+] / theta - phi) / |g|`` (exact: ``phi`` is linear over the face), at most half the face's diagonal;
-        the component across ``g`` (nonzero in 3-D where the cut is not symmetric about ``g``) is not kept.
+        relative to the face centre (:func:`~phisim.fluid.geometry.cut_centroid`, exact: ``phi`` is linear over the
+        face): along ``g / |g|`` it is ``(E[phi_+] / theta - phi) / |g|``; in 3-D it also has a component across
+        ``g`` where the cut is not symmetric about ``g`` (a corner cut off).
     """
-    theta, mean = cut_fractions(phi, g, side)
-    gn = g.norm(dim=-1).clamp_min(1e-12)
-    reach = 0.5 * side * math.sqrt(max(g.shape[-1] - 1, 1))
-    along = ((mean - theta * phi) / (theta.clamp_min(1e-12) * gn)).clamp(-reach, reach)
-    return theta, g / gn.unsqueeze(-1) * along.unsqueeze(-1)
+    theta, _, centroid = cut_centroid(phi, g, side)
+    return theta, centroid
+
+
+def curved_cut(body: Body, x: torch.Tensor, t: float, g: torch.Tensor, side: float, axis: int
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The wetted fraction and first moment of faces of side ``side`` normal to ``axis`` centred at ``x`` ``(..., d)``,
+    from the planar cut with the in-face gradient ``g`` (:func:`planar_cut`) and one correction for the surface's
+    curvature, read from the signed distance on the cut.
+
+    The plane ``L`` on which the linear model ``phi(x) + g . y`` vanishes misses the surface by ``-phi(y) / |g|``
+    along ``g`` (one Newton step), so the wetted area grows by ``int_L phi dl / |g|`` and its first moment by
+    ``int_L y phi dl / |g|``. ``phi`` is quadratic along ``L`` to leading order, so Simpson's rule on the cut (its
+    ends and middle: three evaluations of the distance; in 2-D ``L`` is one point) takes these integrals exactly
+    there: the fraction's error falls from ``O(kappa side)`` to ``O(kappa^2 side^2)``, the moment's likewise
+    (docs/VALIDATION.md, "Free-slip bodies"). The fraction is clamped to ``[0, 1]``.
+
+    Returns:
+        ``(theta, moment)``: the fraction ``(...)`` and ``theta`` times the wetted part's centroid relative to ``x``
+        ``(..., d)``.
+    """
+    phi = body.sdf(x, t)
+    theta, centroid = planar_cut(phi, g, side)
+    moment = theta.unsqueeze(-1) * centroid
+    gn2 = (g * g).sum(-1)
+    flat = gn2 < 1e-18  # a face parallel to the surface: no cut line
+    gn2 = torch.where(flat, torch.ones_like(gn2), gn2)
+    gn = gn2.sqrt()
+    foot = -(phi / gn2).unsqueeze(-1) * g  # the point of L nearest the face centre
+    others = [a for a in range(x.shape[-1]) if a != axis]
+    half = side / 2
+    if len(others) == 1:  # 2-D: L is the point foot
+        (b,) = others
+        cut = ~flat & (foot[..., b].abs() < half)
+        points, weights = [foot], [torch.where(cut, 1.0 / (gn * side), torch.zeros_like(gn))]
+    else:  # 3-D: L is the segment foot + s tau, clipped to the face
+        a, b = others
+        tau = torch.zeros_like(g)
+        tau[..., a], tau[..., b] = -g[..., b] / gn, g[..., a] / gn
+        lo, hi = torch.full_like(phi, -2 * side), torch.full_like(phi, 2 * side)
+        for k in (a, b):
+            tk = tau[..., k]
+            moves = tk.abs() > 1e-12
+            tk = torch.where(moves, tk, torch.ones_like(tk))
+            s1, s2 = (-half - foot[..., k]) / tk, (half - foot[..., k]) / tk
+            within = foot[..., k].abs() < half
+            lo = torch.where(moves, torch.maximum(lo, torch.minimum(s1, s2)), torch.where(within, lo, hi))
+            hi = torch.where(moves, torch.minimum(hi, torch.maximum(s1, s2)), torch.where(within, hi, lo))
+        length = torch.where(flat, torch.zeros_like(lo), (hi - lo).clamp_min(0.0))
+        lo, hi = torch.where(length > 0, lo, 0.0), torch.where(length > 0, hi, 0.0)
+        points = [foot + u.unsqueeze(-1) * tau for u in (lo, (lo + hi) / 2, hi)]
+        w = length / (6 * gn * side * side)
+        weights = [w, 4 * w, w]
+    grow = torch.zeros_like(theta)
+    for p, w in zip(points, weights):
+        ph = body.sdf(x + p, t) * w
+        grow = grow + ph
+        moment = moment + ph.unsqueeze(-1) * p
+    return (theta + grow).clamp(0.0, 1.0), moment
 
 
 def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int, m: int
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The wetted fraction and the wetted part's centroid of the faces normal to ``axis`` centred at ``points``
-    ``(..., d)``, from the planar cuts (:func:`planar_cut`) of their ``m^(d-1)`` sub-faces of side ``dx / m`` (each cut
-    at its own centre).
+    ``(..., d)``, from the curvature-corrected cuts (:func:`curved_cut`) of their ``m^(d-1)`` sub-faces of side
+    ``dx / m`` (each cut at its own centre).
 
     Returns:
         ``(theta, centroid)``: the mean of the sub-faces' fractions ``(...)`` and the centroid of the wetted part
-        relative to the face centre ``(..., d)`` (each sub-face's wetted centroid, its centre moved along the cut's
-        in-face normal by ``(E[phi_+] / theta - phi) / |g|``, weighted by its fraction; the face centre where nothing
-        is wetted). On a curved surface a single planar cut places that centroid ``O(kappa dx^2 / |g|)`` off, which
-        on faces nearly parallel to the surface (small ``|g|``) is a large part of the face.
+        relative to the face centre ``(..., d)`` (the sub-faces' moments over their fractions; the face centre where
+        nothing is wetted). On a curved surface an uncorrected planar cut errs by ``O(kappa dx)`` in the fraction and
+        places the centroid ``O(kappa dx^2 / |g|)`` off, which on faces nearly parallel to the surface (small ``|g|``)
+        is a large part of the face; ``m`` sub-faces divide the planar cut's errors by ``m^2``, the correction takes
+        them to second order.
     """
     rank = points.shape[-1]
     others = [a for a in range(rank) if a != axis]
@@ -529,11 +584,11 @@ def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: in
             shift[a] = o
         sh = torch.tensor(shift, dtype=points.dtype, device=points.device)
         x = points + sh
-        theta, c = planar_cut(body.sdf(x, t), face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis), dx / m)
+        theta, mom = curved_cut(body, x, t, face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis), dx / m, axis)
         total = total + theta
-        moment = moment + theta.unsqueeze(-1) * (sh + c)
-    centroid = moment / total.clamp_min(1e-12).unsqueeze(-1)
-    return total / m ** len(others), centroid
+        moment = moment + theta.unsqueeze(-1) * sh + mom
+    centroid = torch.where((total > 0).unsqueeze(-1), moment / total.clamp_min(1e-12).unsqueeze(-1), 0.0)
+    return total / m ** len(others), centroid.clamp(-dx / 2, dx / 2)
 
 
 def face_normal(grad: torch.Tensor, axis: int | None) -> torch.Tensor:

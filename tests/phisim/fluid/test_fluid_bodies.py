@@ -631,11 +631,45 @@ def test_a_stepper_solves_static_bodies_directly_and_agrees_with_the_pcg_of_the_
     assert float(net_boundary_flux(out).abs().max()) < 1e-9
 
 
+@pytest.mark.parametrize("rank", [1, 2, 3])
+def test_cut_centroid_is_exact_for_a_plane(rank):
+    """The fluid fraction, mean positive distance and centroid of a square/cube cut by a plane, against dense
+    sampling (midpoints of ``n^rank`` sub-cells), for random normals and distances across the cut band, an axis with a
+    normal component below ``1e-3`` (a zero centroid component there, the fluid part symmetric along it) and control
+    volumes all fluid and all solid; ``gradcheck`` in ``phi`` and the normal."""
+    from phisim.fluid.geometry import cut_centroid
+
+    gen = torch.Generator().manual_seed(11)
+    k, side = 10, 0.2
+    n = torch.nn.functional.normalize(torch.randn(k, rank, dtype=F64, generator=gen), dim=-1)
+    phi = (torch.rand(k, dtype=F64, generator=gen) - 0.5) * side * rank ** 0.5
+    phi[0], phi[1] = 2 * side, -2 * side  # all fluid, all solid
+    if rank > 1:
+        n[2, -1] = 1e-4
+    theta, mean, centroid = cut_centroid(phi, n, side)
+    m = {1: 4000, 2: 400, 3: 100}[rank]
+    s = (torch.arange(m, dtype=F64) + 0.5) / m * side - side / 2
+    y = torch.stack(torch.meshgrid(*([s] * rank), indexing="ij"), -1).reshape(-1, rank)
+    for j in range(k):
+        d = phi[j] + y @ n[j]
+        wet = d > 0
+        assert float(theta[j]) == pytest.approx(float(wet.double().mean()), abs=2.0 / m)
+        assert float(mean[j]) == pytest.approx(float(d.clamp_min(0).mean()), abs=2.0 * side / m)
+        ref = y[wet].mean(0) if wet.any() and not bool(wet.all()) else torch.zeros(rank, dtype=F64)
+        torch.testing.assert_close(centroid[j], ref, rtol=0, atol=2.0 * side / m)
+    if rank > 1:
+        assert float(centroid[2, -1]) == 0.0
+    p = torch.tensor([0.013, -0.02, 0.05], dtype=F64)[:rank].sum().reshape(1).requires_grad_()
+    nn = torch.nn.functional.normalize(torch.tensor([[0.7, -0.4, 0.3][:rank]], dtype=F64), dim=-1).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: cut_centroid(a, b, side), (p, nn))
+
+
 @pytest.mark.parametrize("rank", [2, 3])
 def test_planar_cut_is_exact_for_a_plane(rank):
-    """One planar cut: the wetted fraction and the centroid's component along the in-face normal (the part the flux
-    correction uses) of a face that a plane cuts, against dense sampling of the face (points where the signed distance
-    ``phi + g . y`` is positive; faces normal to axis 0, so ``g[0] = 0``); the centroid returned lies along ``g``."""
+    """One planar cut: the wetted fraction and the wetted part's centroid (every component: in 3-D a cut that is not
+    symmetric about the in-face normal ``g`` moves the centroid across ``g`` as well) of a face that a plane cuts,
+    against dense sampling of the face (points where the signed distance ``phi + g . y`` is positive; faces normal to
+    axis 0, so ``g[0] = 0``); the face's own axis gets no component."""
     from phisim.fluid.bodies import planar_cut
 
     gen = torch.Generator().manual_seed(5)
@@ -650,12 +684,83 @@ def test_planar_cut_is_exact_for_a_plane(rank):
     s = (torch.arange(400, dtype=F64) + 0.5) / 400 * side - side / 2
     ys = torch.stack(torch.meshgrid(*([s] * (rank - 1)), indexing="ij"), -1).reshape(-1, rank - 1)
     y = torch.cat([torch.zeros(len(ys), 1, dtype=F64), ys], -1)  # points of a face centred at 0
+    across = 0.0
     for j in range(k):
         wet = phi[j] + y @ g[j] > 0
         assert float(theta[j]) == pytest.approx(float(wet.double().mean()), abs=3e-3)
-        if wet.any() and float(g[j].norm()) > 0:
+        if wet.any() and not bool(wet.all()):
+            ref = y[wet].mean(0)
+            torch.testing.assert_close(centroid[j], ref, rtol=0, atol=2e-3 * side)
             gh = g[j] / g[j].norm()
-            assert float(centroid[j] @ gh) == pytest.approx(float((y[wet] @ gh).mean()), abs=2e-3 * side)
-            torch.testing.assert_close(centroid[j], (centroid[j] @ gh) * gh, rtol=0, atol=1e-15)
+            across = max(across, float((ref - (ref @ gh) * gh).norm()) / side)
         else:
             assert float(centroid[j].abs().max()) == 0.0
+    if rank == 3:  # the sample has cuts whose centroid lies well off the line of g
+        assert across > 0.05
+
+
+def _ball_face_cuts(rank, radius, side, faces):
+    """Exact wetted fraction and first moment (relative to the face centre) of faces normal to axis 0 of side ``side``
+    centred at ``faces`` ``(k, rank)``, the fluid inside a ball of ``radius`` about the origin: the face's plane cuts
+    the ball in an interval (2-D) or a disc (3-D; integrated along axis 1 on 20000 midpoints of the exact chord in
+    axis 2, whose ends are known)."""
+    rho = (radius ** 2 - faces[:, 0] ** 2).clamp_min(0).sqrt()
+    half = side / 2
+    if rank == 2:
+        lo = torch.maximum(faces[:, 1] - half, -rho)
+        hi = torch.minimum(faces[:, 1] + half, rho)
+        length = (hi - lo).clamp_min(0)
+        mid = torch.where(length > 0, (lo + hi) / 2 - faces[:, 1], 0.0)
+        return length / side, torch.stack([torch.zeros_like(mid), length / side * mid], -1)
+    k = 20000
+    u = (torch.arange(k, dtype=F64) + 0.5) / k * side - half
+    y = faces[:, 1:2] + u
+    c = (rho.unsqueeze(1) ** 2 - y ** 2).clamp_min(0).sqrt()
+    lo = torch.maximum(faces[:, 2:3] - half, -c)
+    hi = torch.minimum(faces[:, 2:3] + half, c)
+    chord = (hi - lo).clamp_min(0)
+    theta = chord.mean(1) / side
+    m1 = (chord * u).mean(1) / side
+    m2 = (chord * ((lo + hi) / 2 - faces[:, 2:3])).mean(1) / side
+    return theta, torch.stack([torch.zeros_like(m1), m1, m2], -1)
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_curved_cut_is_second_order_on_a_ball(rank):
+    """The curvature-corrected cut of a face (``curved_cut``: the planar cut plus Simpson's rule of the signed distance
+    on the cut line) against the exact wetted fraction and moment of faces cut by a ball (fluid inside, radius 0.5):
+    on faces of side h = 0.02 / 0.01 / 0.005 (the same faces scaled towards the surface; kappa h up to 0.04), the planar cut's errors fall
+    at first order and the corrected ones at second order or better, far below the planar ones."""
+    from phisim.fluid.bodies import curved_cut, face_normal, planar_cut, sdf_gradient
+
+    radius = 0.5
+
+    class Ball:  # the fluid inside: the signed distance positive there
+        def sdf(self, x, t):
+            return radius - x.norm(dim=-1)
+
+    ball = Ball()
+    gen = torch.Generator().manual_seed(2)
+    k = 300
+    dirs = torch.nn.functional.normalize(torch.randn(k, rank, dtype=F64, generator=gen), dim=-1)
+    across = torch.rand(k, dtype=F64, generator=gen) - 0.5  # where the face centre lies across the surface
+    shift = torch.rand(k, rank, dtype=F64, generator=gen) - 0.5
+    shift[:, 0] = 0.0
+    errors = {"planar": [], "curved": []}
+    for side in (0.02, 0.01, 0.005):
+        faces = dirs * (radius - across * side).unsqueeze(1) + shift * side
+        theta, moment = _ball_face_cuts(rank, radius, side, faces)
+        g = face_normal(sdf_gradient(ball, faces, 0.0, 1e-6), 0)
+        th_p, c_p = planar_cut(ball.sdf(faces, 0.0), g, side)
+        th_c, mom_c = curved_cut(ball, faces, 0.0, g, side, 0)
+        cut = (theta > 1e-9) & (theta < 1 - 1e-9)
+        for name, th, mom in (("planar", th_p, th_p.unsqueeze(-1) * c_p), ("curved", th_c, mom_c)):
+            e_t = (th - theta)[cut]
+            e_m = (mom - moment)[cut].norm(dim=-1) / side
+            errors[name].append((float(e_t.pow(2).mean().sqrt()), float(e_m.pow(2).mean().sqrt())))
+    for name, low, high in (("planar", 0.8, 1.3), ("curved", 1.8, 3.5)):  # measured 0.99-1.13 and 1.95-2.8
+        e = torch.tensor(errors[name])
+        orders = torch.log2(e[:-1] / e[1:])
+        assert bool(((orders > low) & (orders < high)).all()), (name, errors)
+    # at h = 0.005 the corrected errors are 2-4 % of the planar ones (fraction and moment)
+    assert all(c < 0.1 * p for p, c in zip(errors["planar"][-1], errors["curved"][-1])), errors

@@ -195,6 +195,7 @@ def _gradcheck_reading(read, seed: int) -> bool:
     return torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow  # about 30 s (the slow run keeps it; the momentum reading's gradcheck stays in the default run)
 def test_wall_pressure_gradcheck():
     pts = torch.tensor([[0.013 + 0.35, -0.021], [0.013, 0.329]], dtype=torch.float64)
     assert _gradcheck_reading(lambda v, p, body: wall_pressure(v, p, body, pts, dt=DT, viscosity=0.05), 3)
