@@ -131,10 +131,11 @@ def test_gradcheck_step_wrt_shape_and_motion(scheme):
 @pytest.mark.slow  # about 30 s (48^2 to its steady state)
 def test_free_slip_outer_cylinder_turns_with_the_inner_one(load_example):
     """A rotating no-slip cylinder inside a free-slip one: the steady Stokes flow is the rigid rotation (no shear
-    stress anywhere). Measured: largest error 0.060 % / 0.16 % of omega R1 on 24^2 / 48^2, rms 0.022 % / 0.0068 %
-    (order 1.70); with one planar cut per face instead of the free-slip sub-cuts 0.16 % / 0.99 % and 0.043 % / 0.058 %
-    (the rms error rising); before the free-slip ghost values, wetted fractions and flux correction: 1.87 (the fluid
-    beside the free-slip cylinder stayed nearly at rest), with the ghost values alone 0.14 / 0.17."""
+    stress anywhere). Measured: largest error 0.051 % / 0.011 % of omega R1 on 24^2 / 48^2, rms 0.022 % / 0.0053 %
+    (order 2.06), with the curvature-corrected sub-cuts (``curved_cut``; the planar sub-cuts: 0.058 % / 0.014 %, the
+    largest error at 96^2 2.7 times the corrected one's); with one planar cut per face 0.16 % / 0.99 % and 0.043 % /
+    0.058 % (the rms error rising); before the free-slip ghost values, wetted fractions and flux correction: 1.87
+    (the fluid beside the free-slip cylinder stayed nearly at rest), with the ghost values alone 0.14 / 0.17."""
     tc = load_example("taylor_couette")
     rows = tc.study([24, 48], free_slip=True)
     for row in rows:

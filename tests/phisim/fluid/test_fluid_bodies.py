@@ -729,8 +729,9 @@ def _ball_face_cuts(rank, radius, side, faces):
 def test_curved_cut_is_second_order_on_a_ball(rank):
     """The curvature-corrected cut of a face (``curved_cut``: the planar cut plus Simpson's rule of the signed distance
     on the cut line) against the exact wetted fraction and moment of faces cut by a ball (fluid inside, radius 0.5):
-    on faces of side h = 0.02 / 0.01 / 0.005 (the same faces scaled towards the surface; kappa h up to 0.04), the planar cut's errors fall
-    at first order and the corrected ones at second order or better, far below the planar ones."""
+    on faces of side h = 0.02 / 0.01 / 0.005 (the same faces scaled towards the surface; kappa h up to 0.04), the
+    planar cut's errors fall at first order and the corrected ones at second order or better, far below the planar
+    ones."""
     from phisim.fluid.bodies import curved_cut, face_normal, planar_cut, sdf_gradient
 
     radius = 0.5

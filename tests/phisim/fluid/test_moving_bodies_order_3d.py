@@ -107,8 +107,10 @@ def run(n: int, t_end: float = 0.05, dt_cells: float = 1.0, rtol: float = 1e-6, 
     """The carried spherical Couette flow on ``n^3`` over ``[-HALF, HALF]^3`` up to ``t_end``; errors at ``t_end`` (a
     free-slip outer sphere: the carried rigid rotation, velocity errors alone).
 
-    ``rtol`` of the pressure and viscous solves: 1e-6 is far below the velocity errors measured (1e-4 and more of the
-    wall speed); at 16^3 and 24^3 the errors agree with 1e-10 solves to three digits."""
+    ``rtol`` of the pressure and viscous solves: 1e-6 is far below the no-slip study's velocity errors (1e-4 and more
+    of the wall speed; at 16^3 and 24^3 the errors agree with 1e-10 solves to three digits); the free-slip errors from
+    40^3 on (near rms 2e-5 and less) need 1e-9 (with 1e-6 the solves' error is of their size: 1.1e-5 against 1.9e-5
+    at 40^3)."""
     half = HALF_FREE_SLIP if free_slip else SC.HALF
     grid = Grid((n, n, n), bounds=[(-half, half)] * 3)
     h = grid.dx[0]
@@ -128,7 +130,7 @@ def run(n: int, t_end: float = 0.05, dt_cells: float = 1.0, rtol: float = 1e-6, 
         t = t_new
     cpu = time.thread_time() - cpu
     changing = 0
-    err_near, err_all = [], []
+    err_near, err_all, err_outer = [], [], []
     for i in range(3):
         x = grid.face_centers(i, F64)
         changing += int(sum(((b.sdf(x, t - dt) <= 0) != (b.sdf(x, t) <= 0)).sum() for b in solids))
@@ -137,11 +139,14 @@ def run(n: int, t_end: float = 0.05, dt_cells: float = 1.0, rtol: float = 1e-6, 
         err = (v.values[i][0] - W[i] - couette(x - centre(t), free_slip)[..., i]).abs()
         err_near.append(err[fluid & ((rad - SC.R1 < 2 * h) | (SC.R2 - rad < 2 * h))])
         err_all.append(err[fluid])
-    err_near, err_all = torch.cat(err_near), torch.cat(err_all)
+        err_outer.append(err[fluid & (SC.R2 - rad < 2 * h)])
+    err_near, err_all, err_outer = torch.cat(err_near), torch.cat(err_all), torch.cat(err_outer)
     scale = SC.OMEGA * SC.R1
     row = {"n": n, "steps": steps, "dt": dt, "faces_changing_side_in_the_last_step": changing,
            "near_max": float(err_near.max()) / scale, "near_rms": float(err_near.pow(2).mean().sqrt()) / scale,
-           "all_rms": float(err_all.pow(2).mean().sqrt()) / scale, "cpu_s": cpu}
+           "all_rms": float(err_all.pow(2).mean().sqrt()) / scale,
+           "outer_max": float(err_outer.max()) / scale, "outer_rms": float(err_outer.pow(2).mean().sqrt()) / scale,
+           "cpu_s": cpu}
     if free_slip:  # the rigid rotation exerts no stress: no torque or force to compare
         return row
     ref = SC.exact_torque()
@@ -159,8 +164,8 @@ def study(ns, on_row=None, **kw) -> list[dict]:
         if len(rows) > 1:
             a, b = rows[-2:]
             f = math.log(b["n"] / a["n"])
-            b["order"] = {k: math.log(a[k] / b[k]) / f
-                          for k in ("near_max", "near_rms", "all_rms", "torque", "torque_flow", "force") if k in b}
+            keys = ("near_max", "near_rms", "all_rms", "outer_max", "outer_rms", "torque", "torque_flow", "force")
+            b["order"] = {k: math.log(a[k] / b[k]) / f for k in keys if k in b}
         if on_row is not None:
             on_row(rows[-1])
     return rows
@@ -214,13 +219,13 @@ def test_carried_spherical_couette_orders_24_32():
 
 def test_carried_free_slip_sphere():
     """The outer sphere free-slip, both carried (the exact flow: the carried rigid rotation), 24^3, in a box that
-    leaves the free-slip ghost values room: measured largest error 8.6e-4 of Omega R1 and rms near the surfaces 7.4e-5,
-    with the fractions and the flux correction's centroids from the sub-cuts of ``FREE_SLIP_SUBFACES`` (the sub-cuts'
-    fractions with one planar cut's centroid: 4.3e-3 / 2.6e-4; one planar cut for both: 8.7e-3 / 8.9e-4; both fail
-    the bounds)."""
+    leaves the free-slip ghost values room: measured largest error 2.3e-4 of Omega R1 and rms near the surfaces 4.8e-5,
+    with the fractions and the flux correction's centroids from the curvature-corrected sub-cuts (``curved_cut``;
+    the planar sub-cuts: 8.6e-4 / 7.4e-5; the sub-cuts' fractions with one planar cut's centroid: 4.3e-3 / 2.6e-4; one
+    planar cut for both: 8.7e-3 / 8.9e-4; all fail the bounds)."""
     row = study([24], free_slip=True)[0]
     assert row["faces_changing_side_in_the_last_step"] > 50, row
-    assert row["near_max"] < 1.5e-3 and row["near_rms"] < 1.2e-4, row
+    assert row["near_max"] < 4e-4 and row["near_rms"] < 6.5e-5, row
 
 
 @pytest.mark.parametrize(("integrator", "convection"), [
