@@ -188,25 +188,27 @@ def test_moving_couette_orders_32_64():
 
 def test_moving_free_slip_cylinder_coarse():
     """The carried free-slip Couette flow below on 16^2 -> 32^2 (the default suite's check, a third of the time):
-    measured near max 1.0e-3 -> 3.1e-4, near rms 3.3e-4 -> 8.4e-5 (order 1.99), all rms order 2.15."""
+    measured near max 9.8e-4 -> 2.2e-4 (order 2.14), near rms 3.4e-4 -> 8.2e-5 (order 2.04), all rms order 2.18 (the
+    planar sub-cuts: near max 1.0e-3 -> 3.1e-4, order 1.69)."""
     rows = study([16, 32], free_slip=True, rtol=1e-9)
     order = rows[1]["order"]
-    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8, rows
-    assert rows[1]["near_max"] < 5e-4 and rows[1]["near_rms"] < 1.2e-4, rows
+    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8 and order["near_max"] > 1.8, rows
+    assert rows[1]["near_max"] < 3e-4 and rows[1]["near_rms"] < 1.2e-4, rows
 
 
 @pytest.mark.slow
 def test_moving_free_slip_cylinder():
     """The outer cylinder free-slip and both carried at ``W``: the exact flow is the carried rigid rotation. The moving
-    free-slip body's faces take the fractions and the flux correction's centroids of the sub-cuts of
-    ``FREE_SLIP_SUBFACES`` as resting ones do: 24^2 -> 48^2 near max 4.8e-4 -> 1.6e-4, near rms 1.35e-4 -> 3.6e-5
-    (order 1.92), all rms order 2.12 (96^2: near rms order 1.70, all rms 2.12). One planar cut per face held the near
-    errors at first order (near max 1.8e-2 -> 8.2e-3, near rms order 1.10) and the sub-cuts' fractions with one planar
-    cut's centroid left near max 5.2e-4 at 48^2: both fail the bounds below."""
+    free-slip body's faces take the fractions and the flux correction's centroids of the curvature-corrected sub-cuts
+    of ``FREE_SLIP_SUBFACES`` as resting ones do: 24^2 -> 48^2 near max 4.0e-4 -> 9.0e-5 (order 2.16), near rms
+    1.36e-4 -> 3.5e-5 (order 1.94), all rms order 2.11 (96^2: 2.04 / 1.88 / 2.03). The planar sub-cuts left near max
+    1.6e-4 at 48^2 (order 1.59; 0.52 to 96^2), one planar cut per face held the near errors at first order (near max
+    1.8e-2 -> 8.2e-3, near rms order 1.10) and the sub-cuts' fractions with one planar cut's centroid left near max
+    5.2e-4 at 48^2: all fail the bounds below."""
     rows = study([24, 48], free_slip=True, rtol=1e-9)
     order = rows[1]["order"]
-    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8, rows
-    assert rows[1]["near_max"] < 3e-4 and rows[1]["near_rms"] < 6e-5, rows
+    assert order["near_rms"] > 1.8 and order["all_rms"] > 1.8 and order["near_max"] > 1.8, rows
+    assert rows[1]["near_max"] < 1.2e-4 and rows[1]["near_rms"] < 6e-5, rows
 
 
 if __name__ == "__main__":
