@@ -425,13 +425,13 @@ def cut_centroid(phi: torch.Tensor, normal: torch.Tensor, dx: float
         w = widths[..., k]
         terms = [t for x, sg, s in terms for t in ((x + w / 2, sg, s + (1.0,)), (x - w / 2, -sg, s + (-1.0,)))]
     scale = widths.prod(-1)
-    m = sum(sg * x.clamp_min(0) ** (rank + 1) for x, sg, _ in terms) / (math.factorial(rank + 1) * scale)
     powers = [x.clamp_min(0) ** rank for x, _, _ in terms]
     comps = []
     for a in range(rank):
-        # dM/dw_a: each term's x moves by s_a / 2 with w_a, and the 1 / prod(w) falls by 1 / w_a
+        # dM/dw_a (M = mean in the cut band, where the moment is used): each term's x moves by s_a / 2 with w_a,
+        # and the 1 / prod(w) falls by 1 / w_a
         a_sum = sum(sg * s[a] * p for (_, sg, s), p in zip(terms, powers)) / (2 * math.factorial(rank) * scale)
-        dm = a_sum - m / widths[..., a]
+        dm = a_sum - mean / widths[..., a]
         comps.append(torch.sign(normal[..., a]) * dx * dm)
     moment = torch.stack(comps, -1) * (raw > 1e-3 * dx).to(normal.dtype)
     half = widths.sum(-1) / 2

@@ -765,3 +765,24 @@ def test_curved_cut_is_second_order_on_a_ball(rank):
         assert bool(((orders > low) & (orders < high)).all()), (name, errors)
     # at h = 0.005 the corrected errors are 2-4 % of the planar ones (fraction and moment)
     assert all(c < 0.1 * p for p, c in zip(errors["planar"][-1], errors["curved"][-1])), errors
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_gradcheck_curved_subface_cuts_wrt_radius_and_centre(rank):
+    """The free-slip faces' fractions and centroids (``subface_cuts``: curvature-corrected sub-cuts) are differentiable
+    in a sphere's radius and centre, on faces cut at several places (a face whose cut line crosses sub-faces)."""
+    from phisim.fluid.bodies import subface_cuts
+
+    h = 0.1
+    faces = torch.tensor([[0.31, 0.02, -0.03], [0.05, 0.29, 0.04], [0.22, 0.2, 0.06], [0.27, -0.12, 0.1]],
+                         dtype=F64)[:, :rank]
+    radius = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    centre = torch.tensor([0.013, -0.021, 0.017][:rank], dtype=F64, requires_grad=True)
+
+    def f(r, c):
+        theta, centroid = subface_cuts(Body(Sphere(c, r), no_slip=False), faces, 0.0, h, 0, 2)
+        return theta, centroid
+
+    theta, _ = f(radius, centre)
+    assert bool(((theta > 0.05) & (theta < 0.95)).sum() >= 3), theta
+    assert torch.autograd.gradcheck(f, (radius, centre), eps=1e-7, atol=1e-6, rtol=1e-5)
