@@ -151,8 +151,11 @@ def test_anticipated_gradient_removes_most_of_the_split_steps_slip():
 
 
 # explicit viscosity at nu dt / dx^2 = 0.2 takes about a minute to its steady state: a long validation
+# both about 30 s: long validations (the default run keeps
+# test_anticipated_gradient_removes_most_of_the_split_steps_slip)
 @pytest.mark.parametrize("scheme, dt_cells, tol, whole_off", [
-    pytest.param("explicit", 0.2, 0.002, 0.01, marks=pytest.mark.slow), ("crank_nicolson", 1.0, 0.012, 0.06)])
+    pytest.param("explicit", 0.2, 0.002, 0.01, marks=pytest.mark.slow),
+    pytest.param("crank_nicolson", 1.0, 0.012, 0.06, marks=pytest.mark.slow)])
 def test_the_anticipated_part_follows_the_viscosity_scheme(scheme, dt_cells, tol, whole_off):
     """The same array on 16^2 (the exact discrete steady state: -2.633 %) with explicit viscosity at ``nu dt / dx^2 =
     0.2`` and Crank-Nicolson at 1: only the part of the stencil that reads the intermediate velocity gets the
