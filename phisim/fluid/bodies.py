@@ -464,6 +464,16 @@ def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor
 #: No-slip bodies keep one cut (their relative velocity vanishes at the surface).
 FREE_SLIP_SUBFACES = {1: 1, 2: 8, 3: 4}
 
+#: Sub-faces per in-face axis (by dimension) of a free-slip body's faces nearly parallel to its surface (the unit
+#: normal's component along the face's axis at least ``FREE_SLIP_PARALLEL`` at the face centre). There the surface
+#: crosses the face's plane in a tight curve (a sphere nearly tangent to the plane: a circle a few cells across) and a
+#: sub-face may be cut off at a corner, where the curvature-corrected cut's error is largest; in 3-D these few faces
+#: held the largest velocity error of the finest grids above its second-order trend (docs/VALIDATION.md, "Free-slip
+#: bodies in 3-D"). About a fifth of a sphere's cut faces: 1.6 times the sub-cuts of ``FREE_SLIP_SUBFACES`` alone,
+#: against 4 times for the fine count everywhere.
+FREE_SLIP_FINE_SUBFACES = {1: 1, 2: 8, 3: 8}
+FREE_SLIP_PARALLEL = 0.8
+
 
 def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: int | None = None) -> torch.Tensor:
     """Fluid fraction at ``points``: for sharp no-slip and free-slip bodies the exact fraction of a planar cut
@@ -481,9 +491,9 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
             return theta
         band = phi.abs() < dx
         if torch.compiler.is_compiling():  # no host read in a traced step: every face, the band selected after
-            return torch.where(band, subface_cuts(body, points, t, dx, axis, m)[0], theta)
+            return torch.where(band, free_slip_cuts(body, points, t, dx, axis)[0], theta)
         idx = band.nonzero(as_tuple=True)
-        return theta.index_put(idx, subface_cuts(body, points[idx], t, dx, axis, m)[0])
+        return theta.index_put(idx, free_slip_cuts(body, points[idx], t, dx, axis)[0])
     return fluid_fraction(phi, grad.abs().sum(-1), dx)
 
 
@@ -578,17 +588,48 @@ def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: in
     offsets = [((j + 0.5) / m - 0.5) * dx for j in range(m)]
     total = points.new_zeros(points.shape[:-1])
     moment = torch.zeros_like(points)
-    for combo in itertools.product(offsets, repeat=len(others)):
-        shift = [0.0] * rank
-        for a, o in zip(others, combo):
-            shift[a] = o
-        sh = torch.tensor(shift, dtype=points.dtype, device=points.device)
-        x = points + sh
+    # one row of m sub-faces along the last in-face axis at a time, batched in a new dimension before the last (the
+    # traced graph grows with the rows, not with m^(d-1); the memory with faces times m)
+    row = torch.zeros(m, rank, dtype=points.dtype, device=points.device)
+    row[:, others[-1]] = torch.tensor(offsets, dtype=points.dtype, device=points.device)
+    for combo in itertools.product(offsets, repeat=len(others) - 1):
+        sh = row.clone()
+        for a, o in zip(others[:-1], combo):
+            sh[:, a] = o
+        x = points.unsqueeze(-2) + sh
         theta, mom = curved_cut(body, x, t, face_normal(sdf_gradient(body, x, t, 1e-3 * dx), axis), dx / m, axis)
-        total = total + theta
-        moment = moment + theta.unsqueeze(-1) * sh + mom
+        total = total + theta.sum(-1)
+        moment = moment + (theta.unsqueeze(-1) * sh + mom).sum(-2)
     centroid = torch.where((total > 0).unsqueeze(-1), moment / total.clamp_min(1e-12).unsqueeze(-1), 0.0)
     return total / m ** len(others), centroid.clamp(-dx / 2, dx / 2)
+
+
+def free_slip_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The wetted fraction and the wetted part's centroid of a free-slip body's faces normal to ``axis`` centred at
+    ``points`` ``(..., d)`` (those within a cell of its surface: the layout's fractions and the flux correction's
+    centroids): :func:`subface_cuts` with ``FREE_SLIP_SUBFACES`` sub-faces per in-face axis, and
+    ``FREE_SLIP_FINE_SUBFACES`` on the faces nearly parallel to the surface (``|n_axis| >= FREE_SLIP_PARALLEL``).
+    Eager calls cut each face once, with its own count; a traced call (no host reads) cuts every face both ways and
+    selects."""
+    rank = points.shape[-1]
+    m, fine = FREE_SLIP_SUBFACES[rank], FREE_SLIP_FINE_SUBFACES[rank]
+    if fine == m:
+        return subface_cuts(body, points, t, dx, axis, m)
+    n = face_normal(sdf_gradient(body, points, t, 1e-3 * dx), None)
+    parallel = n[..., axis].detach().abs() >= FREE_SLIP_PARALLEL
+    if torch.compiler.is_compiling():
+        theta, centroid = subface_cuts(body, points, t, dx, axis, m)
+        ft, fc = subface_cuts(body, points, t, dx, axis, fine)
+        return torch.where(parallel, ft, theta), torch.where(parallel.unsqueeze(-1), fc, centroid)
+    theta = points.new_zeros(points.shape[:-1])
+    centroid = torch.zeros_like(points)
+    for sel, count in ((~parallel, m), (parallel, fine)):
+        idx = sel.nonzero(as_tuple=True)
+        if idx[0].numel():
+            th, c = subface_cuts(body, points[idx], t, dx, axis, count)
+            theta, centroid = theta.index_put(idx, th), centroid.index_put(idx, c)
+    return theta, centroid
 
 
 def face_normal(grad: torch.Tensor, axis: int | None) -> torch.Tensor:

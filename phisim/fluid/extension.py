@@ -32,11 +32,11 @@ from phisim.fluid.bodies import (
     as_solids,
     extension_stencil,
     face_normal,
+    free_slip_cuts,
     planar_cut,
     sdf_gradient,
     set_from_probes,
     sharp_no_slip,
-    subface_cuts,
     unit_normal,
 )
 
@@ -254,12 +254,11 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
             grad = grad.index_put((sel,), sdf_gradient(b, xs[sel], t, 1e-3 * h))
     g = face_normal(grad, i)
     centroid = planar_cut(pf, g, h)[1]  # the wetted part's centroid relative to the face centre
-    m = FREE_SLIP_SUBFACES[grid.rank]
-    if m > 1:  # faces within a cell of the surface: the centroid of the sub-cuts the layout's fraction comes from
-        for k, b in enumerate(bodies):
+    if FREE_SLIP_SUBFACES[grid.rank] > 1:  # faces within a cell of the surface: the centroid of the sub-cuts the
+        for k, b in enumerate(bodies):  # layout's fraction comes from
             sel = ((owner == k) & (pf.detach().abs() < h)).nonzero().squeeze(1)
             if sel.numel():
-                centroid = centroid.index_put((sel,), subface_cuts(b, xs[sel], t, h, i, m)[1])
+                centroid = centroid.index_put((sel,), free_slip_cuts(b, xs[sel], t, h, i)[1])
     # theta times the centroid's offset along axis j; theta the layout's (the wetted fraction the projection weighs
     # the face with, from sub-cuts on curved free-slip surfaces), so that the correction vanishes with it
     amount = layout.theta[i][0].reshape(-1)[index].to(dtype)
@@ -285,7 +284,7 @@ def free_slip_flux(values, layout: SolidLayout | None, grid, time: float | None 
     cut (``g`` the unit normal's part in the face, ``E[phi_+]`` the face's mean positive distance,
     :func:`~phisim.fluid.geometry.cut_fractions`), the in-face derivative taken one face towards the fluid. Faces
     within a cell of the surface take the centroid of the sub-cuts their wetted fraction comes from
-    (:func:`~phisim.fluid.bodies.subface_cuts`): one planar cut misplaces it on faces nearly parallel to a curved
+    (:func:`~phisim.fluid.bodies.free_slip_cuts`): one planar cut misplaces it on faces nearly parallel to a curved
     surface, which held the 3-D free-slip errors near first order (docs/VALIDATION.md, "Free-slip bodies"). Without
     the correction the cut cells' divergence is off by O(1) and the velocity next to a curved free-slip surface does
     not converge (the no-slip bodies' counterpart is :func:`~phisim.fluid.projection.flux_correction`). ``time``: where

@@ -786,3 +786,84 @@ def test_gradcheck_curved_subface_cuts_wrt_radius_and_centre(rank):
     theta, _ = f(radius, centre)
     assert bool(((theta > 0.05) & (theta < 0.95)).sum() >= 3), theta
     assert torch.autograd.gradcheck(f, (radius, centre), eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def _ball_band_faces(n, radius, cos_min):
+    """Faces normal to x of an ``n^3`` grid over ``[-0.6, 0.6]^3`` (offset from the ball's centre by 0.0123 cells)
+    within a cell of the sphere of ``radius`` about the origin, on the side ``x > 0`` where the unit normal's x
+    component is at least ``cos_min``; and the face side."""
+    h = 1.2 / n
+    c = (torch.arange(n, dtype=F64) + 0.5) * h - 0.6 + 0.0123 * h
+    x = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
+    x[:, 0] -= h / 2
+    r = x.norm(dim=-1)
+    return x[((radius - r).abs() < h) & (x[:, 0] > 0) & (x[:, 0] / r >= cos_min)], h
+
+
+def test_free_slip_cuts_refine_the_faces_nearly_parallel_to_the_surface():
+    """``free_slip_cuts`` (the layout's fractions and the flux correction's centroids of a free-slip body) cuts the
+    faces whose unit normal lies within ``FREE_SLIP_PARALLEL`` of the face's axis in ``FREE_SLIP_FINE_SUBFACES`` sub-
+    faces, the others in ``FREE_SLIP_SUBFACES``; against the exact cuts of a ball (radius 0.5, the 900 band faces of a
+    32^3 grid whose normal is within 53 degrees of x), the largest fraction error falls from 2.4e-5 (4 x 4 everywhere)
+    to 5.2e-6 (measured), that of 8 x 8 everywhere, at a fifth of its extra cost over the whole band (the fine
+    cuts on a fifth of a sphere's cut faces)."""
+    from phisim.fluid.bodies import (
+        FREE_SLIP_FINE_SUBFACES,
+        FREE_SLIP_PARALLEL,
+        FREE_SLIP_SUBFACES,
+        free_slip_cuts,
+        subface_cuts,
+    )
+
+    radius = 0.5
+
+    class Ball:  # the fluid inside
+        def sdf(self, x, t):
+            return radius - x.norm(dim=-1)
+
+    ball = Ball()
+    faces, h = _ball_band_faces(32, radius, 0.6)
+    parallel = faces[:, 0] / faces.norm(dim=-1) >= FREE_SLIP_PARALLEL
+    assert 0.2 * len(faces) < int(parallel.sum()) < 0.8 * len(faces)
+    theta, centroid = free_slip_cuts(ball, faces, 0.0, h, 0)
+    coarse = subface_cuts(ball, faces, 0.0, h, 0, FREE_SLIP_SUBFACES[3])
+    fine = subface_cuts(ball, faces, 0.0, h, 0, FREE_SLIP_FINE_SUBFACES[3])
+    for got, c, f in zip((theta, centroid), coarse, fine):
+        torch.testing.assert_close(got[parallel], f[parallel], rtol=1e-13, atol=1e-15)
+        torch.testing.assert_close(got[~parallel], c[~parallel], rtol=1e-13, atol=1e-15)
+    exact = torch.cat([_ball_face_cuts(3, radius, h, f)[0] for f in faces.split(200)])
+    worst = {name: float((th - exact).abs().max()) for name, th in (("free_slip_cuts", theta), ("coarse", coarse[0]),
+                                                                     ("fine", fine[0]))}
+    assert worst["free_slip_cuts"] < 0.3 * worst["coarse"], worst
+    assert worst["free_slip_cuts"] < 1.5 * worst["fine"], worst
+
+
+def test_free_slip_cuts_trace_and_differentiate():
+    """Traced (no host reads: every face cut both ways, then selected) ``free_slip_cuts`` equals the eager one (each
+    face cut once); the fractions and centroids are differentiable in a sphere's radius and centre across both kinds of
+    face (gradcheck; one face nearly parallel to the surface, the others not)."""
+    from phisim.fluid.bodies import FREE_SLIP_PARALLEL, free_slip_cuts
+
+    h = 0.1
+    faces = torch.tensor([[0.31, 0.02, -0.03], [0.05, 0.29, 0.04], [0.22, 0.2, 0.06], [0.27, -0.12, 0.1]], dtype=F64)
+    radius = torch.tensor(0.3, dtype=F64, requires_grad=True)
+    centre = torch.tensor([0.013, -0.021, 0.017], dtype=F64, requires_grad=True)
+    n = faces - centre.detach()
+    cos = n[:, 0].abs() / n.norm(dim=-1)
+    assert bool((cos >= FREE_SLIP_PARALLEL).any()) and bool((cos < FREE_SLIP_PARALLEL).any()), cos
+
+    def f(r, c):
+        return free_slip_cuts(Body(Sphere(c, r), no_slip=False), faces, 0.0, h, 0)
+
+    body = Body(Sphere(centre.detach(), radius.detach()), no_slip=False)  # built eagerly (it checks its input)
+    eager = free_slip_cuts(body, faces, 0.0, h, 0)
+    torch._dynamo.reset()
+    try:
+        traced = torch.compile(lambda x: free_slip_cuts(body, x, 0.0, h, 0), fullgraph=True, backend="eager",
+                               dynamic=False)(faces)
+    finally:
+        torch._dynamo.reset()
+    for a, b in zip(traced, eager):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    assert bool(((eager[0] > 0.05) & (eager[0] < 0.95)).sum() >= 3), eager[0]
+    assert torch.autograd.gradcheck(f, (radius, centre), eps=1e-7, atol=1e-6, rtol=1e-5)
