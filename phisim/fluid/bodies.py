@@ -465,7 +465,8 @@ def unit_normal(body: Body, x: torch.Tensor, t: float, h: float) -> torch.Tensor
 FREE_SLIP_SUBFACES = {1: 1, 2: 8, 3: 4}
 
 #: Sub-faces per in-face axis (by dimension) of a free-slip body's faces nearly parallel to its surface (the unit
-#: normal's component along the face's axis at least ``FREE_SLIP_PARALLEL`` at the face centre). There the surface
+#: normal's component along the face's axis at least ``FREE_SLIP_PARALLEL`` at the face centre, and the surface curved
+#: there: a flat side parallel to the face is cut exactly by any count, see :func:`free_slip_cuts`). There the surface
 #: crosses the face's plane in a tight curve (a sphere nearly tangent to the plane: a circle a few cells across) and a
 #: sub-face may be cut off at a corner, where the curvature-corrected cut's error is largest; in 3-D these few faces
 #: held the largest velocity error of the finest grids above its second-order trend (docs/VALIDATION.md, "Free-slip
@@ -609,15 +610,16 @@ def free_slip_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: 
     """The wetted fraction and the wetted part's centroid of a free-slip body's faces normal to ``axis`` centred at
     ``points`` ``(..., d)`` (those within a cell of its surface: the layout's fractions and the flux correction's
     centroids): :func:`subface_cuts` with ``FREE_SLIP_SUBFACES`` sub-faces per in-face axis, and
-    ``FREE_SLIP_FINE_SUBFACES`` on the faces nearly parallel to the surface (``|n_axis| >= FREE_SLIP_PARALLEL``).
-    Eager calls cut each face once, with its own count; a traced call (no host reads) cuts every face both ways and
-    selects."""
+    ``FREE_SLIP_FINE_SUBFACES`` on the faces nearly parallel to a curved surface (``|n_axis| >= FREE_SLIP_PARALLEL``
+    and the surface bending within the face, :func:`_bends_within`; a flat surface parallel to the face, such as the
+    side of a box aligned with the grid, is cut exactly by any count). Eager calls cut each face once, with its own
+    count; a traced call (no host reads) cuts every face both ways and selects."""
     rank = points.shape[-1]
     m, fine = FREE_SLIP_SUBFACES[rank], FREE_SLIP_FINE_SUBFACES[rank]
     if fine == m:
         return subface_cuts(body, points, t, dx, axis, m)
     n = face_normal(sdf_gradient(body, points, t, 1e-3 * dx), None)
-    parallel = n[..., axis].detach().abs() >= FREE_SLIP_PARALLEL
+    parallel = (n[..., axis].detach().abs() >= FREE_SLIP_PARALLEL) & _bends_within(body, points, t, dx, axis)
     if torch.compiler.is_compiling():
         theta, centroid = subface_cuts(body, points, t, dx, axis, m)
         ft, fc = subface_cuts(body, points, t, dx, axis, fine)
@@ -630,6 +632,29 @@ def free_slip_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: 
             th, c = subface_cuts(body, points[idx], t, dx, axis, count)
             theta, centroid = theta.index_put(idx, th), centroid.index_put(idx, c)
     return theta, centroid
+
+
+#: Smallest curvature, in units of ``1 / dx``, of the signed distance within a face for the fine sub-cuts of a face
+#: nearly parallel to the surface (a radius of curvature below a thousand cells).
+FREE_SLIP_BENDING = 1e-3
+
+
+def _bends_within(body: Body, points: torch.Tensor, t: float, dx: float, axis: int) -> torch.Tensor:
+    """Whether the signed distance bends over the faces of side ``dx`` normal to ``axis`` at ``points``: the largest
+    second difference over half a face along the in-face axes, ``|phi(x + s e) + phi(x - s e) - 2 phi(x)| / s^2`` with
+    ``s = dx / 2``, at least ``FREE_SLIP_BENDING / dx`` (zero on a plane; about ``1 / R`` near a sphere of radius
+    ``R``). Detached: it only chooses a count of sub-cuts."""
+    x = points.detach()
+    phi = body.sdf(x, t)
+    s = dx / 2
+    bend = torch.zeros_like(phi)
+    for a in range(x.shape[-1]):
+        if a == axis:
+            continue
+        e = torch.zeros(x.shape[-1], dtype=x.dtype, device=x.device)
+        e[a] = s
+        bend = torch.maximum(bend, (body.sdf(x + e, t) + body.sdf(x - e, t) - 2 * phi).abs())
+    return bend * dx >= FREE_SLIP_BENDING * s * s
 
 
 def face_normal(grad: torch.Tensor, axis: int | None) -> torch.Tensor:

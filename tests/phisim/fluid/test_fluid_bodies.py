@@ -872,3 +872,44 @@ def test_free_slip_cuts_trace_and_differentiate(monkeypatch):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
     assert bool(((eager[0] > 0.05) & (eager[0] < 0.95)).sum() >= 3), eager[0]
     assert torch.autograd.gradcheck(f, (radius, centre), eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def test_free_slip_cuts_keep_the_coarse_count_on_flat_sides(monkeypatch):
+    """A flat surface parallel to a face is cut exactly by any count of sub-cuts: the faces beside the sides of a
+    free-slip box aligned with the grid keep ``FREE_SLIP_SUBFACES`` (``_bends_within`` is false there), while those
+    nearly parallel to a sphere (the study's spheres, radius 0.4 and 0.8, from 24^3 to 72^3 of their box) all bend."""
+    from phisim.fluid import bodies
+    from phisim.fluid.bodies import FREE_SLIP_PARALLEL, FREE_SLIP_SUBFACES, _bends_within, free_slip_cuts, subface_cuts
+    from phisim.fluid.geometry import Box
+
+    n = 24
+    h = 1.0 / n
+    c = (torch.arange(n, dtype=F64) + 0.5) * h
+    x = torch.stack(torch.meshgrid(c - h / 2, c, c, indexing="ij"), -1).reshape(-1, 3)  # faces normal to x
+    box = Body(Box((0.31, 0.22, 0.27), (0.69, 0.81, 0.74)), no_slip=False)
+    phi = box.sdf(x, 0.0)
+    side = (phi.abs() < h) & (x[:, 1] > 0.3) & (x[:, 1] < 0.7) & (x[:, 2] > 0.35) & (x[:, 2] < 0.65)
+    faces = x[side]  # beside the box's sides normal to x, away from its edges
+    assert len(faces) >= 8
+    assert not bool(_bends_within(box, faces, 0.0, h, 0).any())
+    counts = []
+
+    def recorded(body, points, t, dx, axis, m):
+        counts.append(m)
+        return subface_cuts(body, points, t, dx, axis, m)
+
+    monkeypatch.setattr(bodies, "subface_cuts", recorded)
+    got = free_slip_cuts(box, faces, 0.0, h, 0)
+    assert counts == [FREE_SLIP_SUBFACES[3]], counts
+    for a, b in zip(got, subface_cuts(box, faces, 0.0, h, 0, FREE_SLIP_SUBFACES[3])):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    for m, half in ((24, 1.05), (72, 1.05)):
+        hh = 2 * half / m
+        cc = (torch.arange(m, dtype=F64) + 0.5) * hh - half
+        y = torch.stack(torch.meshgrid(cc - hh / 2, cc, cc, indexing="ij"), -1).reshape(-1, 3)
+        for radius in (0.4, 0.8):
+            ball = Body(Sphere((0.013, -0.021, 0.017), radius), no_slip=False)
+            band = y[ball.sdf(y, 0.0).abs() < hh]
+            r = band - torch.tensor([0.013, -0.021, 0.017], dtype=F64)
+            near = band[r[:, 0].abs() / r.norm(dim=-1) >= FREE_SLIP_PARALLEL]
+            assert len(near) > 0 and bool(_bends_within(ball, near, 0.0, hh, 0).all()), (m, radius)
