@@ -19,10 +19,10 @@ projection (:func:`~phisim.fluid.projection.impose_solids`).
 from __future__ import annotations
 
 import math
-import warnings
 
 import torch
 
+from phisim.errors import warn_from_caller
 from phisim.field import StaggeredGrid
 from phisim.fluid.bodies import (
     FREE_SLIP_SUBFACES,
@@ -208,10 +208,10 @@ def free_slip_ghosts(velocity: StaggeredGrid, layout: SolidLayout | None, time: 
             geometry.append(_mirror_geometry(bodies, grid, i, time, work, velocity.device, band))
         geometry = tuple(geometry)
         if cut_axes:
-            warnings.warn(f"the domain's edge normal to axis {cut_axes} passes within one cell inside a free-slip "
-                          "body's surface: the free-slip condition's ghost values there lie beyond the edge; leave at "
-                          "least about 1.5 cells between the edge and a free-slip surface, measured inside the body",
-                          RuntimeWarning, stacklevel=3)
+            warn_from_caller(f"the domain's edge normal to axis {cut_axes} passes within one cell inside a free-slip "
+                             "body's surface: the free-slip condition's ghost values there lie beyond the edge; leave "
+                             "at least about 1.5 cells between the edge and a free-slip surface, measured inside the "
+                             "body", RuntimeWarning)
         if cache is not None:
             cache[key] = geometry
     return _mirror_fill(velocity, bodies, time, geometry)

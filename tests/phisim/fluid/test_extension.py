@@ -168,3 +168,22 @@ def test_free_slip_ghosts_warn_when_the_domain_edge_cuts_them(half, periodic, wa
     assert len(edge) == (1 if warns else 0), [str(w.message) for w in caught]
     if warns:
         assert edge[0].filename == __file__  # pointed at the caller's line
+
+
+def test_free_slip_edge_warning_points_at_the_users_line_through_a_stepper():
+    """The warning of a domain edge inside a free-slip surface names the user's line (the stepper's construction,
+    which builds the layout's ghost geometry, or its call), not a frame inside phisim."""
+    import warnings
+
+    from phisim.fluid import SDF, FluidState, FluidStepper
+
+    half = 0.9
+    outer = Body(SDF(lambda x: 0.8 - x.norm(dim=-1), center=(0.0, 0.0, 0.0), bounds=((-half,) * 3, (half,) * 3)),
+                 no_slip=False)
+    grid = Grid((12, 12, 12), bounds=[(-half, half)] * 3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stepper = FluidStepper(grid, "wall", obstacles=outer, viscosity=0.01, dt=0.01, dtype=torch.float64)
+        stepper(FluidState(StaggeredGrid.zeros(grid, stepper.boundary, dtype=torch.float64)))
+    edge = [w for w in caught if "domain's edge" in str(w.message)]
+    assert edge and all(w.filename == __file__ for w in edge), [(w.filename, str(w.message)[:40]) for w in caught]
