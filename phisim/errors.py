@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import sys
+import warnings
+
 __all__ = [
     "PhisimError",
     "ShapeError",
@@ -64,10 +68,6 @@ class IncompleteFileWarning(UserWarning):
 def warn_from_caller(message: str, category: type[Warning] = UserWarning) -> None:
     """``warnings.warn`` pointed at the first frame outside the phisim package (the user's line, however deep inside
     phisim the cause was found: through a stepper, a rollout or a function called directly)."""
-    import os
-    import sys
-    import warnings
-
     package = os.path.dirname(os.path.abspath(__file__)) + os.sep
     frame, level = sys._getframe(0), 1
     while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):

@@ -473,6 +473,7 @@ FREE_SLIP_SUBFACES = {1: 1, 2: 8, 3: 4}
 #: bodies in 3-D"). About a fifth of a sphere's cut faces: 1.6 times the sub-cuts of ``FREE_SLIP_SUBFACES`` alone,
 #: against 4 times for the fine count everywhere.
 FREE_SLIP_FINE_SUBFACES = {1: 1, 2: 8, 3: 8}
+#: Smallest component of the unit normal along a face's axis for ``FREE_SLIP_FINE_SUBFACES`` (see above).
 FREE_SLIP_PARALLEL = 0.8
 
 
@@ -480,7 +481,7 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     """Fluid fraction at ``points``: for sharp no-slip and free-slip bodies the exact fraction of a planar cut
     (:func:`~phisim.fluid.geometry.cut_fractions`) of the square/cube of side ``dx`` (``axis`` None) or of the face
     of side ``dx`` normal to ``axis`` (the wetted area of a MAC face; a free-slip body's faces within ``dx`` of
-    its surface: the mean of the planar cuts of ``FREE_SLIP_SUBFACES`` sub-faces per in-face axis); for blended no-slip
+    its surface: the mean of its sub-faces' curvature-corrected cuts, :func:`free_slip_cuts`); for blended no-slip
     bodies the linear ramp of :func:`~phisim.fluid.geometry.fluid_fraction` over the control volume of side
     ``dx``."""
     phi = body.sdf(points, t)
@@ -492,9 +493,9 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
             return theta
         band = phi.abs() < dx
         if torch.compiler.is_compiling():  # no host read in a traced step: every face, the band selected after
-            return torch.where(band, free_slip_cuts(body, points, t, dx, axis)[0], theta)
+            return torch.where(band, free_slip_cuts(body, points, t, dx, axis, grad)[0], theta)
         idx = band.nonzero(as_tuple=True)
-        return theta.index_put(idx, free_slip_cuts(body, points[idx], t, dx, axis)[0])
+        return theta.index_put(idx, free_slip_cuts(body, points[idx], t, dx, axis, grad[idx])[0])
     return fluid_fraction(phi, grad.abs().sum(-1), dx)
 
 
@@ -605,20 +606,21 @@ def subface_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: in
     return total / m ** len(others), centroid.clamp(-dx / 2, dx / 2)
 
 
-def free_slip_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
+def free_slip_cuts(body: Body, points: torch.Tensor, t: float, dx: float, axis: int,
+                   grad: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The wetted fraction and the wetted part's centroid of a free-slip body's faces normal to ``axis`` centred at
     ``points`` ``(..., d)`` (those within a cell of its surface: the layout's fractions and the flux correction's
     centroids): :func:`subface_cuts` with ``FREE_SLIP_SUBFACES`` sub-faces per in-face axis, and
     ``FREE_SLIP_FINE_SUBFACES`` on the faces nearly parallel to a curved surface (``|n_axis| >= FREE_SLIP_PARALLEL``
     and the surface bending within the face, :func:`_bends_within`; a flat surface parallel to the face, such as the
-    side of a box aligned with the grid, is cut exactly by any count). Eager calls cut each face once, with its own
-    count; a traced call (no host reads) cuts every face both ways and selects."""
+    side of a box aligned with the grid, is cut exactly by any count). ``grad``: the signed distance's gradient at
+    ``points`` where the caller has it (:func:`sdf_gradient`; taken here when None). Eager calls cut each face once,
+    with its own count; a traced call (no host reads) cuts every face both ways and selects."""
     rank = points.shape[-1]
     m, fine = FREE_SLIP_SUBFACES[rank], FREE_SLIP_FINE_SUBFACES[rank]
     if fine == m:
         return subface_cuts(body, points, t, dx, axis, m)
-    n = face_normal(sdf_gradient(body, points, t, 1e-3 * dx), None)
+    n = face_normal(sdf_gradient(body, points, t, 1e-3 * dx) if grad is None else grad, None)
     parallel = (n[..., axis].detach().abs() >= FREE_SLIP_PARALLEL) & _bends_within(body, points, t, dx, axis)
     if torch.compiler.is_compiling():
         theta, centroid = subface_cuts(body, points, t, dx, axis, m)

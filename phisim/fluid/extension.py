@@ -254,11 +254,12 @@ def _slip_flux_stencil(bodies, layout: SolidLayout, grid, i: int, dtype, device,
             grad = grad.index_put((sel,), sdf_gradient(b, xs[sel], t, 1e-3 * h))
     g = face_normal(grad, i)
     centroid = planar_cut(pf, g, h)[1]  # the wetted part's centroid relative to the face centre
-    if FREE_SLIP_SUBFACES[grid.rank] > 1:  # faces within a cell of the surface: the centroid of the sub-cuts the
-        for k, b in enumerate(bodies):  # layout's fraction comes from
+    # faces within a cell of the surface: the centroid of the sub-cuts the layout's fraction comes from
+    if FREE_SLIP_SUBFACES[grid.rank] > 1:
+        for k, b in enumerate(bodies):
             sel = ((owner == k) & (pf.detach().abs() < h)).nonzero().squeeze(1)
             if sel.numel():
-                centroid = centroid.index_put((sel,), free_slip_cuts(b, xs[sel], t, h, i)[1])
+                centroid = centroid.index_put((sel,), free_slip_cuts(b, xs[sel], t, h, i, grad[sel])[1])
     # theta times the centroid's offset along axis j; theta the layout's (the wetted fraction the projection weighs
     # the face with, from sub-cuts on curved free-slip surfaces), so that the correction vanishes with it
     amount = layout.theta[i][0].reshape(-1)[index].to(dtype)

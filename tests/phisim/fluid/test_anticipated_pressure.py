@@ -150,9 +150,8 @@ def test_anticipated_gradient_removes_most_of_the_split_steps_slip():
     assert -0.12 < with_ < -0.09
 
 
-# explicit viscosity at nu dt / dx^2 = 0.2 takes about a minute to its steady state: a long validation
-# both about 30 s: long validations (the default run keeps
-# test_anticipated_gradient_removes_most_of_the_split_steps_slip)
+# long validations: explicit viscosity at nu dt / dx^2 = 0.2 takes about a minute to its steady state, Crank-Nicolson
+# about 30 s (the default run keeps test_anticipated_gradient_removes_most_of_the_split_steps_slip)
 @pytest.mark.parametrize("scheme, dt_cells, tol, whole_off", [
     pytest.param("explicit", 0.2, 0.002, 0.01, marks=pytest.mark.slow),
     pytest.param("crank_nicolson", 1.0, 0.012, 0.06, marks=pytest.mark.slow)])
