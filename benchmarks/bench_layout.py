@@ -1,0 +1,181 @@
+"""Cost of building a body layout (cut-cell fractions and stencils) and of steps that rebuild it (moving bodies).
+
+A layout (:func:`phisim.fluid.solid_layout`) is built once for resting bodies and at every step for moving ones. The
+cases, 3-D, float64, one thread, thread time:
+
+* ``static N``: the resting sphere of ``examples/sphere_drag.py`` (wide box ``[-4, 10] x [-4, 4]^2`` diameters) with
+  ``N`` cells per diameter: one ``solid_layout`` (after one untimed build of a small grid).
+* ``carried N``: a sharp no-slip sphere of radius ``0.2`` carried at ``(0.5, 0.2, 0)`` through a closed unit box of
+  ``N^3`` cells, split steps (``FluidStepper``, MacCormack, explicit viscosity ``nu = 0.01``, PCG pressure):
+  the median step of ``--steps`` after two untimed ones.
+* ``slip N``: the same with a free-slip sphere.
+
+``--compare ROOT`` runs every case also with phisim imported from the checkout ``ROOT`` (another commit), each
+sample in a fresh process, the two trees alternating, and prints the ratio of the medians; ``--doc`` writes the table
+into ``docs/BENCHMARKS.md`` (between the ``layout`` markers).
+
+Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--steps 5] [--rounds 2]
+      [--compare ROOT] [--doc]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+
+def _static(n: int) -> dict:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    import sphere_drag as sd
+
+    from phisim.fluid import solid_layout
+
+    small, body, state, _ = sd.setup(4, width=8, up=4, down=10)
+    solid_layout(body, small, state.velocity.boundary)
+    grid, body, state, _ = sd.setup(n, width=8, up=4, down=10)
+    t0 = time.thread_time()
+    solid_layout(body, grid, state.velocity.boundary, dtype=torch.float64)
+    return {"seconds": time.thread_time() - t0, "cells": list(grid.resolution)}
+
+
+def _carried(n: int, steps: int, no_slip: bool) -> dict:
+    import torch
+
+    from phisim import Grid, StaggeredGrid
+    from phisim.fluid import Body, FluidState, FluidStepper, Sphere
+
+    grid = Grid((n, n, n), bounds=[(0.0, 1.0)] * 3)
+    body = Body(Sphere((0.35, 0.4, 0.5), 0.2), velocity=(0.5, 0.2, 0.0), no_slip=no_slip)
+    dx = grid.dx[0]
+    nu = 0.01
+    dt = min(0.5 * dx, 0.45 * dx**2 / (6 * nu))
+    stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=nu, dt=dt, dtype=torch.float64)
+    state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64))
+    times = []
+    for k in range(steps + 2):
+        t0 = time.thread_time()
+        state = stepper(state)
+        if k >= 2:
+            times.append(time.thread_time() - t0)
+    return {"seconds": statistics.median(times), "cells": [n] * 3,
+            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+
+
+def _worker(case: str, n: int, steps: int) -> dict:
+    import torch
+
+    import phisim  # first, so that examples/sphere_drag.py takes this one
+
+    torch.set_num_threads(1)
+    if case == "static":
+        out = _static(n)
+    else:
+        out = _carried(n, steps, no_slip=case == "carried")
+    out["phisim"] = str(Path(phisim.__file__).resolve().parents[1])
+    return out
+
+
+def _sample(root: Path, case: str, n: int, steps: int) -> dict:
+    code = (f"import sys, json; sys.path.insert(0, {str(root)!r}); sys.path.insert(1, {str(HERE)!r}); "
+            f"import bench_layout as b; print(json.dumps(b._worker({case!r}, {n}, {steps})))")
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=str(root))
+    if out.returncode:
+        raise RuntimeError(f"{case} {n} in {root} failed:\n{out.stderr[-2000:]}")
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    if Path(res["phisim"]) != root:
+        raise RuntimeError(f"the worker for {root} imported phisim from {res['phisim']}")
+    return res
+
+
+def _commit(root: Path) -> str:
+    r = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    return (r.stdout.strip() or "?") + (" + changes" if dirty else "")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--static", type=int, nargs="*", default=[8, 12, 16])
+    ap.add_argument("--carried", type=int, nargs="*", default=[48, 64])
+    ap.add_argument("--slip", type=int, nargs="*", default=[48])
+    ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--compare", default=None, help="another checkout of phisim to run beside this one")
+    ap.add_argument("--doc", action="store_true", help="write the table into docs/BENCHMARKS.md")
+    args = ap.parse_args(argv)
+    trees = [("this", ROOT)] + ([("compare", Path(args.compare).resolve())] if args.compare else [])
+    cases = [("static", n) for n in args.static] + [("carried", n) for n in args.carried] + \
+            [("slip", n) for n in args.slip]
+    rows = []
+    started = datetime.now().isoformat(timespec="seconds")
+    for case, n in cases:
+        got = {name: [] for name, _ in trees}
+        extra = {}
+        for r in range(args.rounds):
+            order = trees if r % 2 == 0 else trees[::-1]
+            for name, root in order:
+                res = _sample(root, case, n, args.steps)
+                got[name].append(res["seconds"])
+                extra[name] = res
+        row = {"case": case, "n": n, "cells": extra["this"]["cells"],
+               **{name: statistics.median(v) for name, v in got.items()},
+               **{f"{name}_all": v for name, v in got.items()},
+               **{f"{name}_max_u": extra[name].get("max_u") for name, _ in trees}}
+        if args.compare:
+            row["ratio"] = row["compare"] / row["this"]
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.doc:
+        _write_doc(rows, trees, started, args)
+    return 0
+
+
+def _write_doc(rows, trees, started, args) -> None:
+    label = {"static": "resting sphere, one layout", "carried": "carried no-slip sphere, one step",
+             "slip": "carried free-slip sphere, one step"}
+    head = "| case | cells | this tree | other tree | other / this |\n|---|---|---|---|---|\n"
+    lines = []
+    for r in rows:
+        cells = " x ".join(str(c) for c in r["cells"])
+        other = f"{r['compare']:.3g} s" if "compare" in r else "-"
+        ratio = f"**{r['ratio']:.2f}x**" if "ratio" in r else "-"
+        lines.append(f"| {label[r['case']]} (n = {r['n']}) | {cells} | {r['this']:.3g} s | {other} | {ratio} |")
+    cmd = "python benchmarks/bench_layout.py " + " ".join(sys.argv[1:])
+    trees_txt = "; ".join(f"{name}: `{_commit(root)}`" for name, root in trees)
+    body = (
+        "<!-- layout:begin -->\n## Building body layouts (resting and moving bodies), float64, one thread\n\n"
+        "Thread time of one `solid_layout` of the resting sphere of `examples/sphere_drag.py` (wide box), and the "
+        "median step of a sphere carried through a closed box (the layout is rebuilt every step), each sample in a "
+        "fresh process, the trees alternating (`benchmarks/bench_layout.py`).\n\n" + head + "\n".join(lines) + "\n\n"
+        f"- made by `{cmd}` ({started}, {platform.machine()} {os.cpu_count()} cores, {platform.system()}); "
+        f"{args.rounds} samples per tree and case, medians; trees: {trees_txt}.\n"
+        "<!-- layout:end -->\n")
+    doc = ROOT / "docs" / "BENCHMARKS.md"
+    text = doc.read_text()
+    if "<!-- layout:begin -->" in text:
+        a, rest = text.split("<!-- layout:begin -->", 1)
+        _, b = rest.split("<!-- layout:end -->\n", 1)
+        text = a + body + b
+    else:
+        marker = "<!-- cg-floor:begin -->"
+        text = text.replace(marker, body + "\n" + marker, 1) if marker in text else text + "\n" + body
+    doc.write_text(text)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
