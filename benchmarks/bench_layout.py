@@ -163,7 +163,15 @@ def _write_doc(rows, trees, started, args) -> None:
         "median step of a sphere carried through a closed box (the layout is rebuilt every step), each sample in a "
         "fresh process, the trees alternating (`benchmarks/bench_layout.py`).\n\n" + head + "\n".join(lines) + "\n\n"
         f"- made by `{cmd}` ({started}, {platform.machine()} {os.cpu_count()} cores, {platform.system()}); "
-        f"{args.rounds} samples per tree and case, medians; trees: {trees_txt}.\n"
+        f"{args.rounds} samples per tree and case, medians; trees: {trees_txt} (the other tree: a `git worktree` of "
+        "that commit).\n"
+        "- What changed at 266fb92: a layout's fractions are cut only within a cell of the surface "
+        "(`body_fraction`: the rest is 0 or 1 from the signed distance alone), the sharp stencil's terms are "
+        "computed at the faces beside the surface (`wall_stencil`) and the extension's distances at its selected "
+        "faces; the layouts are bit-identical (`tests/phisim/fluid/test_layout_band.py`), and so are the carried "
+        "steps' velocities (largest face velocity per case: " + "; ".join(
+            f"{r['case']} {r['n']}: " + " / ".join(f"{r.get(f'{name}_max_u'):.10g}" for name, _ in trees)
+            for r in rows if r.get("this_max_u") is not None) + ").\n"
         "<!-- layout:end -->\n")
     doc = ROOT / "docs" / "BENCHMARKS.md"
     text = doc.read_text()
