@@ -59,12 +59,19 @@ REFERENCE = {
 
 
 def setup(n: int, re: float = 100.0, dtype=torch.float64, device="cpu", width: float = W, up: float = UP,
-          down: float = DOWN):
-    """Grid, boundary, sphere and initial (uniform) state with ``n`` cells per diameter."""
+          down: float = DOWN, quarter: bool = False):
+    """Grid, boundary, sphere and initial (uniform) state with ``n`` cells per diameter. ``quarter``: the quarter
+    ``y >= 0, z >= 0`` of the box only, its planes ``y = 0`` and ``z = 0`` free-slip (the mirror planes of the
+    symmetric flow; the grid's faces lie on them, as in the whole box, whose cell count across is even)."""
     dx = D / n
     nx, ny = int(round((up + down) / dx)), int(round(width / dx))
+    if quarter and ny % 2:
+        ny += 1  # a face plane on y = 0 and z = 0
     half = ny * dx / 2
-    grid = Grid((nx, ny, ny), bounds=[(-up, -up + nx * dx), (-half, half), (-half, half)])
+    if quarter:
+        grid = Grid((nx, ny // 2, ny // 2), bounds=[(-up, -up + nx * dx), (0.0, half), (0.0, half)])
+    else:
+        grid = Grid((nx, ny, ny), bounds=[(-up, -up + nx * dx), (-half, half), (-half, half)])
     boundary = {"x": (Inflow((U, 0.0, 0.0)), Open()), "y": "slip", "z": "slip"}
     body = Body(Sphere((0.0, 0.0, 0.0), D / 2), name="sphere")
     v = StaggeredGrid.from_function(lambda x: torch.stack([torch.full_like(x[..., 0], U), 0 * x[..., 0],
@@ -118,14 +125,17 @@ def recirculation_length(velocity: StaggeredGrid, samples: int = 2000) -> float:
 
 def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady_tol: float = 1e-4,
         dtype=torch.float64, device="cpu", every: int = 5, log=None, box=(UP, DOWN, W), integrator: str = "split",
-        convection: str = "central"):
+        convection: str = "central", quarter: bool = False):
     """Advance the flow on the grid with ``n`` cells per diameter until the drag is steady (its relative change over
     one time unit below ``steady_tol``) or ``t_end``; returns the history ``(t, cd, cy, cz, cd_pressure, L/D)`` (every
     ``every`` steps) and a summary. ``integrator`` / ``convection``: the stepper's time integrator and convection
-    scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one)."""
+    scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one).
+    ``quarter``: the quarter ``y, z >= 0`` of the box with free-slip mirror planes (:func:`setup`); the forces of its
+    quarter sphere are multiplied by 4 (the cross-stream coefficients are zero by the symmetry and not computed)."""
     device = check_device(device)
     up, down, width = box
-    grid, body, state, nu = setup(n, re, dtype, device, width=width, up=up, down=down)
+    grid, body, state, nu = setup(n, re, dtype, device, width=width, up=up, down=down, quarter=quarter)
+    area = AREA / 4 if quarter else AREA  # the quarter sphere's forces against a quarter of the frontal area
     dx = grid.dx[0]
     dt = cfl * dx / U
     if integrator != "imex2":
@@ -144,12 +154,14 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
         if k % every and k % per_unit and k != steps:
             continue
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time)
-        c = f.coefficients(U, AREA)[0]
-        cp = 2 * f.pressure[0, 0] / (U**2 * AREA)
+        c = f.coefficients(U, area)[0]
+        if quarter:
+            c = torch.stack([c[0], c[1] * float("nan"), c[2] * float("nan")])
+        cp = 2 * f.pressure[0, 0] / (U**2 * area)
         hist.append((state.time, float(c[0]), float(c[1]), float(c[2]), float(cp), float("nan")))
         if k % per_unit == 0:
             hist[-1] = hist[-1][:5] + (recirculation_length(state.velocity),)
-            if not all(math.isfinite(v) for v in hist[-1][:5]):
+            if not all(math.isfinite(v) for j, v in enumerate(hist[-1][:5]) if not (quarter and j in (2, 3))):
                 break
             prev = [h for h in hist if h[0] <= state.time - 1.0 + 0.5 * dt]
             if log is not None:
@@ -166,11 +178,11 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     probes = {}
     for d in (1.0, 1.5, 2.0, 3.0):
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time, probe_distance=d)
-        probes[str(d)] = float(2 * f.viscous[0, 0] / (U**2 * AREA))
+        probes[str(d)] = float(2 * f.viscous[0, 0] / (U**2 * area))
     # the pressure part read at the surface points (quadratic extrapolation along the normal) instead of the cut cells
     surf = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time,
                        pressure_at="surface")
-    cd_p_surface = float(2 * surf.pressure[0, 0] / (U**2 * AREA))
+    cd_p_surface = float(2 * surf.pressure[0, 0] / (U**2 * area))
     ref = REFERENCE["cd_johnson_patel_1999"]
     prev = h[h[:, 0] <= last[0] - 1.0 + 0.5 * dt]
     return h, {"n": n, "dx": dx, "cells": list(grid.resolution), "dt": dt, "steps": k, "t": float(last[0]),
@@ -182,7 +194,7 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
                "wall_s": _time.perf_counter() - t0, "cpu_s": _time.thread_time() - c0, "device": str(device),
                "dtype": str(dtype).replace("torch.", ""), "cfl": cfl, "box": [-up, down, width],
-               "blockage": AREA / width**2, "integrator": integrator, "convection": convection}
+               "blockage": AREA / width**2, "integrator": integrator, "convection": convection, "quarter": quarter}
 
 
 def convergence(ns, values) -> dict:
@@ -233,6 +245,8 @@ def main(argv=None) -> int:
     ap.add_argument("--integrator", default="split", help="time integrator of the FluidStepper (default split)")
     ap.add_argument("--convection", default="central", choices=["central", "quick"],
                     help="convection scheme of the rk2 / rk3 / imex2 integrators (default central)")
+    ap.add_argument("--quarter", action="store_true",
+                    help="the quarter y, z >= 0 of the box with free-slip mirror planes (a quarter of the cells)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -243,7 +257,8 @@ def main(argv=None) -> int:
     runs = []
     for n in args.n:
         hist, res = run(n, args.re, args.t_end, args.cfl, args.steady_tol, dtype, device, args.every, log=log,
-                         box=tuple(args.box), integrator=args.integrator, convection=args.convection)
+                         box=tuple(args.box), integrator=args.integrator, convection=args.convection,
+                         quarter=args.quarter)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".n{n}.csv"), hist, delimiter=",",
                        header="t,cd,cy,cz,cd_pressure,recirculation")

@@ -89,6 +89,33 @@ def test_sphere_in_a_stream_drag_is_positive_and_cross_forces_vanish_by_symmetry
     torch.testing.assert_close(uy, uz.transpose(1, 2), rtol=0, atol=1e-10)
 
 
+def test_sphere_in_a_stream_quarter_box_is_the_whole_box(load_example):
+    """The quarter ``y, z >= 0`` of the box with free-slip planes at ``y = 0`` and ``z = 0`` (``sphere_drag.setup(...,
+    quarter=True)``) computes the whole box's flow on that quarter: free-slip planes are its mirror planes on the MAC
+    grid (normal velocity zero, the tangential ghosts and the pressure mirrored), and the quarter sphere's drag against
+    a quarter of the frontal area is the sphere's."""
+    sd = load_example("sphere_drag")
+    out = {}
+    for quarter in (False, True):
+        grid, body, state, nu = sd.setup(4, width=3.0, up=1.5, down=3.0, quarter=quarter)
+        dt = 0.5 * grid.dx[0]
+        stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=dt,
+                               dtype=torch.float64)
+        for _ in range(8):
+            state = stepper(state)
+        f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time)
+        out[quarter] = (state, f.coefficients(sd.U, sd.AREA / 4 if quarter else sd.AREA)[0, 0], grid)
+    (full, cd_full, g_full), (part, cd_part, g_part) = out[False], out[True]
+    m = g_full.resolution[1] // 2
+    assert g_part.resolution == (g_full.resolution[0], m, m) and g_part.bounds[1] == (0.0, g_full.bounds[1][1])
+    for i, (a, b) in enumerate(zip(full.velocity.values, part.velocity.values)):
+        torch.testing.assert_close(b, a[:, :, m:, m:], rtol=0, atol=1e-9 * float(a.abs().max()), msg=f"u_{i}")
+    p_full = full.pressure.values - full.pressure.values[:, :1, m:, m:].mean()
+    p_part = part.pressure.values - part.pressure.values[:, :1].mean()
+    torch.testing.assert_close(p_part, p_full[:, :, m:, m:], rtol=0, atol=1e-9 * float(p_full.abs().max()))
+    assert float(cd_part) == pytest.approx(float(cd_full), rel=1e-9)
+
+
 def test_sphere_drag_richardson_estimate(load_example):
     """The grid-convergence summary of the drag study recovers the order and the limit of ``f = f0 + C h^p``."""
     sd = load_example("sphere_drag")
