@@ -489,8 +489,9 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     one evaluation of the signed distance): a planar cut with a unit normal is exactly 1 or 0 beyond
     ``dx (sqrt(d) + d 1e-3) / 2 < dx`` (:func:`~phisim.fluid.geometry.cut_fractions`), so the points outside take
     ``phi > 0`` directly, the same numbers as cutting every point (and the same gradients: zero there). On a grid of
-    ``N^d`` points the band holds ``O(N^(d-1))``: a layout of a sphere on ``280 x 160 x 160`` cells is built about
-    four times faster (``docs/BENCHMARKS.md``). A traced call (no host reads) cuts every point."""
+    ``N^d`` points the band holds ``O(N^(d-1))``: the layout of a sphere on ``224 x 128 x 128`` cells is built 4.7
+    times faster, a carried sphere's step on ``64^3`` cells 2.35 times (``docs/BENCHMARKS.md``, "Building body
+    layouts"). A traced call (no host reads) cuts every point."""
     phi = body.sdf(points, t)
     if not (body.sharp or not body.no_slip):
         grad = sdf_gradient(body, points, t, 1e-3 * dx)
