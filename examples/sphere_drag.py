@@ -132,13 +132,14 @@ def recirculation_length(velocity: StaggeredGrid, samples: int = 2000) -> float:
 
 def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady_tol: float = 1e-4,
         dtype=torch.float64, device="cpu", every: int = 5, log=None, box=(UP, DOWN, W), integrator: str = "split",
-        convection: str = "central", quarter: bool = False):
+        convection: str = "central", quarter: bool = False, save_state: str | None = None):
     """Advance the flow on the grid with ``n`` cells per diameter until the drag is steady (its relative change over
     one time unit below ``steady_tol``) or ``t_end``; returns the history ``(t, cd, cy, cz, cd_pressure, L/D)`` (every
     ``every`` steps) and a summary. ``integrator`` / ``convection``: the stepper's time integrator and convection
     scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one).
     ``quarter``: the quarter ``y, z >= 0`` of the box with free-slip mirror planes (:func:`setup`); the forces of its
-    quarter sphere are multiplied by 4 (the cross-stream coefficients are zero by the symmetry and not computed)."""
+    quarter sphere are multiplied by 4 (the cross-stream coefficients are zero by the symmetry and not computed).
+    ``save_state``: a file for the final velocity and pressure (``torch.save``), for readings made afterwards."""
     device = check_device(device)
     up, down, width = box
     grid, body, state, nu = setup(n, re, dtype, device, width=width, up=up, down=down, quarter=quarter)
@@ -190,13 +191,26 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     surf = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time,
                        pressure_at="surface")
     cd_p_surface = float(2 * surf.pressure[0, 0] / (U**2 * area))
+    # the readings through the momentum balance at the wall (docs/VALIDATION.md, "The wall shear of thin boundary
+    # layers"): the pressure part through the normal momentum equation, the viscous part with the profile's curvature
+    mom = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time,
+                      pressure_at="momentum", shear_at="momentum")
+    cd_p_mom = float(2 * mom.pressure[0, 0] / (U**2 * area))
+    cd_v_mom = float(2 * mom.viscous[0, 0] / (U**2 * area))
+    if save_state:
+        Path(save_state).parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"n": n, "box": [up, down, width], "quarter": quarter, "dt": dt, "time": state.time,
+                    "velocity": [c.cpu() for c in state.velocity.values], "pressure": state.pressure.values.cpu()},
+                   save_state)
     ref = REFERENCE["cd_johnson_patel_1999"]
     prev = h[h[:, 0] <= last[0] - 1.0 + 0.5 * dt]
     return h, {"n": n, "dx": dx, "cells": list(grid.resolution), "dt": dt, "steps": k, "t": float(last[0]),
                "steady": steady, "cd": float(last[1]), "cd_pressure": float(last[4]),
                "cd_viscous": float(last[1] - last[4]),
                "cd_viscous_by_probe_distance": probes, "cd_pressure_surface": cd_p_surface,
-               "cd_surface": cd_p_surface + float(last[1] - last[4]), "cy": float(last[2]), "cz": float(last[3]),
+               "cd_surface": cd_p_surface + float(last[1] - last[4]), "cd_pressure_momentum": cd_p_mom,
+               "cd_viscous_momentum": cd_v_mom, "cd_momentum": cd_p_mom + cd_v_mom,
+               "cy": float(last[2]), "cz": float(last[3]),
                "recirculation": float(last[5]), "cd_change_last_unit": float(abs(last[1] - prev[-1, 1]))
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
                "wall_s": _time.perf_counter() - t0, "cpu_s": _time.thread_time() - c0, "device": str(device),
@@ -254,6 +268,8 @@ def main(argv=None) -> int:
                     help="convection scheme of the rk2 / rk3 / imex2 integrators (default central)")
     ap.add_argument("--quarter", action="store_true",
                     help="the quarter y, z >= 0 of the box with free-slip mirror planes (a quarter of the cells)")
+    ap.add_argument("--save-state", default=None,
+                    help="save each grid's final velocity and pressure to this file (torch.save; {n} is the grid)")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -265,7 +281,8 @@ def main(argv=None) -> int:
     for n in args.n:
         hist, res = run(n, args.re, args.t_end, args.cfl, args.steady_tol, dtype, device, args.every, log=log,
                          box=tuple(args.box), integrator=args.integrator, convection=args.convection,
-                         quarter=args.quarter)
+                         quarter=args.quarter,
+                         save_state=None if args.save_state is None else args.save_state.format(n=n))
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".n{n}.csv"), hist, delimiter=",",
                        header="t,cd,cy,cz,cd_pressure,recirculation")

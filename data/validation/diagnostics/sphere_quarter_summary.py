@@ -1,0 +1,52 @@
+"""Grid convergence of the sphere at Re = 100 in the wide box, quarter runs D/8-D/24 (``examples/sphere_drag.py --box 4
+10 8 --quarter``): per grid the drag with both pressure readings, its parts and the recirculation length, and for each
+quantity the observed order and the Richardson limit of every three consecutive grids (``sphere_drag.convergence``).
+
+``python data/validation/diagnostics/sphere_quarter_summary.py [JSON ...]`` (default: the quarter runs' files in
+data/validation) prints a Markdown table and one JSON line per quantity.
+"""
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT / "examples"))
+import sphere_drag as sd  # noqa: E402
+
+DEFAULT = ["sphere_re100_box8_quarter.json", "sphere_re100_box8_quarter_n20.json",
+           "sphere_re100_box8_quarter_n24.json"]
+QUANTITIES = ("cd", "cd_surface", "cd_pressure", "cd_pressure_surface", "cd_viscous", "recirculation")
+
+
+def load(paths):
+    runs = {}
+    for p in paths:
+        for r in json.loads(Path(p).read_text())["runs"]:
+            runs[r["n"]] = r
+    return [runs[n] for n in sorted(runs)]
+
+
+def main(argv=None) -> int:
+    args = (argv if argv is not None else sys.argv[1:]) or [str(ROOT / "data" / "validation" / f) for f in DEFAULT]
+    runs = load([a for a in args if Path(a).exists()])
+    print("| grid | cells | C_D (cells) | C_D (surface) | pressure part (cells / surface) | viscous part | L / D | "
+          "steps | t | CPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in runs:
+        cells = " x ".join(str(c) for c in r["cells"])
+        print(f"| D/{r['n']} | {cells} | {r['cd']:.4f} | {r['cd_surface']:.4f} | {r['cd_pressure']:.4f} / "
+              f"{r['cd_pressure_surface']:.4f} | {r['cd_viscous']:.4f} | {r['recirculation']:.3f} | {r['steps']} | "
+              f"{r['t']:.0f} | {r['cpu_s']:.0f} s |")
+    ns = [r["n"] for r in runs]
+    for q in QUANTITIES:
+        vals = [r[q] for r in runs]
+        triples = []
+        for k in range(len(runs) - 2):
+            c = sd.convergence(ns[k:k + 3], vals[k:k + 3])
+            triples.append({"grids": ns[k:k + 3], "order": c.get("order"), "limit": c.get("richardson")})
+        print(json.dumps({"quantity": q, "values": dict(zip(ns, vals)), "triples": triples}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
