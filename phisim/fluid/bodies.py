@@ -707,14 +707,6 @@ def _arm(t: torch.Tensor, axis: int, side: int) -> tuple[torch.Tensor, torch.Ten
     return (lo, hi) if side > 0 else (hi, lo)
 
 
-def _place(part: torch.Tensor, axis: int, side: int) -> torch.Tensor:
-    """Pad an arm's values (faces ``0..n-2`` for side +1, ``1..n-1`` for side -1) back to the full face shape."""
-    shape = list(part.shape)
-    shape[axis] = 1
-    z = part.new_zeros(shape)
-    return torch.cat([part, z] if side > 0 else [z, part], axis)
-
-
 #: Distance of the extension's probe from the surface, in cells (its interpolation stencil stays in the fluid).
 PROBE_CELLS = 2.0
 

@@ -7,6 +7,7 @@ data/validation) prints a Markdown table and one JSON line per quantity.
 """
 import json
 import sys
+from math import nan
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -15,7 +16,8 @@ import sphere_drag as sd  # noqa: E402
 
 DEFAULT = ["sphere_re100_box8_quarter.json", "sphere_re100_box8_quarter_n20.json",
            "sphere_re100_box8_quarter_n24.json"]
-QUANTITIES = ("cd", "cd_surface", "cd_pressure", "cd_pressure_surface", "cd_viscous", "recirculation")
+QUANTITIES = ("cd", "cd_surface", "cd_momentum", "cd_pressure", "cd_pressure_surface", "cd_pressure_momentum",
+              "cd_viscous", "cd_viscous_momentum", "recirculation")
 
 
 def load(paths):
@@ -29,17 +31,18 @@ def load(paths):
 def main(argv=None) -> int:
     args = (argv if argv is not None else sys.argv[1:]) or [str(ROOT / "data" / "validation" / f) for f in DEFAULT]
     runs = load([a for a in args if Path(a).exists()])
-    print("| grid | cells | C_D (cells) | C_D (surface) | pressure part (cells / surface) | viscous part | L / D | "
-          "steps | t | CPU |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| grid | cells | C_D: cells / surface / momentum | pressure part: cells / surface / momentum | "
+          "viscous part: probes / momentum | L / D | steps | t | CPU |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in runs:
         cells = " x ".join(str(c) for c in r["cells"])
-        print(f"| D/{r['n']} | {cells} | {r['cd']:.4f} | {r['cd_surface']:.4f} | {r['cd_pressure']:.4f} / "
-              f"{r['cd_pressure_surface']:.4f} | {r['cd_viscous']:.4f} | {r['recirculation']:.3f} | {r['steps']} | "
-              f"{r['t']:.0f} | {r['cpu_s']:.0f} s |")
+        print(f"| D/{r['n']} | {cells} | {r['cd']:.4f} / {r['cd_surface']:.4f} / {r.get('cd_momentum', nan):.4f} | "
+              f"{r['cd_pressure']:.4f} / {r['cd_pressure_surface']:.4f} / {r.get('cd_pressure_momentum', nan):.4f} | "
+              f"{r['cd_viscous']:.4f} / {r.get('cd_viscous_momentum', nan):.4f} | {r['recirculation']:.3f} | "
+              f"{r['steps']} | {r['t']:.0f} | {r['cpu_s']:.0f} s |")
     ns = [r["n"] for r in runs]
     for q in QUANTITIES:
-        vals = [r[q] for r in runs]
+        vals = [r.get(q, nan) for r in runs]
         triples = []
         for k in range(len(runs) - 2):
             c = sd.convergence(ns[k:k + 3], vals[k:k + 3])

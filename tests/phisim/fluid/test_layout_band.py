@@ -6,7 +6,7 @@ import torch
 
 from phisim import Grid
 from phisim.fluid import Body, Box, Sphere
-from phisim.fluid.bodies import _arm, _cut_fraction, _place, body_fraction, extension_stencil, wall_stencil
+from phisim.fluid.bodies import _arm, _cut_fraction, body_fraction, extension_stencil, wall_stencil
 from phisim.fluid.geometry import SDF, RotatedBox, Union
 
 G3 = Grid((24, 20, 22), bounds=[(-1.2, 1.2), (-1.0, 1.0), (-1.1, 1.1)])
@@ -95,6 +95,14 @@ def test_body_fraction_keeps_nan_distances():
     assert not (torch.isnan(theta) & ~torch.isnan(full)).any()
     ok = ~torch.isnan(full)
     assert torch.equal(theta[ok], full[ok])
+
+
+def _place(part, axis, side):
+    """An arm's values (faces ``0..n-2`` for side +1, ``1..n-1`` for side -1) padded back to the full face shape."""
+    shape = list(part.shape)
+    shape[axis] = 1
+    z = part.new_zeros(shape)
+    return torch.cat([part, z] if side > 0 else [z, part], axis)
 
 
 def _dense_wall_stencil(bodies, grid, i, t):
