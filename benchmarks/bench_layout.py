@@ -15,7 +15,7 @@ sample in a fresh process, the two trees alternating, and prints the ratio of th
 into ``docs/BENCHMARKS.md`` (between the ``layout`` markers).
 
 Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--steps 5] [--rounds 2]
-      [--compare ROOT] [--doc]
+      [--compare ROOT] [--doc] [--json out.json] [--device cpu]
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
 
-def _static(n: int) -> dict:
+def _static(n: int, device: str) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT / "examples"))
@@ -43,15 +43,18 @@ def _static(n: int) -> dict:
 
     from phisim.fluid import solid_layout
 
-    small, body, state, _ = sd.setup(4, width=8, up=4, down=10)
-    solid_layout(body, small, state.velocity.boundary)
-    grid, body, state, _ = sd.setup(n, width=8, up=4, down=10)
-    t0 = time.thread_time()
-    solid_layout(body, grid, state.velocity.boundary, dtype=torch.float64)
-    return {"seconds": time.thread_time() - t0, "cells": list(grid.resolution)}
+    small, body, state, _ = sd.setup(4, width=8, up=4, down=10, device=device)
+    solid_layout(body, small, state.velocity.boundary, device=device)
+    grid, body, state, _ = sd.setup(n, width=8, up=4, down=10, device=device)
+    clock = _clock(device)
+    synchronize(device)
+    t0 = clock()
+    solid_layout(body, grid, state.velocity.boundary, dtype=torch.float64, device=device)
+    synchronize(device)
+    return {"seconds": clock() - t0, "cells": list(grid.resolution)}
 
 
-def _carried(n: int, steps: int, no_slip: bool) -> dict:
+def _carried(n: int, steps: int, no_slip: bool, device: str) -> dict:
     import torch
 
     from phisim import Grid, StaggeredGrid
@@ -62,35 +65,52 @@ def _carried(n: int, steps: int, no_slip: bool) -> dict:
     dx = grid.dx[0]
     nu = 0.01
     dt = min(0.5 * dx, 0.45 * dx**2 / (6 * nu))
-    stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=nu, dt=dt, dtype=torch.float64)
-    state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64))
+    stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=nu, dt=dt, dtype=torch.float64, device=device)
+    state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64, device=device))
     times = []
+    clock = _clock(device)
     for k in range(steps + 2):
-        t0 = time.thread_time()
+        synchronize(device)
+        t0 = clock()
         state = stepper(state)
+        synchronize(device)
         if k >= 2:
-            times.append(time.thread_time() - t0)
+            times.append(clock() - t0)
     return {"seconds": statistics.median(times), "cells": [n] * 3,
             "max_u": float(max(c.abs().max() for c in state.velocity.values))}
 
 
-def _worker(case: str, n: int, steps: int) -> dict:
+def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:
     import torch
 
     import phisim  # first, so that examples/sphere_drag.py takes this one
 
     torch.set_num_threads(1)
     if case == "static":
-        out = _static(n)
+        out = _static(n, device)
     else:
-        out = _carried(n, steps, no_slip=case == "carried")
+        out = _carried(n, steps, no_slip=case == "carried", device=device)
     out["phisim"] = str(Path(phisim.__file__).resolve().parents[1])
+    out["device"] = device
     return out
 
 
-def _sample(root: Path, case: str, n: int, steps: int) -> dict:
+def _clock(device: str):
+    """Thread time on the CPU (one thread: excludes waiting for a core), wall time on a GPU."""
+    return time.thread_time if device == "cpu" else time.perf_counter
+
+
+def synchronize(device: str) -> None:
+    """Wait for the device's queued work (CUDA); nothing on the CPU."""
+    import torch
+
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize(device)
+
+
+def _sample(root: Path, case: str, n: int, steps: int, device: str) -> dict:
     code = (f"import sys, json; sys.path.insert(0, {str(root)!r}); sys.path.insert(1, {str(HERE)!r}); "
-            f"import bench_layout as b; print(json.dumps(b._worker({case!r}, {n}, {steps})))")
+            f"import bench_layout as b; print(json.dumps(b._worker({case!r}, {n}, {steps}, {device!r})))")
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=str(root))
     if out.returncode:
@@ -117,7 +137,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--compare", default=None, help="another checkout of phisim to run beside this one")
     ap.add_argument("--doc", action="store_true", help="write the table into docs/BENCHMARKS.md")
+    ap.add_argument("--json", default=None, help="write the rows to this JSON file")
+    ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
+    sys.path.insert(0, str(ROOT))
+    from phisim.checks import check_device
+
+    device = str(check_device(args.device))  # a device this machine lacks stops here, before anything is written
     trees = [("this", ROOT)] + ([("compare", Path(args.compare).resolve())] if args.compare else [])
     cases = [("static", n) for n in args.static] + [("carried", n) for n in args.carried] + \
             [("slip", n) for n in args.slip]
@@ -129,10 +155,10 @@ def main(argv=None) -> int:
         for r in range(args.rounds):
             order = trees if r % 2 == 0 else trees[::-1]
             for name, root in order:
-                res = _sample(root, case, n, args.steps)
+                res = _sample(root, case, n, args.steps, device)
                 got[name].append(res["seconds"])
                 extra[name] = res
-        row = {"case": case, "n": n, "cells": extra["this"]["cells"],
+        row = {"case": case, "n": n, "cells": extra["this"]["cells"], "device": device,
                **{name: statistics.median(v) for name, v in got.items()},
                **{f"{name}_all": v for name, v in got.items()},
                **{f"{name}_max_u": extra[name].get("max_u") for name, _ in trees}}
@@ -140,6 +166,9 @@ def main(argv=None) -> int:
             row["ratio"] = row["compare"] / row["this"]
         rows.append(row)
         print(json.dumps(row), flush=True)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(rows, indent=1))
     if args.doc:
         _write_doc(rows, trees, started, args)
     return 0
