@@ -163,13 +163,12 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
             continue
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time)
         c = f.coefficients(U, area)[0]
-        if quarter:
-            c = torch.stack([c[0], c[1] * float("nan"), c[2] * float("nan")])
+        cy, cz = (float("nan"), float("nan")) if quarter else (float(c[1]), float(c[2]))  # zero by the mirrors
         cp = 2 * f.pressure[0, 0] / (U**2 * area)
-        hist.append((state.time, float(c[0]), float(c[1]), float(c[2]), float(cp), float("nan")))
+        hist.append((state.time, float(c[0]), cy, cz, float(cp), float("nan")))
         if k % per_unit == 0:
             hist[-1] = hist[-1][:5] + (recirculation_length(state.velocity),)
-            if not all(math.isfinite(v) for j, v in enumerate(hist[-1][:5]) if not (quarter and j in (2, 3))):
+            if not all(math.isfinite(v) for v in (hist[-1][1], hist[-1][4]) + (() if quarter else (cy, cz))):
                 break
             prev = [h for h in hist if h[0] <= state.time - 1.0 + 0.5 * dt]
             if log is not None:
@@ -210,7 +209,7 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                "cd_viscous_by_probe_distance": probes, "cd_pressure_surface": cd_p_surface,
                "cd_surface": cd_p_surface + float(last[1] - last[4]), "cd_pressure_momentum": cd_p_mom,
                "cd_viscous_momentum": cd_v_mom, "cd_momentum": cd_p_mom + cd_v_mom,
-               "cy": float(last[2]), "cz": float(last[3]),
+               "cy": None if quarter else float(last[2]), "cz": None if quarter else float(last[3]),
                "recirculation": float(last[5]), "cd_change_last_unit": float(abs(last[1] - prev[-1, 1]))
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
                "wall_s": _time.perf_counter() - t0, "cpu_s": _time.thread_time() - c0, "device": str(device),

@@ -493,7 +493,7 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     times faster, a carried sphere's step on ``64^3`` cells 2.35 times (``docs/BENCHMARKS.md``, "Building body
     layouts"). A traced call (no host reads) cuts every point."""
     phi = body.sdf(points, t)
-    if not (body.sharp or not body.no_slip):
+    if body.no_slip and not body.sharp:  # blended: the ramp's width depends on |grad phi|, not bounded by phi
         grad = sdf_gradient(body, points, t, 1e-3 * dx)
         return fluid_fraction(phi, grad.abs().sum(-1), dx)
     if torch.compiler.is_compiling() or points.dim() < 2:
