@@ -38,6 +38,7 @@ from phisim.boundary import Boundary, Inflow
 from phisim.errors import BoundaryError, ParameterError, ShapeError
 from phisim.fluid.geometry import Geometry, cut_centroid, cut_fractions, fluid_fraction, rotation_matrix
 from phisim.grid import Grid
+from phisim.ops.tensors import sum_last, unravel
 
 __all__ = ["Obstacle", "Body", "SolidLayout", "solid_layout", "obstacle_mask", "open_face_masks"]
 
@@ -495,7 +496,7 @@ def body_fraction(body: Body, points: torch.Tensor, t: float, dx: float, axis: i
     phi = body.sdf(points, t)
     if body.no_slip and not body.sharp:  # blended: the ramp's width depends on |grad phi|, not bounded by phi
         grad = sdf_gradient(body, points, t, 1e-3 * dx)
-        return fluid_fraction(phi, grad.abs().sum(-1), dx)
+        return fluid_fraction(phi, sum_last(grad.abs()), dx)
     if torch.compiler.is_compiling() or points.dim() < 2:
         return _cut_fraction(body, points, phi, t, dx, axis)
     near = ~(phi.detach().abs() >= dx)  # NaN distances stay in the band (and give NaN fractions, as before)
@@ -558,7 +559,7 @@ def curved_cut(body: Body, x: torch.Tensor, t: float, g: torch.Tensor, side: flo
     phi = body.sdf(x, t)
     theta, centroid = planar_cut(phi, g, side)
     moment = theta.unsqueeze(-1) * centroid
-    gn2 = (g * g).sum(-1)
+    gn2 = sum_last(g * g)
     flat = gn2 < 1e-18  # a face parallel to the surface: no cut line
     gn2 = torch.where(flat, torch.ones_like(gn2), gn2)
     gn = gn2.sqrt()
@@ -875,7 +876,7 @@ def tangent_stencil(bodies, grid: Grid, boundary: Boundary, i: int, t: float, we
         sel = (owner == k).nonzero().squeeze(1)
         if sel.numel():
             normal = normal.index_put((sel,), unit_normal(b, x[sel], t, 1e-3 * h))
-    pos = torch.stack(torch.unravel_index(index, shape), -1)  # (P, d) face indices
+    pos = torch.stack(unravel(index, shape), -1)  # (P, d) face indices
     neighbours = []
     for j in range(grid.rank):
         if j == i:
@@ -1156,7 +1157,15 @@ def uncovered_stencil(bodies, grid: Grid, i: int, t_old: float, t_new: float, dt
     x = grid.face_centers(i, dtype, device)
     with torch.no_grad():
         old = torch.stack([b.sdf(x, t_old) for b in bodies], 0).min(0).values
-        new = torch.stack([b.sdf(x, t_new) for b in bodies], 0).min(0).values
-        select = (old <= 0) & (new > 0)
+        if torch.compiler.is_compiling():  # no host reads: every face
+            new = torch.stack([b.sdf(x, t_new) for b in bodies], 0).min(0).values
+            select = (old <= 0) & (new > 0)
+        else:  # the new distances only where the old position covered the face (pointwise: the same selection)
+            covered = (old <= 0).reshape(-1).nonzero().squeeze(1)
+            xc = x.reshape(-1, grid.rank)[covered]
+            new = torch.stack([b.sdf(xc, t_new) for b in bodies], 0).min(0).values
+            select = torch.zeros(old.numel(), dtype=torch.bool, device=old.device)
+            select[covered] = new > 0
+            select = select.reshape(old.shape)
     ext = extension_stencil(bodies, grid, i, t_new, dtype, device, select)
     return None if ext is None else ext[:5]

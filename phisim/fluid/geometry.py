@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from phisim.errors import ParameterError, ShapeError
+from phisim.ops.tensors import sum_last
 
 __all__ = ["Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fraction", "cut_fractions", "cut_centroid",
            "rotation_matrix"]
@@ -150,7 +151,7 @@ class Box(Geometry):
         lo, hi = _as(self.lower, x), _as(self.upper, x)
         c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
         q = (x - c).abs() - h
-        outside = q.clamp_min(0).pow(2).sum(-1).add(torch.finfo(x.dtype).tiny).sqrt()
+        outside = sum_last(q.clamp_min(0).pow(2)).add(torch.finfo(x.dtype).tiny).sqrt()
         inside = q.max(-1).values.clamp_max(0)
         return outside + inside
 
@@ -190,7 +191,7 @@ class Sphere(Geometry):
         """Exact signed distance ``|x - c| - r``."""
         _check_points(x, self.rank, "the sphere")
         d = x - _as(self._center, x)
-        return d.pow(2).sum(-1).add(torch.finfo(x.dtype).tiny).sqrt() - _as(self.radius, x)
+        return sum_last(d.pow(2)).add(torch.finfo(x.dtype).tiny).sqrt() - _as(self.radius, x)
 
     @property
     def center(self):
@@ -233,7 +234,7 @@ class RotatedBox(Geometry):
         r = rotation_matrix(self.angle, self.rank, x)
         local = (x - _as(self._center, x)) @ r  # R^T (x - c) for row vectors
         q = local.abs() - 0.5 * _as(self.size, x)
-        outside = q.clamp_min(0).pow(2).sum(-1).add(torch.finfo(x.dtype).tiny).sqrt()
+        outside = sum_last(q.clamp_min(0).pow(2)).add(torch.finfo(x.dtype).tiny).sqrt()
         return outside + q.max(-1).values.clamp_max(0)
 
     @property
@@ -386,7 +387,7 @@ def cut_fractions(phi: torch.Tensor, normal: torch.Tensor, dx: float) -> tuple[t
     theta = sum(sg * x.clamp_min(0) ** rank for x, sg in terms) / (math.factorial(rank) * scale)
     mean = sum(sg * x.clamp_min(0) ** (rank + 1) for x, sg in terms) / (math.factorial(rank + 1) * scale)
     # outside the cut band the answers are exact without the differences' rounding: 1 and phi, or 0 and 0
-    half = widths.sum(-1) / 2
+    half = sum_last(widths) / 2
     inside, outside = phi <= -half, phi >= half
     theta = torch.where(outside, torch.ones_like(theta), torch.where(inside, torch.zeros_like(theta), theta))
     mean = torch.where(outside, phi, torch.where(inside, torch.zeros_like(mean), mean))
@@ -434,7 +435,7 @@ def cut_centroid(phi: torch.Tensor, normal: torch.Tensor, dx: float
         dm = a_sum - mean / widths[..., a]
         comps.append(torch.sign(normal[..., a]) * dx * dm)
     moment = torch.stack(comps, -1) * (raw > 1e-3 * dx).to(normal.dtype)
-    half = widths.sum(-1) / 2
+    half = sum_last(widths) / 2
     band = ((phi > -half) & (phi < half)).unsqueeze(-1)
     centroid = torch.where(band, moment / theta.clamp_min(1e-12).unsqueeze(-1), torch.zeros_like(moment))
     return theta, mean, centroid.clamp(-dx / 2, dx / 2)

@@ -350,13 +350,16 @@ def pressure_in_body_frame(q: CenteredGrid, layout: SolidLayout | None, velocity
         old = torch.stack([body_fraction(b, x, t - dt, h) for b in bodies], 0).amin(0)
         valid = (old > 0).to(work)
     flat = x.reshape(-1, grid.rank)
-    phis = torch.stack([b.sdf(flat, t) for b in bodies], 0)
-    owner = phis.detach().argmin(0)
-    us = torch.zeros_like(flat)
-    for k, b in enumerate(bodies):
-        sel = (owner == k).nonzero().squeeze(1)
-        if not b.static and sel.numel():
-            us = us.index_put((sel,), b.velocity_at(flat[sel], t).to(work))
+    if len(bodies) == 1:  # every cell's nearest body
+        us = bodies[0].velocity_at(flat, t).to(work)
+    else:
+        phis = torch.stack([b.sdf(flat, t) for b in bodies], 0)
+        owner = phis.detach().argmin(0)
+        us = torch.zeros_like(flat)
+        for k, b in enumerate(bodies):
+            sel = (owner == k).nonzero().squeeze(1)
+            if not b.static and sel.numel():
+                us = us.index_put((sel,), b.velocity_at(flat[sel], t).to(work))
     pts = flat - dt * us
     p = q.values
     num = q.with_values(p * valid).sample(pts)

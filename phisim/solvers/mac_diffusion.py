@@ -49,6 +49,7 @@ from phisim.checks import check_dt, check_nonnegative
 from phisim.compiled import is_compiling
 from phisim.errors import ParameterError, ShapeError
 from phisim.field import StaggeredGrid
+from phisim.ops.tensors import unravel
 from phisim.solvers.box import TRANSFORMS, axis_eigenvalues
 from phisim.solvers.linalg import Solve, cg
 from phisim.spectral import fft as _fft
@@ -847,7 +848,7 @@ class _SharpCapacitanceSolve:
                 self.windows[dt] = None
                 continue
             wshape = tuple(sl.stop - sl.start for sl in window)
-            local = torch.unravel_index(self.index, shape)
+            local = unravel(self.index, shape)
             flat = torch.zeros_like(self.index)
             for a, (sl, m) in enumerate(zip(window, wshape)):
                 flat = flat * m + (local[a] - sl.start)
@@ -875,7 +876,7 @@ class _SharpCapacitanceSolve:
         if comp.periodic or k == 0:
             return None
         n_all = math.prod(shape)
-        coords = torch.stack(torch.unravel_index(self.index, shape), 1)
+        coords = torch.stack(unravel(self.index, shape), 1)
         lo, hi = coords.min(0).values.tolist(), coords.max(0).values.tolist()
         dist = torch.zeros(shape, dtype=torch.long, device=h.device)  # Chebyshev distance to the box of J
         for a, n in enumerate(shape):

@@ -238,3 +238,28 @@ def test_held_faces_are_the_closed_faces_and_a_kept_layout_returns_the_same_mask
     first, second = held_faces(kept), held_faces(kept)
     assert all(a is b for a, b in zip(first, second))
     assert all(torch.equal(a, b) for a, b in zip(first, held))
+
+
+@pytest.mark.parametrize("rank", [2, 3])
+def test_uncovered_faces_are_the_dense_selection(rank):
+    """``uncovered_stencil`` evaluates the new distances only where the old position covered a face; its faces are
+    those of the dense rule ``phi_old <= 0 < phi_new`` of the union, here for two bodies moving apart and together
+    (one of them overlapping the other's old position)."""
+    n = (20, 16, 12)[:rank]
+    grid = Grid(n, bounds=[(0.0, 1.25), (0.0, 1.0), (0.0, 0.75)][:rank])
+    bodies = [Body(Sphere((0.45, 0.5, 0.35)[:rank], 0.18), velocity=(0.9, -0.3, 0.2)[:rank]),
+              Body(Sphere((0.8, 0.5, 0.4)[:rank], 0.12), velocity=(-0.6, 0.4, 0.0)[:rank])]
+    t_old, t_new = 0.0, 0.08
+    seen = 0
+    for i in range(rank):
+        x = grid.face_centers(i, F64)
+        old = torch.stack([b.sdf(x, t_old) for b in bodies]).min(0).values
+        new = torch.stack([b.sdf(x, t_new) for b in bodies]).min(0).values
+        expected = ((old <= 0) & (new > 0)).reshape(-1).nonzero().squeeze(1)
+        out = uncovered_stencil(bodies, grid, i, t_old, t_new, F64, None)
+        if expected.numel() == 0:
+            assert out is None
+            continue
+        assert torch.equal(out[0], expected)
+        seen += expected.numel()
+    assert seen >= 10
