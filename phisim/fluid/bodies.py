@@ -36,7 +36,7 @@ import torch
 
 from phisim.boundary import Boundary, Inflow
 from phisim.errors import BoundaryError, ParameterError, ShapeError
-from phisim.fluid.geometry import Geometry, cut_centroid, cut_fractions, fluid_fraction, rotation_matrix
+from phisim.fluid.geometry import Geometry, cut_centroid, cut_fractions, floats, fluid_fraction, rotation_matrix
 from phisim.grid import Grid
 from phisim.ops.tensors import sum_last, unravel
 
@@ -320,9 +320,9 @@ class Body:
         lo, hi = self.geometry.bounding_box()
         if self.static:
             return lo, hi
-        off = [float(v) for v in self._offset(t, self._like())]
+        off = list(floats(self._offset(t, self._like())))
         if self._rotation(t, self._like()) is not None:  # conservative: sphere around the reference point
-            c = [float(v) for v in self.geometry.center]
+            c = list(floats(self.geometry.center))
             rad = max(math.dist(c, corner) for corner in _corners(lo, hi))
             return tuple(ci + o - rad for ci, o in zip(c, off)), tuple(ci + o + rad for ci, o in zip(c, off))
         return tuple(a + o for a, o in zip(lo, off)), tuple(b + o for b, o in zip(hi, off))

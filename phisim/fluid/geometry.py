@@ -24,6 +24,14 @@ __all__ = ["Geometry", "Box", "Sphere", "RotatedBox", "Union", "SDF", "fluid_fra
            "rotation_matrix"]
 
 
+def floats(value) -> tuple[float, ...]:
+    """A vector (a tuple of numbers or a tensor, perhaps one that requires grad) as plain floats, without autograd's
+    warning about reading a value that requires grad."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().reshape(-1).tolist()
+    return tuple(float(v) for v in value)
+
+
 def _vector(value, name: str) -> torch.Tensor | tuple[float, ...]:
     """A coordinate vector: a tuple of floats, or a float tensor (kept, so gradients can flow)."""
     if isinstance(value, torch.Tensor):
@@ -139,8 +147,8 @@ class Box(Geometry):
 
     def __init__(self, lower, upper):
         self.lower, self.upper = _vector(lower, "Box lower"), _vector(upper, "Box upper")
-        lo = [float(v) for v in self.lower]
-        hi = [float(v) for v in self.upper]
+        lo = list(floats(self.lower))
+        hi = list(floats(self.upper))
         if len(lo) != len(hi) or any(h <= l for l, h in zip(lo, hi)):
             raise ParameterError(f"Box needs lower < upper with one entry per axis, got {lo}, {hi}")
         self.rank = len(lo)
@@ -165,10 +173,10 @@ class Box(Geometry):
 
     def bounding_box(self):
         """The box itself."""
-        return tuple(float(v) for v in self.lower), tuple(float(v) for v in self.upper)
+        return floats(self.lower), floats(self.upper)
 
     def __repr__(self):
-        return f"Box({[round(float(v), 6) for v in self.lower]}, {[round(float(v), 6) for v in self.upper]})"
+        return f"Box({[round(v, 6) for v in floats(self.lower)]}, {[round(v, 6) for v in floats(self.upper)]})"
 
 
 class Sphere(Geometry):
@@ -201,10 +209,10 @@ class Sphere(Geometry):
     def bounding_box(self):
         """Centre plus/minus the radius."""
         r = float(torch.as_tensor(self.radius).detach())
-        return tuple(float(c) - r for c in self._center), tuple(float(c) + r for c in self._center)
+        return tuple(c - r for c in floats(self._center)), tuple(c + r for c in floats(self._center))
 
     def __repr__(self):
-        return f"Sphere({[round(float(v), 6) for v in self._center]}, {float(self.radius):.6g})"
+        return f"Sphere({[round(v, 6) for v in floats(self._center)]}, {floats(torch.as_tensor(self.radius))[0]:.6g})"
 
 
 class RotatedBox(Geometry):
@@ -221,7 +229,7 @@ class RotatedBox(Geometry):
 
     def __init__(self, center, size, angle=0.0):
         self._center, self.size = _vector(center, "RotatedBox center"), _vector(size, "RotatedBox size")
-        if len(self._center) != len(self.size) or any(float(s) <= 0 for s in self.size):
+        if len(self._center) != len(self.size) or any(s <= 0 for s in floats(self.size)):
             raise ParameterError(f"RotatedBox needs sizes > 0, one per axis of the centre, got {self.size}")
         self.rank = len(self._center)
         if self.rank not in (2, 3):
@@ -244,11 +252,11 @@ class RotatedBox(Geometry):
 
     def bounding_box(self):
         """Centre plus/minus half the diagonal (conservative)."""
-        h = 0.5 * math.sqrt(sum(float(s) ** 2 for s in self.size))
-        return tuple(float(c) - h for c in self._center), tuple(float(c) + h for c in self._center)
+        h = 0.5 * math.sqrt(sum(s**2 for s in floats(self.size)))
+        return tuple(c - h for c in floats(self._center)), tuple(c + h for c in floats(self._center))
 
     def __repr__(self):
-        return f"RotatedBox({[float(v) for v in self._center]}, {[float(v) for v in self.size]}, angle={self.angle})"
+        return f"RotatedBox({list(floats(self._center))}, {list(floats(self.size))}, angle={self.angle})"
 
 
 class Union(Geometry):
@@ -312,9 +320,9 @@ class SDF(Geometry):
         self._center = _vector(center, "SDF center")
         self.rank = len(self._center)
         lo, hi = (_vector(b, "SDF bounds") for b in bounds)
-        if len(lo) != self.rank or len(hi) != self.rank or any(float(h) < float(l) for l, h in zip(lo, hi)):
+        if len(lo) != self.rank or len(hi) != self.rank or any(h < l for l, h in zip(floats(lo), floats(hi))):
             raise ParameterError(f"SDF bounds must be (lower, upper) with {self.rank} entries each")
-        self._bounds = (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+        self._bounds = (floats(lo), floats(hi))
 
     def sdf(self, x):
         """The user's function, checked for shape."""

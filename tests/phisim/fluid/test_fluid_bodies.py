@@ -913,3 +913,29 @@ def test_free_slip_cuts_keep_the_coarse_count_on_flat_sides(monkeypatch):
             r = band - torch.tensor([0.013, -0.021, 0.017], dtype=F64)
             near = band[r[:, 0].abs() / r.norm(dim=-1) >= FREE_SLIP_PARALLEL]
             assert len(near) > 0 and bool(_bends_within(ball, near, 0.0, hh, 0).all()), (m, radius)
+
+
+def test_bodies_with_parameters_that_require_grad_read_them_without_warnings():
+    """Bodies built from tensors that require grad (the shape parameters a user differentiates) give their bounding
+    boxes, representations and layouts without autograd's warning about reading such a tensor as a float."""
+    import warnings
+
+    def g(v):
+        return torch.tensor(v, dtype=torch.float64, requires_grad=True)
+
+    grid = Grid((16, 12), bounds=[(0.0, 1.0), (0.0, 0.75)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        c = g([0.4, 0.4])
+        bodies = [
+            Body(Sphere(g([0.5, 0.4]), g(0.15)), velocity=g([0.2, 0.0])),
+            Body(RotatedBox(g([0.5, 0.35]), g([0.3, 0.1]), 0.3)),
+            Body(Box(g([0.3, 0.2]), (0.6, 0.45))),
+            Body(SDF(lambda x: (x - c).norm(dim=-1) - 0.1, c, (g([0.3, 0.3]), (0.5, 0.5)))),
+        ]
+        for body in bodies:
+            lo, hi = body.bounding_box(0.1)
+            assert all(isinstance(v, float) for v in lo + hi) and all(a < b for a, b in zip(lo, hi))
+            assert repr(body.geometry)
+            layout = solid_layout(body, grid, Boundary.create("wall", 2), 0.1, torch.float64)
+            assert layout is not None and layout.theta[0].requires_grad
