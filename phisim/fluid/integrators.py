@@ -93,6 +93,7 @@ from phisim.fluid.projection import applied_gradient, impose_solids, make_incomp
 from phisim.fluid.step import kinetic_energy, normalize_energy, pressure_in_body_frame, rescale_energy, to_time
 from phisim.fluid.viscosity import body_laplace, held_faces
 from phisim.ops.differential import gradient
+from phisim.ops.tensors import sum_last, unravel
 from phisim.solvers.diffusion import diffuse_staggered
 
 __all__ = ["CONVECTION_SCHEMES", "INTEGRATORS", "carried_pressure", "check_convection", "convection",
@@ -339,9 +340,34 @@ def carried_pressure(q: torch.Tensor, layout) -> torch.Tensor:
     over those faces weighted with ``theta`` (enclosed neighbours left out; 0 where none is left), so that
     ``q + phi`` across them has the gradient ``G phi`` that built their velocity. ``q`` in an enclosed cell reaches
     no velocity (its faces' ``G q`` is imposed away), so this changes the pressure alone.
+
+    A layout used again and again (a stepper's resting bodies, ``layout.solvers`` a dict) keeps the enclosed cells,
+    their neighbours and weights, and the mean is taken on those cells alone (the same numbers as on every cell).
     """
     if layout is None or layout.walls is None:
         return q
+    cache = getattr(layout, "solvers", None)
+    if cache is None or layout.theta[0].shape[0] != 1:
+        return _carried_dense(q, layout)
+    key = ("carried_pressure", q.dtype, str(q.device), tuple(q.shape[1:]))
+    plan = cache.get(key)
+    if plan is None:
+        if torch.compiler.is_compiling():  # built by an eager step first; a trace does no host reads
+            return _carried_dense(q, layout)
+        plan = cache[key] = _carried_plan(q, layout)
+    index, neighbours, open_, weights, den = plan
+    if index.numel() == 0:
+        return q
+    flat = q.reshape(q.shape[0], -1)
+    near = torch.where(open_, flat[:, neighbours], torch.zeros((), dtype=q.dtype, device=q.device))
+    mean = sum_last(weights * near) / den
+    return flat.index_copy(1, index, mean).reshape(q.shape)
+
+
+def _carried_terms(q: torch.Tensor, layout):
+    """The enclosed cells of ``layout`` (see :func:`carried_pressure`) and per axis the weights ``theta`` of their
+    held faces towards the lower and the upper neighbour, zero where that neighbour is enclosed or missing, as
+    cell-shaped arrays ``(lo, hi)`` (None along an axis of one cell)."""
     rank = q.ndim - 1
     faces = []  # per axis: (theta on the held open faces, whether a face is open and not held), lower/upper per cell
     for a in range(rank):
@@ -355,15 +381,14 @@ def carried_pressure(q: torch.Tensor, layout) -> torch.Tensor:
     has_held = sum((lo > 0) | (hi > 0) for lo, hi, _, _ in faces) > 0
     has_free = sum(flo | fhi for _, _, flo, fhi in faces) > 0
     enclosed = has_held & ~has_free
-    source = torch.where(enclosed, torch.zeros_like(q), q)
-    num, den = torch.zeros_like(q), torch.zeros_like(q)
+    weights = []
     for a, (lo, hi, _, _) in enumerate(faces):
         n = q.shape[1 + a]
         if n < 2:
+            weights.append(None)
             continue
         dim = 1 + a
         lo, hi = lo.narrow(dim, 1, n - 1), hi.narrow(dim, 0, n - 1)  # the cells with a neighbour on that side
-        below, above = source.narrow(dim, 0, n - 1), source.narrow(dim, 1, n - 1)
         ok_below = (~enclosed.narrow(dim, 0, n - 1)).to(q.dtype)
         ok_above = (~enclosed.narrow(dim, 1, n - 1)).to(q.dtype)
         pad = [0] * (2 * rank)
@@ -372,11 +397,60 @@ def carried_pressure(q: torch.Tensor, layout) -> torch.Tensor:
         pad_lo, pad_hi = list(pad), list(pad)
         pad_lo[k] = 1
         pad_hi[k + 1] = 1
-        num = num + torch.nn.functional.pad(lo * ok_below * below, pad_lo) + torch.nn.functional.pad(
-            hi * ok_above * above, pad_hi)
-        den = den + torch.nn.functional.pad(lo * ok_below, pad_lo) + torch.nn.functional.pad(hi * ok_above, pad_hi)
+        weights.append((torch.nn.functional.pad(lo * ok_below, pad_lo), torch.nn.functional.pad(hi * ok_above, pad_hi)))
+    return enclosed, weights
+
+
+def _carried_dense(q: torch.Tensor, layout) -> torch.Tensor:
+    """:func:`carried_pressure` on every cell (no host reads)."""
+    enclosed, weights = _carried_terms(q, layout)
+    source = torch.where(enclosed, torch.zeros_like(q), q)
+    num, den = torch.zeros_like(q), torch.zeros_like(q)
+    rank = q.ndim - 1
+    for a, w in enumerate(weights):
+        if w is None:
+            continue
+        dim, n = 1 + a, q.shape[1 + a]
+        pad = [0] * (2 * rank)
+        k = 2 * (rank - 1 - a)
+        pad_lo, pad_hi = list(pad), list(pad)
+        pad_lo[k] = 1
+        pad_hi[k + 1] = 1
+        below = torch.nn.functional.pad(source.narrow(dim, 0, n - 1), pad_lo)  # each cell's lower neighbour, 0 at 0
+        above = torch.nn.functional.pad(source.narrow(dim, 1, n - 1), pad_hi)
+        num = num + w[0] * below + w[1] * above
+        den = den + w[0] + w[1]
     mean = num / torch.where(den > 0, den, torch.ones_like(den))
     return torch.where(enclosed, mean, q)
+
+
+def _carried_plan(q: torch.Tensor, layout):
+    """What :func:`carried_pressure` keeps for a persistent layout: the enclosed cells' flat indices ``(K,)``, their
+    neighbours' flat indices ``(K, 2 d)`` (lower and upper per axis), whether each neighbour exists and is not
+    enclosed, the weights ``(K, 2 d)`` and their sums (1 where they are 0)."""
+    enclosed, weights = _carried_terms(q, layout)
+    shape = tuple(q.shape[1:])
+    index = enclosed[0].reshape(-1).nonzero().squeeze(1)
+    nbrs, opens, ws = [], [], []
+    strides = [1] * len(shape)
+    for a in range(len(shape) - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    coords = unravel(index, shape)
+    for a, w in enumerate(weights):
+        for side, wk in ((-1, None if w is None else w[0]), (1, None if w is None else w[1])):
+            c = coords[a] + side
+            inside = (c >= 0) & (c < shape[a])
+            nb = torch.where(inside, index + side * strides[a], index)
+            if wk is None:
+                ws.append(torch.zeros(index.shape, dtype=q.dtype, device=q.device))
+            else:
+                ws.append(wk[0].reshape(-1)[index])
+            nbrs.append(nb)
+            opens.append(inside & ~enclosed[0].reshape(-1)[nb])
+    weights_k = torch.stack(ws, -1)
+    den = sum_last(weights_k)
+    den = torch.where(den > 0, den, torch.ones_like(den))
+    return index, torch.stack(nbrs, -1), torch.stack(opens, -1), weights_k, den
 
 
 def _imex2_step(velocity, dt, nu, force, time, obstacles, solve, pressure, energy_normalization, project, rescale,

@@ -648,6 +648,31 @@ def test_carried_pressure_finds_the_enclosed_cells_of_a_sphere_in_3d():
     assert bool((out[0][enclosed] != q[0][enclosed]).all())
 
 
+@pytest.mark.parametrize("rank", [2, 3])
+def test_carried_pressure_of_a_persistent_layout_is_the_dense_one(rank):
+    """A layout kept for reuse (``solvers`` a dict: a stepper's resting bodies) keeps the enclosed cells and takes the
+    mean on them alone: bit-identical to the mean over every cell, for a batch of pressures, at every call."""
+    from phisim.fluid import Body, Sphere
+    from phisim.fluid.bodies import solid_layout
+    from phisim.fluid.integrators import _carried_dense, carried_pressure
+
+    res = (13, 11, 9)[:rank]
+    grid = Grid(res, bounds=[(0, 1.3), (0, 1.1), (0, 0.9)][:rank])
+    body = Body(Sphere((0.61, 0.52, 0.43)[:rank], 0.31))
+    boundary = StaggeredGrid.zeros(grid, "wall", dtype=F64).boundary
+    layout = solid_layout(body, grid, boundary, 0.0, F64, torch.device("cpu")).persistent()
+    assert isinstance(layout.solvers, dict)
+    enclosed = _enclosed_cells(layout, res)
+    assert int(enclosed.sum()) > 0
+    gen = torch.Generator().manual_seed(rank)
+    for _ in range(2):  # the plan is built at the first call and read at the second
+        q = torch.randn(2, *res, dtype=F64, generator=gen)
+        out = carried_pressure(q, layout)
+        assert torch.equal(out, _carried_dense(q, layout))
+        assert torch.equal(out[:, ~enclosed], q[:, ~enclosed])
+    assert any(k[0] == "carried_pressure" for k in layout.solvers if isinstance(k, tuple))
+
+
 def test_imex2_pressure_of_a_steady_flow_past_a_body_is_steady_in_the_cut_cells():
     """Near a steady state the incremental pressure settles with the velocity everywhere. Before the enclosed cut cells
     carried their neighbours' pressure, their pressure grew by a constant every step (6.6e-4 here, 4e-3 of the
