@@ -9,13 +9,18 @@ cases, 3-D, float64, one thread, thread time:
   ``N^3`` cells, split steps (``FluidStepper``, MacCormack, explicit viscosity ``nu = 0.01``, PCG pressure):
   the median step of ``--steps`` after two untimed ones.
 * ``slip N``: the same with a free-slip sphere.
+* ``resting N``: a step of the resting sphere of ``examples/sphere_drag.py`` in the quarter of the wide box with ``N``
+  cells per diameter, ``integrator='imex2', convection='quick'`` (the stepper keeps the layout and its solves): the
+  median step of ``--steps`` after two untimed ones.
 
 ``--compare ROOT`` runs every case also with phisim imported from the checkout ``ROOT`` (another commit), each
 sample in a fresh process, the two trees alternating, and prints the ratio of the medians; ``--doc`` writes the table
-into ``docs/BENCHMARKS.md`` (between the ``layout`` markers).
+into ``docs/BENCHMARKS.md`` between the markers ``<!-- TAG:begin -->`` and ``<!-- TAG:end -->`` (``--tag``, default
+``layout``), with ``--title`` as its heading and ``--changed`` (Markdown) as what the compared commits differ in.
 
-Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--steps 5] [--rounds 2]
-      [--compare ROOT] [--doc] [--json out.json] [--device cpu]
+Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--resting 12] [--steps 5]
+      [--rounds 2] [--compare ROOT] [--doc] [--tag layout] [--title T] [--changed TEXT] [--json out.json]
+      [--device cpu]
 """
 
 from __future__ import annotations
@@ -80,6 +85,30 @@ def _carried(n: int, steps: int, no_slip: bool, device: str) -> dict:
             "max_u": float(max(c.abs().max() for c in state.velocity.values))}
 
 
+def _resting(n: int, steps: int, device: str) -> dict:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    import sphere_drag as sd
+
+    from phisim.fluid import FluidStepper
+
+    grid, body, state, nu = sd.setup(n, width=8, up=4, down=10, quarter=True, device=device)
+    stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=0.5 * grid.dx[0],
+                           dtype=torch.float64, device=device, integrator="imex2", convection="quick")
+    times = []
+    clock = _clock(device)
+    for k in range(steps + 2):
+        synchronize(device)
+        t0 = clock()
+        state = stepper(state)
+        synchronize(device)
+        if k >= 2:
+            times.append(clock() - t0)
+    return {"seconds": statistics.median(times), "cells": list(grid.resolution),
+            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+
+
 def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:
     import torch
 
@@ -88,6 +117,8 @@ def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:
     torch.set_num_threads(1)
     if case == "static":
         out = _static(n, device)
+    elif case == "resting":
+        out = _resting(n, steps, device)
     else:
         out = _carried(n, steps, no_slip=case == "carried", device=device)
     out["phisim"] = str(Path(phisim.__file__).resolve().parents[1])
@@ -133,10 +164,14 @@ def main(argv=None) -> int:
     ap.add_argument("--static", type=int, nargs="*", default=[8, 12, 16])
     ap.add_argument("--carried", type=int, nargs="*", default=[48, 64])
     ap.add_argument("--slip", type=int, nargs="*", default=[48])
+    ap.add_argument("--resting", type=int, nargs="*", default=[])
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--compare", default=None, help="another checkout of phisim to run beside this one")
     ap.add_argument("--doc", action="store_true", help="write the table into docs/BENCHMARKS.md")
+    ap.add_argument("--tag", default="layout", help="the markers of the table's section in docs/BENCHMARKS.md")
+    ap.add_argument("--title", default="Building body layouts (resting and moving bodies), float64, one thread")
+    ap.add_argument("--changed", default=None, help="what the compared trees differ in (Markdown), for the doc")
     ap.add_argument("--json", default=None, help="write the rows to this JSON file")
     ap.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N (default cpu)")
     args = ap.parse_args(argv)
@@ -146,7 +181,7 @@ def main(argv=None) -> int:
     device = str(check_device(args.device))  # a device this machine lacks stops here, before anything is written
     trees = [("this", ROOT)] + ([("compare", Path(args.compare).resolve())] if args.compare else [])
     cases = [("static", n) for n in args.static] + [("carried", n) for n in args.carried] + \
-            [("slip", n) for n in args.slip]
+            [("slip", n) for n in args.slip] + [("resting", n) for n in args.resting]
     rows = []
     started = datetime.now().isoformat(timespec="seconds")
     for case, n in cases:
@@ -176,7 +211,7 @@ def main(argv=None) -> int:
 
 def _write_doc(rows, trees, started, args) -> None:
     label = {"static": "resting sphere, one layout", "carried": "carried no-slip sphere, one step",
-             "slip": "carried free-slip sphere, one step"}
+             "slip": "carried free-slip sphere, one step", "resting": "resting sphere, quarter box, one `imex2` step"}
     head = "| case | cells | this tree | other tree | other / this |\n|---|---|---|---|---|\n"
     lines = []
     for r in rows:
@@ -186,27 +221,28 @@ def _write_doc(rows, trees, started, args) -> None:
         lines.append(f"| {label[r['case']]} (n = {r['n']}) | {cells} | {r['this']:.3g} s | {other} | {ratio} |")
     cmd = "python benchmarks/bench_layout.py " + " ".join(sys.argv[1:])
     trees_txt = "; ".join(f"{name}: `{_commit(root)}`" for name, root in trees)
+    velocities = "; ".join(
+        f"{r['case']} {r['n']}: " + " / ".join(f"{r.get(f'{name}_max_u'):.10g}" for name, _ in trees)
+        for r in rows if r.get("this_max_u") is not None)
+    changed = args.changed or "see the two commits' logs"
+    begin, end = f"<!-- {args.tag}:begin -->", f"<!-- {args.tag}:end -->"
     body = (
-        "<!-- layout:begin -->\n## Building body layouts (resting and moving bodies), float64, one thread\n\n"
-        "Thread time of one `solid_layout` of the resting sphere of `examples/sphere_drag.py` (wide box), and the "
-        "median step of a sphere carried through a closed box (the layout is rebuilt every step), each sample in a "
-        "fresh process, the trees alternating (`benchmarks/bench_layout.py`).\n\n" + head + "\n".join(lines) + "\n\n"
+        f"{begin}\n## {args.title}\n\n"
+        "Thread time of one `solid_layout` of the resting sphere of `examples/sphere_drag.py` (wide box), the "
+        "median step of a sphere carried through a closed box (the layout is rebuilt every step) and the median "
+        "`imex2` step of the resting sphere (quarter box), as the table lists them; each sample in a fresh process, "
+        "the trees alternating (`benchmarks/bench_layout.py`).\n\n" + head + "\n".join(lines) + "\n\n"
         f"- made by `{cmd}` ({started}, {platform.machine()} {os.cpu_count()} cores, {platform.system()}); "
         f"{args.rounds} samples per tree and case, medians; trees: {trees_txt} (the other tree: a `git worktree` of "
         "that commit).\n"
-        "- What changed at 266fb92: a layout's fractions are cut only within a cell of the surface "
-        "(`body_fraction`: the rest is 0 or 1 from the signed distance alone), the sharp stencil's terms are "
-        "computed at the faces beside the surface (`wall_stencil`) and the extension's distances at its selected "
-        "faces; the layouts are bit-identical (`tests/phisim/fluid/test_layout_band.py`), and so are the carried "
-        "steps' velocities (largest face velocity per case: " + "; ".join(
-            f"{r['case']} {r['n']}: " + " / ".join(f"{r.get(f'{name}_max_u'):.10g}" for name, _ in trees)
-            for r in rows if r.get("this_max_u") is not None) + ").\n"
-        "<!-- layout:end -->\n")
+        f"- What changed: {changed} (largest face velocity at the end of each step case, this / other tree: "
+        f"{velocities}).\n"
+        f"{end}\n")
     doc = ROOT / "docs" / "BENCHMARKS.md"
     text = doc.read_text()
-    if "<!-- layout:begin -->" in text:
-        a, rest = text.split("<!-- layout:begin -->", 1)
-        _, b = rest.split("<!-- layout:end -->\n", 1)
+    if begin in text:
+        a, rest = text.split(begin, 1)
+        _, b = rest.split(end + "\n", 1)
         text = a + body + b
     else:
         marker = "<!-- cg-floor:begin -->"

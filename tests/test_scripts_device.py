@@ -65,8 +65,8 @@ SCRIPTS = {
                                 "4", "--eval-every", "1", "--reference-iterations", "1", "--width", "4", "--blocks",
                                 "1", "--out", "{out}"],
     "benchmarks/bench_bodies.py": ["--sizes", "16", "--repeat", "1", "--json", "{out}/bodies.json"],
-    "benchmarks/bench_layout.py": ["--static", "4", "--carried", "8", "--slip", "--steps", "1", "--rounds", "1",
-                                   "--json", "{out}/layout.json"],
+    "benchmarks/bench_layout.py": ["--static", "4", "--carried", "8", "--slip", "--resting", "4", "--steps", "1",
+                                   "--rounds", "1", "--json", "{out}/layout.json"],
     "benchmarks/bench_spectral.py": ["--n", "16", "--repeat", "2"],
     "benchmarks/bench_reliability.py": ["--parts", "float32", "--float32-sizes", "16", "--out", "{out}/r.json"],
     "benchmarks/bench_flow_bodies.py": ["--sides", "phisim", "phisim_obstacle", "--scenes", "cylinder_wake",
@@ -133,15 +133,17 @@ def test_cylinder_benchmark_tiny_cpu(tmp_path):
 
 
 def test_bench_layout_tiny_cpu(tmp_path):
-    """The layout benchmark's tiny run: one resting-sphere layout and one carried step, timed in fresh processes."""
+    """The layout benchmark's tiny run: one resting-sphere layout, one carried step and one ``imex2`` step of the
+    resting sphere, timed in fresh processes."""
     out = tmp_path / "out"
     mod = load("benchmarks/bench_layout.py")
     assert mod.main(argv("benchmarks/bench_layout.py", out, "cpu")) == 0
     rows = json.loads((out / "layout.json").read_text())
-    assert [(r["case"], r["n"]) for r in rows] == [("static", 4), ("carried", 8)]
+    assert [(r["case"], r["n"]) for r in rows] == [("static", 4), ("carried", 8), ("resting", 4)]
     for r in rows:
         assert r["device"] == "cpu" and r["this"] > 0
     assert rows[0]["cells"] == [56, 32, 32] and 0 < rows[1]["this_max_u"] < 10
+    assert rows[2]["cells"] == [56, 16, 16] and 0.5 < rows[2]["this_max_u"] < 10  # the stream past the sphere
 
 
 def _bench_bodies(out: Path, device: str) -> list[dict]:
