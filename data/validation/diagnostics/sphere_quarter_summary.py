@@ -2,8 +2,9 @@
 10 8 --quarter``): per grid the drag with both pressure readings, its parts and the recirculation length, and for each
 quantity the observed order and the Richardson limit of every three consecutive grids (``sphere_drag.convergence``).
 
-``python data/validation/diagnostics/sphere_quarter_summary.py [JSON ...]`` (default: the quarter runs' files in
-data/validation) prints a Markdown table and one JSON line per quantity.
+``python data/validation/diagnostics/sphere_quarter_summary.py [JSON ...]`` (default: the split step's quarter runs'
+files in data/validation) prints a Markdown table and one JSON line per quantity; ``... imex2`` the same for the runs
+with ``--integrator imex2 --convection quick``; ``... compare`` a table of the two integrators side by side per grid.
 """
 import json
 import sys
@@ -16,6 +17,7 @@ import sphere_drag as sd  # noqa: E402
 
 DEFAULT = ["sphere_re100_box8_quarter.json", "sphere_re100_box8_quarter_n20.json",
            "sphere_re100_box8_quarter_n24.json"]
+IMEX2 = [f"sphere_re100_box8_quarter_imex2_quick_n{n}.json" for n in (8, 12, 16, 20, 24)]
 QUANTITIES = ("cd", "cd_surface", "cd_momentum", "cd_pressure", "cd_pressure_surface", "cd_pressure_momentum",
               "cd_viscous", "cd_viscous_momentum", "recirculation")
 
@@ -28,8 +30,32 @@ def load(paths):
     return [runs[n] for n in sorted(runs)]
 
 
+def _files(names):
+    return [str(ROOT / "data" / "validation" / f) for f in names]
+
+
+def compare() -> int:
+    """The split step's and ``'imex2'`` + QUICK's readings per grid, and the gap of the momentum readings."""
+    split = {r["n"]: r for r in load([f for f in _files(DEFAULT) if Path(f).exists()])}
+    imex = {r["n"]: r for r in load([f for f in _files(IMEX2) if Path(f).exists()])}
+    print("| grid | C_D cells / momentum: split | `imex2` + QUICK | gap of the momentum readings | "
+          "pressure part (momentum): split / `imex2` | viscous part (momentum): split / `imex2` | L / D: split / "
+          "`imex2` |")
+    print("|---|---|---|---|---|---|---|")
+    for n in sorted(set(split) & set(imex)):
+        a, b = split[n], imex[n]
+        print(f"| D/{n} | {a['cd']:.4f} / {a['cd_momentum']:.4f} | {b['cd']:.4f} / {b['cd_momentum']:.4f} | "
+              f"{a['cd_momentum'] - b['cd_momentum']:.4f} | {a['cd_pressure_momentum']:.4f} / "
+              f"{b['cd_pressure_momentum']:.4f} | {a['cd_viscous_momentum']:.4f} / {b['cd_viscous_momentum']:.4f} | "
+              f"{a['recirculation']:.3f} / {b['recirculation']:.3f} |")
+    return 0
+
+
 def main(argv=None) -> int:
-    args = (argv if argv is not None else sys.argv[1:]) or [str(ROOT / "data" / "validation" / f) for f in DEFAULT]
+    args = argv if argv is not None else sys.argv[1:]
+    if args == ["compare"]:
+        return compare()
+    args = _files(IMEX2) if args == ["imex2"] else (args or _files(DEFAULT))
     runs = load([a for a in args if Path(a).exists()])
     print("| grid | cells | C_D: cells / surface / momentum | pressure part: cells / surface / momentum | "
           "viscous part: probes / momentum | L / D | steps | t | CPU |")
