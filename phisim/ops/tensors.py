@@ -2,9 +2,10 @@
 
 * :func:`unravel`: multi-indices of flat indices (``torch.unravel_index`` imports sympy on its first call, half a
   second or more of a process's first step with bodies).
-* :func:`sum_last`: the sum over a short last axis (a point's ``d`` coordinates, a stencil's corners) as a chain of
-  additions: torch's reduction over an inner axis of length 3 costs 20-25 times more on the CPU, and the chain adds
-  in the same order (bit-identical results on the CPU).
+* :func:`sum_last`: the sum over a point's 2-3 coordinates as a chain of additions: torch's reduction over an inner
+  axis of length 2-3 costs 20-25 times more on the CPU, and the chain adds in the same order (bit-identical results
+  on the CPU). From about 8 entries on (a stencil's corners) torch's vectorised reduction is the faster one, and it
+  adds in another order.
 """
 
 from __future__ import annotations
