@@ -29,6 +29,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import statistics
 import subprocess
 import sys
@@ -209,6 +210,19 @@ def main(argv=None) -> int:
     return 0
 
 
+def _command(argv) -> str:
+    """The arguments as a shell would take them, with ``--changed``'s text (the doc's next line) elided."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            out.append("'...'")
+            skip = False
+            continue
+        out.append(shlex.quote(arg))
+        skip = arg == "--changed"
+    return " ".join(out)
+
+
 def _write_doc(rows, trees, started, args) -> None:
     label = {"static": "resting sphere, one layout", "carried": "carried no-slip sphere, one step",
              "slip": "carried free-slip sphere, one step", "resting": "resting sphere, quarter box, one `imex2` step"}
@@ -219,7 +233,7 @@ def _write_doc(rows, trees, started, args) -> None:
         other = f"{r['compare']:.3g} s" if "compare" in r else "-"
         ratio = f"**{r['ratio']:.2f}x**" if "ratio" in r else "-"
         lines.append(f"| {label[r['case']]} (n = {r['n']}) | {cells} | {r['this']:.3g} s | {other} | {ratio} |")
-    cmd = "python benchmarks/bench_layout.py " + " ".join(sys.argv[1:])
+    cmd = "python benchmarks/bench_layout.py " + _command(sys.argv[1:])
     trees_txt = "; ".join(f"{name}: `{_commit(root)}`" for name, root in trees)
     velocities = "; ".join(
         f"{r['case']} {r['n']}: " + " / ".join(f"{r.get(f'{name}_max_u'):.10g}" for name, _ in trees)
