@@ -395,12 +395,14 @@ class MaskedPoisson:
                         faces.append((wa[0].narrow(a, 0, 1), idx.narrow(a, n - 1, 1), idx.narrow(a, 0, 1)))
                     for c, lo, hi in faces:
                         c = c.flatten() / self.dx[a] ** 2
-                        keep = c > 0
-                        src += [lo.flatten()[keep], hi.flatten()[keep]]
-                        dst += [hi.flatten()[keep], lo.flatten()[keep]]
+                        lo, hi = lo.flatten(), hi.flatten()
+                        keep = (c > 0) & (cand[lo] | cand[hi])  # the couplings of candidates: all that is used
+                        src += [lo[keep], hi[keep]]
+                        dst += [hi[keep], lo[keep]]
                         cpl += [c[keep], c[keep]]
                 src, dst, cpl = torch.cat(src), torch.cat(dst), torch.cat(cpl)
-                leaf = _weakest_first(cand, diag, src, dst)
+                among = cand[src] & cand[dst]  # the rounds read the couplings between candidates only
+                leaf = _weakest_first(cand, diag, src[among], dst[among])
                 if bool(leaf.any()):
                     sel = leaf[src]
                     src, dst, cpl = src[sel], dst[sel], cpl[sel]

@@ -131,6 +131,40 @@ def _couplings(op):
     return torch.cat(rows), torch.cat(cols)
 
 
+def test_leaves_read_only_the_couplings_of_candidates():
+    """``_leaves`` keeps the couplings that touch a candidate and runs the weakest-first rounds on those between
+    candidates: the same leaves, couplings and fractions as the rounds over every coupling of the grid."""
+    from phisim.solvers.masked import _weakest_first
+
+    for op in (_disc_and_box_operator(), _disc_and_box_operator(37)):
+        leaf_idx, inv_d, src, dst, frac, mask, weak = op._leaves()
+        w = tuple(wi.detach() for wi in op.weights)
+        diag = op._diagonal(w)[0].flatten()
+        d0 = op._diagonal(tuple(torch.ones_like(wi) for wi in w))[0].flatten()
+        cand = op.active[0].flatten() & (diag > 0) & (diag <= 0.2 * d0)
+        rows, cols = _couplings(op)
+        full = _weakest_first(cand, diag, rows, cols)
+        assert torch.equal(mask.flatten(), full) and torch.equal(weak.flatten(), cand & ~full)
+        sel = full[rows]
+        assert torch.equal(src, rows[sel]) and torch.equal(dst, cols[sel])
+        c = torch.cat([wa[0].narrow(a, 1, op.resolution[a] - 1).flatten() / op.dx[a] ** 2
+                       for a, wa in enumerate(w) for _ in range(2)])
+        c = c[torch.cat([(wa[0].narrow(a, 1, op.resolution[a] - 1).flatten() > 0)
+                         for a, wa in enumerate(w) for _ in range(2)])]
+        torch.testing.assert_close(frac, c[sel] / diag[rows[sel]], rtol=0, atol=0)
+    # random graphs: the rounds read the couplings between candidates only
+    gen = torch.Generator().manual_seed(5)
+    for _ in range(20):
+        n = 60
+        i, j = torch.randint(0, n, (2, 150), generator=gen)
+        keep = i != j
+        src, dst = torch.cat([i[keep], j[keep]]), torch.cat([j[keep], i[keep]])
+        cand = torch.rand(n, generator=gen) < 0.5
+        diag = torch.rand(n, dtype=torch.float64, generator=gen)
+        among = cand[src] & cand[dst]
+        assert torch.equal(_weakest_first(cand, diag, src, dst), _weakest_first(cand, diag, src[among], dst[among]))
+
+
 def test_a_cell_tied_to_the_fluid_by_a_sliver_next_to_a_weak_cell_is_eliminated():
     """A face fraction of 1e-7 (a surface grazing a face, as a moving curved body makes) gives the cell behind it a
     diagonal of 1e-7 of the open one. Next to another weak cell, the rule that left out every weak cell touching
