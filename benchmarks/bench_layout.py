@@ -60,6 +60,22 @@ def _static(n: int, device: str) -> dict:
     return {"seconds": clock() - t0, "cells": list(grid.resolution)}
 
 
+def _timed_steps(stepper, state, steps: int, device: str) -> dict:
+    """The median of ``steps`` steps of ``stepper`` after two untimed ones, the grid's cells and the largest face
+    velocity at the end."""
+    times = []
+    clock = _clock(device)
+    for k in range(steps + 2):
+        synchronize(device)
+        t0 = clock()
+        state = stepper(state)
+        synchronize(device)
+        if k >= 2:
+            times.append(clock() - t0)
+    return {"seconds": statistics.median(times), "cells": list(state.velocity.grid.resolution),
+            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+
+
 def _carried(n: int, steps: int, no_slip: bool, device: str) -> dict:
     import torch
 
@@ -73,17 +89,7 @@ def _carried(n: int, steps: int, no_slip: bool, device: str) -> dict:
     dt = min(0.5 * dx, 0.45 * dx**2 / (6 * nu))
     stepper = FluidStepper(grid, "wall", obstacles=body, viscosity=nu, dt=dt, dtype=torch.float64, device=device)
     state = FluidState(StaggeredGrid.zeros(grid, "wall", dtype=torch.float64, device=device))
-    times = []
-    clock = _clock(device)
-    for k in range(steps + 2):
-        synchronize(device)
-        t0 = clock()
-        state = stepper(state)
-        synchronize(device)
-        if k >= 2:
-            times.append(clock() - t0)
-    return {"seconds": statistics.median(times), "cells": [n] * 3,
-            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+    return _timed_steps(stepper, state, steps, device)
 
 
 def _resting(n: int, steps: int, device: str) -> dict:
@@ -97,17 +103,7 @@ def _resting(n: int, steps: int, device: str) -> dict:
     grid, body, state, nu = sd.setup(n, width=8, up=4, down=10, quarter=True, device=device)
     stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=0.5 * grid.dx[0],
                            dtype=torch.float64, device=device, integrator="imex2", convection="quick")
-    times = []
-    clock = _clock(device)
-    for k in range(steps + 2):
-        synchronize(device)
-        t0 = clock()
-        state = stepper(state)
-        synchronize(device)
-        if k >= 2:
-            times.append(clock() - t0)
-    return {"seconds": statistics.median(times), "cells": list(grid.resolution),
-            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+    return _timed_steps(stepper, state, steps, device)
 
 
 def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:

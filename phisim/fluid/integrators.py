@@ -391,14 +391,18 @@ def _carried_terms(q: torch.Tensor, layout):
         lo, hi = lo.narrow(dim, 1, n - 1), hi.narrow(dim, 0, n - 1)  # the cells with a neighbour on that side
         ok_below = (~enclosed.narrow(dim, 0, n - 1)).to(q.dtype)
         ok_above = (~enclosed.narrow(dim, 1, n - 1)).to(q.dtype)
-        pad = [0] * (2 * rank)
-        # F.pad lists the last axis first: (axis rank-1 low, high, ..., axis 0 low, high)
-        k = 2 * (rank - 1 - a)
-        pad_lo, pad_hi = list(pad), list(pad)
-        pad_lo[k] = 1
-        pad_hi[k + 1] = 1
+        pad_lo, pad_hi = _one_cell_pads(rank, a)
         weights.append((torch.nn.functional.pad(lo * ok_below, pad_lo), torch.nn.functional.pad(hi * ok_above, pad_hi)))
     return enclosed, weights
+
+
+def _one_cell_pads(rank: int, a: int) -> tuple[list[int], list[int]]:
+    """``F.pad`` widths of one cell before / after axis ``a`` of a ``rank``-D array (F.pad lists the last axis first:
+    axis rank-1 low, high, ..., axis 0 low, high)."""
+    lo, hi = [0] * (2 * rank), [0] * (2 * rank)
+    lo[2 * (rank - 1 - a)] = 1
+    hi[2 * (rank - 1 - a) + 1] = 1
+    return lo, hi
 
 
 def _carried_dense(q: torch.Tensor, layout) -> torch.Tensor:
@@ -411,11 +415,7 @@ def _carried_dense(q: torch.Tensor, layout) -> torch.Tensor:
         if w is None:
             continue
         dim, n = 1 + a, q.shape[1 + a]
-        pad = [0] * (2 * rank)
-        k = 2 * (rank - 1 - a)
-        pad_lo, pad_hi = list(pad), list(pad)
-        pad_lo[k] = 1
-        pad_hi[k + 1] = 1
+        pad_lo, pad_hi = _one_cell_pads(rank, a)
         below = torch.nn.functional.pad(source.narrow(dim, 0, n - 1), pad_lo)  # each cell's lower neighbour, 0 at 0
         above = torch.nn.functional.pad(source.narrow(dim, 1, n - 1), pad_hi)
         num = num + w[0] * below + w[1] * above
