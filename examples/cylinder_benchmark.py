@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time as _time
 from pathlib import Path
@@ -32,9 +33,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from phisim import Grid, Open, StaggeredGrid  # noqa: E402
+from phisim import CenteredGrid, Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
+from phisim.errors import FileFormatError, ParameterError  # noqa: E402
 from phisim.fluid import (  # noqa: E402
     Body,
     FluidState,
@@ -74,8 +76,12 @@ def setup(case: str, ny: int, dtype=torch.float64, device="cpu"):
 
 def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "maccormack",
         record_from: float = 0.0, dtype=torch.float64, viscosity_scheme: str = "explicit", dt: float | None = None,
-        integrator: str = "split", device="cpu", convection: str = "central"):
+        integrator: str = "split", device="cpu", convection: str = "central", init: dict | None = None):
     """Simulate a case on ``device``; returns the force history, the final state and the run's settings.
+
+    ``init`` (from :func:`load_state`) starts the run from a saved state at its time instead of the inflow profile
+    at ``t = 0``, resampled onto this grid when it was saved on another (grid sequencing: a fine grid starts from a
+    coarse grid's developed shedding and needs a shorter run to settle).
 
     The history's columns: ``t, cd, cl, dp, cd_pressure, cl_pressure`` with the pressure of the cut cells
     (:func:`~phisim.fluid.body_forces`, ``pressure_at='cells'``) and ``dp`` from the linear extrapolation to the front
@@ -85,21 +91,27 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     (``pressure_at='momentum'``, :func:`~phisim.fluid.wall_pressure`, with the previous step's velocity)."""
     device = check_device(device)
     grid, body, state, um = setup(case, ny, dtype, device)
+    t0 = 0.0
+    if init is not None:
+        state = initial_state(init, case, grid, state.velocity.boundary, dtype, device)
+        t0 = state.time
+        if not t_end > t0:
+            raise ParameterError(f"--t-end {t_end} must lie after the saved state's time {t0}")
     umean = 2 * um / 3
     dx = grid.dx[0]
     if dt is None:
         dt = cfl * dx / (1.5 * um)
         if viscosity_scheme == "explicit":
             dt = min(dt, 0.45 * dx**2 / (4 * NU))
-    n = int(math.ceil(t_end / dt))
-    dt = t_end / n
+    n = int(math.ceil((t_end - t0) / dt))
+    dt = (t_end - t0) / n
     # a stepper holds the resting cylinder's layout and its direct pressure solve (the pure step() rasterises the
     # body and solves by PCG at every call; the two agree to the solver's tolerance)
     stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=NU, advection=advection,
                            viscosity_scheme=viscosity_scheme, integrator=integrator, dtype=dtype, device=device, dt=dt,
                            convection=convection)
     hist = []
-    t0 = _time.perf_counter()
+    clock = _time.perf_counter()
     front_back = torch.tensor([[0.15, 0.2], [0.25, 0.2]], dtype=dtype, device=device)
     for _ in range(n):
         previous = state.velocity
@@ -123,10 +135,56 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
                          float(pm[0] - pm[1])))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-    wall = _time.perf_counter() - t0
+    wall = _time.perf_counter() - clock
     return np.array(hist), state, {"steps": n, "dt": dt, "wall_s": wall, "nx": grid.resolution[0], "ny": ny,
+                                   **({"t_start": t0} if init is not None else {}),
                                    "integrator": integrator, "device": str(device),
                                    **({"convection": convection} if convection != "central" else {})}
+
+
+def save_state(path, case: str, state: FluidState, meta: dict) -> None:
+    """Write a run's final state (velocity, pressure, time, grid) to ``path`` (``.npz``), atomically: a killed
+    run leaves the previous file or none, never a partial one."""
+    path = Path(path)
+    grid = state.velocity.grid
+    arrays = {f"velocity_{i}": c.detach().cpu().numpy() for i, c in enumerate(state.velocity.values)}
+    if state.pressure is not None:
+        arrays["pressure"] = state.pressure.values.detach().cpu().numpy()
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, case=case, time=state.time, resolution=np.array(grid.resolution),
+                 bounds=np.array(grid.bounds), settings=json.dumps(meta), **arrays)
+    os.replace(tmp, path)
+
+
+def load_state(path) -> dict:
+    """A state written by :func:`save_state`, as plain arrays; raises ``FileFormatError`` for a file that is not
+    one."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            out = {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise FileFormatError(f"{path}: not a readable state file ({exc})") from exc
+    need = {"case", "time", "resolution", "bounds", "velocity_0", "velocity_1"}
+    if not need <= set(out):
+        raise FileFormatError(f"{path}: not a state file of this script (missing {sorted(need - set(out))})")
+    return out
+
+
+def initial_state(init: dict, case: str, grid: Grid, boundary, dtype, device) -> FluidState:
+    """The saved state ``init`` on ``grid`` (resampled multilinearly where it was saved on another resolution; the
+    first step's projection makes the velocity divergence-free on the new grid)."""
+    if str(init["case"]) != case:
+        raise ParameterError(f"the saved state is of case {init['case']}, not {case}")
+    saved = Grid(tuple(int(n) for n in init["resolution"]), bounds=[tuple(b) for b in init["bounds"].tolist()])
+    values = tuple(torch.as_tensor(init[f"velocity_{i}"], dtype=dtype, device=device) for i in range(2))
+    velocity = StaggeredGrid(values, saved, boundary.on_grid(saved, dtype, device)).resampled(grid)
+    pressure = None
+    if "pressure" in init:
+        p = CenteredGrid(torch.as_tensor(init["pressure"], dtype=dtype, device=device), saved,
+                         boundary.for_pressure().on_grid(saved, dtype, device))
+        pressure = p.resampled(grid)
+    return FluidState(velocity, pressure=pressure, time=float(init["time"]))
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
@@ -205,6 +263,10 @@ def main(argv=None) -> int:
     ap.add_argument("--cfl", type=float, default=0.5,
                     help="1.5 U_m dt / dx (default 0.5; explicit viscosity may lower dt)")
     ap.add_argument("--dt", type=float, default=None, help="time step (instead of --cfl; rounded to divide --t-end)")
+    ap.add_argument("--save-state", default=None, metavar="FILE",
+                    help="write the final state to FILE (.npz; with several --ny, FILE gets .nyN before its suffix)")
+    ap.add_argument("--init-from", default=None, metavar="FILE",
+                    help="start from a state written by --save-state (any resolution: it is resampled), at its time")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -212,10 +274,18 @@ def main(argv=None) -> int:
     rec = args.record_from if args.record_from is not None else (t_end - 1.0 if args.case == "2D-1" else t_end - 4.0)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    init = load_state(args.init_from) if args.init_from else None
     results = []
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
-                                integrator=args.integrator, device=device, convection=args.convection)
+                                integrator=args.integrator, device=device, convection=args.convection, init=init)
+        if args.save_state:
+            target = Path(args.save_state)
+            if len(args.ny) > 1:
+                target = target.with_name(f"{target.stem}.ny{ny}{target.suffix}")
+            save_state(target, args.case, state, meta)
+        if init is not None:
+            meta["init_from"] = str(args.init_from)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic,"

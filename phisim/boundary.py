@@ -569,6 +569,17 @@ class Boundary:
                                else c for s, c in enumerate(pair)))
         return Boundary(tuple(sides))
 
+    def on_grid(self, grid, dtype=None, device=None) -> Boundary:
+        """This boundary with every varying :class:`Inflow` (re-)evaluated on ``grid`` at its own time: a field
+        moved to another resolution (:meth:`~phisim.field.StaggeredGrid.resampled`) takes its boundary this way."""
+        if not any(isinstance(c, Inflow) and c.varying for pair in self.sides for c in pair):
+            return self
+        sides = []
+        for a, pair in enumerate(self.sides):
+            sides.append(tuple(c.resolved(grid, a, s, c.time, dtype, device) if isinstance(c, Inflow) and c.varying
+                               else c for s, c in enumerate(pair)))
+        return Boundary(tuple(sides))
+
     @property
     def has_open_side(self) -> bool:
         """Whether some side is :class:`Open` (the pressure is then fixed there, no compatibility needed)."""

@@ -164,6 +164,22 @@ def _sample_at(arr: torch.Tensor, flat: torch.Tensor, grid, boundary, face_axis)
 # ---- fields -------------------------------------------------------------------------------------------
 
 
+def _check_same_domain(source: Grid, target, what: str) -> Grid:
+    """``target`` as a Grid covering the same box as ``source`` (to 1e-9 of each extent)."""
+    if not isinstance(target, Grid):
+        raise ParameterError(f"{what} needs a phisim.Grid, got {type(target).__name__}")
+    if target.rank != source.rank:
+        raise GridMismatchError(f"cannot {what} a {source.rank}-D field onto a {target.rank}-D grid")
+    for axis, ((a0, a1), (b0, b1)) in enumerate(zip(source.bounds, target.bounds)):
+        tol = 1e-9 * (a1 - a0)
+        if abs(a0 - b0) > tol or abs(a1 - b1) > tol:
+            raise GridMismatchError(
+                f"cannot {what} onto a grid covering another box: axis {axis} spans ({b0}, {b1}), the field's "
+                f"({a0}, {a1}); only the resolution may change"
+            )
+    return target
+
+
 class Field:
     """Common behaviour of `CenteredGrid` and `StaggeredGrid`: arithmetic and conversions."""
 
@@ -434,6 +450,18 @@ class CenteredGrid(Field):
         out = out.reshape(out.shape[0], out.shape[1], *lead)
         return out if self.is_vector else out[:, 0]
 
+    def resampled(self, grid: Grid) -> CenteredGrid:
+        """The field on another resolution of the same box: :meth:`sample` at the new cell centres (multilinear,
+        boundary-aware; exact for fields linear in each axis away from the boundaries). For grid sequencing,
+        where a coarse run's state starts a fine one.
+
+        Raises:
+            GridMismatchError: ``grid`` covers another box or has another number of axes.
+        """
+        grid = _check_same_domain(self.grid, grid, "resample")
+        values = self.sample(grid.cell_centers(self.dtype, self.device))
+        return CenteredGrid._trusted(values.contiguous(), grid, self.boundary.on_grid(grid, self.dtype, self.device))
+
     def to_staggered(self) -> StaggeredGrid:
         """Resample a velocity (vector, ``C == rank``) to the MAC faces by averaging the two adjacent cells.
 
@@ -606,6 +634,24 @@ class StaggeredGrid(Field):
             n = v.shape[dim] - 1
             comps.append(0.5 * (v.narrow(dim, 0, n) + v.narrow(dim, 1, n)))
         return CenteredGrid(torch.stack(comps, dim=1), self.grid, self.boundary)
+
+    def resampled(self, grid: Grid) -> StaggeredGrid:
+        """The velocity on another resolution of the same box: each component interpolated (multilinear,
+        boundary-aware, as :meth:`sample`) at the new grid's faces of its axis. The result is not divergence-free in
+        general; a projection (any step) makes it so. For grid sequencing, where a coarse run's state starts a fine
+        one.
+
+        Raises:
+            GridMismatchError: ``grid`` covers another box or has another number of axes.
+        """
+        grid = _check_same_domain(self.grid, grid, "resample")
+        comps = []
+        for i in range(self.rank):
+            points = grid.face_centers(i, self.dtype, self.device).reshape(1, -1, self.rank)
+            points = points.expand(self.batch_size, -1, -1)
+            v = _sample_at(self.padded_component(i, 1).unsqueeze(1), points, self.grid, self.boundary, i)[:, 0]
+            comps.append(v.reshape(self.batch_size, *grid.face_shape(i)).contiguous())
+        return StaggeredGrid._trusted(tuple(comps), grid, self.boundary.on_grid(grid, self.dtype, self.device))
 
     def sample(self, points, per_sample: bool = False) -> torch.Tensor:
         """Multilinear, boundary-aware interpolation of every component at physical ``points``.

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import torch
 
 EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
 
@@ -114,3 +115,46 @@ def test_saturation_read_from_a_short_record_agrees_with_a_long_one(load_example
     assert s["cl_max_limit"] == pytest.approx(settled["cl_max"], abs=3e-4)
     assert s["cd_max_limit"] == pytest.approx(settled["cd_max"], abs=1e-4)
     assert abs(s["cl_max"] - settled["cl_max"]) > 1e-3  # what the limit corrects
+
+
+def test_a_saved_state_continues_the_run_and_starts_a_finer_grid(tmp_path, load_example):
+    """``--save-state`` / ``--init-from`` of the DFG script: a run continued from its saved state reproduces the
+    uninterrupted run's forces (the restart carries velocity, pressure and time); a state saved on D/10 starts a D/20
+    run at its time (grid sequencing); bad files and mismatched cases are refused."""
+    from phisim.errors import FileFormatError, ParameterError
+    from phisim.ops import divergence
+
+    cb = load_example("cylinder_benchmark")
+    kw = dict(dt=0.002, integrator="imex2", convection="quick")
+    whole, _, _ = cb.run("2D-2", 41, 0.024, **kw)
+    first, state, meta = cb.run("2D-2", 41, 0.012, **kw)
+    path = tmp_path / "state.npz"
+    cb.save_state(path, "2D-2", state, meta)
+    assert not (tmp_path / "state.npz.tmp").exists()
+    init = cb.load_state(path)
+    rest, end, meta2 = cb.run("2D-2", 41, 0.024, init=init, **kw)
+    assert meta2["steps"] == 6 and meta2["t_start"] == pytest.approx(0.012)
+    assert end.time == pytest.approx(0.024)
+    np.testing.assert_allclose(rest[:, :3], whole[6:, :3], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(first[:, :3], whole[:6, :3], rtol=0, atol=1e-12)
+
+    fine, fstate, fmeta = cb.run("2D-2", 82, 0.018, init=init, **kw)
+    assert fstate.velocity.grid.resolution == (440, 82) and fmeta["steps"] == 3
+    assert np.isfinite(fine).all()
+    # divergence-free on the new grid away from the cut cells (whose fluxes carry the wetted fractions)
+    x = fstate.velocity.grid.cell_centers(torch.float64)
+    far = ((x - torch.tensor(cb.CENTER, dtype=torch.float64)).norm(dim=-1) > cb.D / 2 + 3 * 0.005)
+    div = divergence(fstate.velocity).values[0]
+    assert float(div[far].abs().max()) * 0.005 < 1e-9 * float(fstate.velocity.values[0].abs().max())
+
+    with pytest.raises(ParameterError, match="after the saved state"):
+        cb.run("2D-2", 41, 0.01, init=init, **kw)
+    with pytest.raises(ParameterError, match="case 2D-2"):
+        cb.run("2D-1", 41, 0.03, init=init, **kw)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a state")
+    with pytest.raises(FileFormatError):
+        cb.load_state(bad)
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(FileFormatError, match="missing"):
+        cb.load_state(tmp_path / "other.npz")
