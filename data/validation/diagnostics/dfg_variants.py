@@ -1,6 +1,11 @@
 """Diagnostic runs of the DFG benchmark with one part of the split step altered (docs/VALIDATION.md).
 
     python data/validation/diagnostics/dfg_variants.py CASE VARIANT NY T_END [CFL]
+    INIT_FROM=STATE.npz RECORD_FROM=T python data/validation/diagnostics/dfg_variants.py ...
+
+(``INIT_FROM``: start from a state saved by ``examples/cylinder_benchmark.py --save-state``, at its time, resampled
+onto this grid; ``RECORD_FROM``: the first recorded time, default the last two time units for 2D-2, the last one for
+2D-1.)
 
 CASE is 2D-1 or 2D-2; prints one JSON line (the summary of examples/cylinder_benchmark.py; 2D-1: the state at T_END,
 2D-2: the last two time units). VARIANT (each a change made here by replacing a function, not a setting; variants
@@ -195,9 +200,12 @@ if "long" in parts:
 adv = "semi_lagrangian" if "sl" in parts else "maccormack"
 vs = "implicit" if "implicit" in parts else "crank_nicolson" if "cn" in parts else "explicit"
 torch.set_num_threads(1)
-rec = t_end - (1 if case == "2D-1" else 2)
+rec = float(os.environ.get("RECORD_FROM", t_end - (1 if case == "2D-1" else 2)))
+init = cb.load_state(os.environ["INIT_FROM"]) if os.environ.get("INIT_FROM") else None
 integ = "split2" if any(q.startswith("split2") for q in parts) else "split"
 integ = next((q for q in ("imex2", "rk2") if q in parts), integ)
 hist, state, meta = cb.run(case, ny, t_end, cfl=cfl, record_from=rec, advection=adv, viscosity_scheme=vs,
-                          integrator=integ, convection="quick" if "quick" in parts else "central")
-print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **cb.summarize(case, hist)}), flush=True)
+                          integrator=integ, convection="quick" if "quick" in parts else "central", init=init)
+tail = hist[hist[:, 0] >= t_end - (1 if case == "2D-1" else 2)]
+extra = {"init_from": os.environ["INIT_FROM"], "record_from": rec} if init is not None else {}
+print(json.dumps({"case": case, "variant": var, "cfl": cfl, **meta, **extra, **cb.summarize(case, tail)}), flush=True)
