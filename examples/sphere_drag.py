@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import pickle
 import sys
 import time as _time
 from pathlib import Path
@@ -52,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from phisim import CenteredGrid, Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
+from phisim.errors import FileFormatError, ParameterError  # noqa: E402
 from phisim.fluid import Body, FluidState, FluidStepper, Sphere, body_forces  # noqa: E402
 
 D, U = 1.0, 1.0
@@ -132,17 +134,26 @@ def recirculation_length(velocity: StaggeredGrid, samples: int = 2000) -> float:
 
 def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady_tol: float = 1e-4,
         dtype=torch.float64, device="cpu", every: int = 5, log=None, box=(UP, DOWN, W), integrator: str = "split",
-        convection: str = "central", quarter: bool = False, save_state: str | None = None):
+        convection: str = "central", quarter: bool = False, save_state: str | None = None,
+        init_from: str | None = None):
     """Advance the flow on the grid with ``n`` cells per diameter until the drag is steady (its relative change over
     one time unit below ``steady_tol``) or ``t_end``; returns the history ``(t, cd, cy, cz, cd_pressure, L/D)`` (every
     ``every`` steps) and a summary. ``integrator`` / ``convection``: the stepper's time integrator and convection
     scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one).
     ``quarter``: the quarter ``y, z >= 0`` of the box with free-slip mirror planes (:func:`setup`); the forces of its
     quarter sphere are multiplied by 4 (the cross-stream coefficients are zero by the symmetry and not computed).
-    ``save_state``: a file for the final velocity and pressure (``torch.save``), for readings made afterwards."""
+    ``save_state``: a file for the final velocity and pressure (``torch.save``), for readings made afterwards.
+    ``init_from``: such a file, of the same box, from any grid: the run starts from its state at its time, resampled
+    onto this grid (grid sequencing: a fine grid starts from a coarse grid's steady wake; ``t_end`` counts from 0 as
+    before, so give the saved time plus the time to settle)."""
     device = check_device(device)
     up, down, width = box
     grid, body, state, nu = setup(n, re, dtype, device, width=width, up=up, down=down, quarter=quarter)
+    if init_from:
+        state = load_state(init_from, grid, state.velocity.boundary, re, box, quarter, dtype, device)
+        if not t_end > state.time:
+            raise ParameterError(f"t_end {t_end} must lie after the saved state's time {state.time}")
+    t_start = state.time
     area = AREA / 4 if quarter else AREA  # the quarter sphere's forces against a quarter of the frontal area
     dx = grid.dx[0]
     dt = cfl * dx / U
@@ -153,7 +164,8 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                            **({} if convection == "central" else {"convection": convection}))
     hist = []
     per_unit = max(1, int(round(1.0 / dt)))
-    steps = int(math.ceil(t_end / dt))
+    steps = int(math.ceil((t_end - t_start) / dt))
+    settle = 5.0 if init_from is None else 1.0  # no steadiness verdict before (a started wake changes slowly at first)
     t0, c0 = _time.perf_counter(), _time.thread_time()
     steady = False
     k = 0
@@ -174,7 +186,7 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
             if log is not None:
                 log(f"n={n} t={state.time:.2f} cd={hist[-1][1]:.5f} (pressure {hist[-1][4]:.5f}) L/D={hist[-1][5]:.3f} "
                     f"wall={_time.perf_counter() - t0:.0f}s")
-            if prev and state.time >= 5.0:
+            if prev and state.time >= t_start + settle:
                 change = abs(hist[-1][1] - prev[-1][1]) / abs(hist[-1][1])
                 if change < steady_tol:
                     steady = True
@@ -214,7 +226,28 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
                "wall_s": _time.perf_counter() - t0, "cpu_s": _time.thread_time() - c0, "device": str(device),
                "dtype": str(dtype).replace("torch.", ""), "cfl": cfl, "box": [-up, down, width],
-               "blockage": AREA / width**2, "integrator": integrator, "convection": convection, "quarter": quarter}
+               "blockage": AREA / width**2, "integrator": integrator, "convection": convection, "quarter": quarter,
+               **({"init_from": str(init_from), "t_start": t_start} if init_from else {})}
+
+
+def load_state(path, grid, boundary, re: float, box, quarter: bool, dtype, device) -> FluidState:
+    """A state saved by :func:`run` (``save_state``), resampled onto ``grid`` (multilinear; the first step's
+    projection makes the velocity divergence-free there). Raises ``FileFormatError`` for a file that is not such a
+    state and ``ParameterError`` for one of another box or symmetry."""
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        n, time, values, pressure = saved["n"], float(saved["time"]), saved["velocity"], saved["pressure"]
+    except (OSError, RuntimeError, KeyError, TypeError, EOFError, pickle.UnpicklingError) as exc:
+        raise FileFormatError(f"{path}: not a state saved by sphere_drag.py ({exc})") from exc
+    if [float(b) for b in saved.get("box", [])] != [float(b) for b in box] or bool(saved.get("quarter")) != quarter:
+        raise ParameterError(f"{path} holds the box {saved.get('box')} (quarter {saved.get('quarter')}), not "
+                             f"{list(box)} (quarter {quarter})")
+    up, down, width = box
+    coarse = setup(int(n), re, dtype, device, width=width, up=up, down=down, quarter=quarter)[0]
+    on = boundary.on_grid(coarse, dtype, device)
+    velocity = StaggeredGrid(tuple(v.to(device, dtype) for v in values), coarse, on).resampled(grid)
+    p = CenteredGrid(pressure.to(device, dtype), coarse, on.for_pressure()).resampled(grid)
+    return FluidState(velocity, pressure=p, time=time)
 
 
 def convergence(ns, values) -> dict:
@@ -269,6 +302,9 @@ def main(argv=None) -> int:
                     help="the quarter y, z >= 0 of the box with free-slip mirror planes (a quarter of the cells)")
     ap.add_argument("--save-state", default=None,
                     help="save each grid's final velocity and pressure to this file (torch.save; {n} is the grid)")
+    ap.add_argument("--init-from", default=None, metavar="FILE",
+                    help="start from a state saved by --save-state (same box, any grid: resampled), at its time; "
+                    "--t-end is then the saved time plus the time to run")
     args = ap.parse_args(argv)
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
@@ -281,7 +317,8 @@ def main(argv=None) -> int:
         hist, res = run(n, args.re, args.t_end, args.cfl, args.steady_tol, dtype, device, args.every, log=log,
                          box=tuple(args.box), integrator=args.integrator, convection=args.convection,
                          quarter=args.quarter,
-                         save_state=None if args.save_state is None else args.save_state.format(n=n))
+                         save_state=None if args.save_state is None else args.save_state.format(n=n),
+                         init_from=args.init_from)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".n{n}.csv"), hist, delimiter=",",
                        header="t,cd,cy,cz,cd_pressure,recirculation")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -148,3 +149,32 @@ def test_free_slip_outer_sphere_turns_with_the_inner_one(load_example):
     sc = load_example("spherical_couette")
     row = sc.study([24], free_slip=True, start_exact=True, rtol=1e-8, tol=1e-6)[0]
     assert row["all_max"] < 4e-4 and row["near_rms"] < 5.5e-5 and row["steps"] < 20, row
+
+
+def test_sphere_drag_continues_from_a_saved_state_and_starts_a_finer_grid(tmp_path, load_example):
+    """``sphere_drag.run(..., save_state=...)`` then ``init_from=``: on the same grid the run continues the
+    uninterrupted one (the drag history to 1e-9); on a finer grid of the same box it starts at the saved time from
+    the resampled state; another box, a bad file or an end before the saved time are refused."""
+    from phisim.errors import FileFormatError, ParameterError
+
+    sd = load_example("sphere_drag")
+    kw = dict(box=(1.5, 3.0, 3.0), quarter=True, integrator="imex2", convection="quick", every=1, cfl=0.5)
+    dt = 0.5 / 4  # cfl dx / U with n = 4
+    whole, _ = sd.run(4, t_end=12 * dt, **kw)
+    path = tmp_path / "s4.pt"
+    _, res = sd.run(4, t_end=6 * dt, save_state=str(path), **kw)
+    rest, res2 = sd.run(4, t_end=12 * dt, init_from=str(path), **kw)
+    assert res2["t_start"] == pytest.approx(6 * dt) and res2["steps"] == 6
+    np.testing.assert_allclose(rest[:, :2], whole[6:, :2], rtol=0, atol=1e-9)
+
+    fine, res8 = sd.run(8, t_end=6 * dt + 3 * dt / 2, init_from=str(path), **kw)
+    assert res8["cells"] == [36, 12, 12] and res8["steps"] == 3 and np.isfinite(fine[:, 1]).all()
+
+    with pytest.raises(ParameterError, match="holds the box"):
+        sd.run(4, t_end=1.0, init_from=str(path), **{**kw, "box": (1.5, 3.0, 4.0)})
+    with pytest.raises(ParameterError, match="after the saved state"):
+        sd.run(4, t_end=0.5, init_from=str(path), **kw)
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a state")
+    with pytest.raises(FileFormatError):
+        sd.run(4, t_end=2.0, init_from=str(bad), **kw)
