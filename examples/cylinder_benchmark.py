@@ -177,14 +177,14 @@ def initial_state(init: dict, case: str, grid: Grid, boundary, dtype, device) ->
     if str(init["case"]) != case:
         raise ParameterError(f"the saved state is of case {init['case']}, not {case}")
     saved = Grid(tuple(int(n) for n in init["resolution"]), bounds=[tuple(b) for b in init["bounds"].tolist()])
+    on_saved = boundary.on_grid(saved, dtype, device)
     values = tuple(torch.as_tensor(init[f"velocity_{i}"], dtype=dtype, device=device) for i in range(2))
-    velocity = StaggeredGrid(values, saved, boundary.on_grid(saved, dtype, device)).resampled(grid)
     pressure = None
     if "pressure" in init:
-        p = CenteredGrid(torch.as_tensor(init["pressure"], dtype=dtype, device=device), saved,
-                         boundary.for_pressure().on_grid(saved, dtype, device))
-        pressure = p.resampled(grid)
-    return FluidState(velocity, pressure=pressure, time=float(init["time"]))
+        pressure = CenteredGrid(torch.as_tensor(init["pressure"], dtype=dtype, device=device), saved,
+                                on_saved.for_pressure())
+    return FluidState(StaggeredGrid(values, saved, on_saved), pressure=pressure,
+                      time=float(init["time"])).resampled(grid)
 
 
 def summarize(case: str, hist: np.ndarray) -> dict:
@@ -279,13 +279,13 @@ def main(argv=None) -> int:
     for ny in args.ny:
         hist, state, meta = run(args.case, ny, t_end, cfl=args.cfl, dt=args.dt, record_from=rec,
                                 integrator=args.integrator, device=device, convection=args.convection, init=init)
+        if init is not None:
+            meta["init_from"] = str(args.init_from)
         if args.save_state:
             target = Path(args.save_state)
             if len(args.ny) > 1:
                 target = target.with_name(f"{target.stem}.ny{ny}{target.suffix}")
             save_state(target, args.case, state, meta)
-        if init is not None:
-            meta["init_from"] = str(args.init_from)
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic,"

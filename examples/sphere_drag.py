@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import pickle
 import sys
 import time as _time
@@ -210,9 +211,11 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     cd_v_mom = float(2 * mom.viscous[0, 0] / (U**2 * area))
     if save_state:
         Path(save_state).parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(save_state).with_name(Path(save_state).name + ".tmp")  # a killed run leaves no partial file
         torch.save({"n": n, "box": [up, down, width], "quarter": quarter, "dt": dt, "time": state.time,
                     "velocity": [c.cpu() for c in state.velocity.values], "pressure": state.pressure.values.cpu()},
-                   save_state)
+                   tmp)
+        os.replace(tmp, save_state)
     ref = REFERENCE["cd_johnson_patel_1999"]
     prev = h[h[:, 0] <= last[0] - 1.0 + 0.5 * dt]
     return h, {"n": n, "dx": dx, "cells": list(grid.resolution), "dt": dt, "steps": k, "t": float(last[0]),
@@ -245,9 +248,9 @@ def load_state(path, grid, boundary, re: float, box, quarter: bool, dtype, devic
     up, down, width = box
     coarse = setup(int(n), re, dtype, device, width=width, up=up, down=down, quarter=quarter)[0]
     on = boundary.on_grid(coarse, dtype, device)
-    velocity = StaggeredGrid(tuple(v.to(device, dtype) for v in values), coarse, on).resampled(grid)
-    p = CenteredGrid(pressure.to(device, dtype), coarse, on.for_pressure()).resampled(grid)
-    return FluidState(velocity, pressure=p, time=time)
+    return FluidState(StaggeredGrid(tuple(v.to(device, dtype) for v in values), coarse, on),
+                      pressure=CenteredGrid(pressure.to(device, dtype), coarse, on.for_pressure()),
+                      time=time).resampled(grid)
 
 
 def convergence(ns, values) -> dict:

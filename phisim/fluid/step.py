@@ -414,3 +414,18 @@ class FluidState:
     time: float = 0.0
     velocity_rate: StaggeredGrid | None = None
     acceleration: StaggeredGrid | None = None
+
+    def resampled(self, grid) -> FluidState:
+        """This state on another resolution of the same box, at the same time: every field it holds resampled
+        (:meth:`StaggeredGrid.resampled`, :meth:`CenteredGrid.resampled`; multilinear). The velocity is not
+        divergence-free on the new grid in general; the next step's projection makes it so. For grid sequencing, where
+        a coarse run's state starts a fine one.
+
+        Raises:
+            GridMismatchError: ``grid`` covers another box or has another number of axes.
+        """
+        def move(field):
+            return None if field is None else field.resampled(grid)
+
+        return FluidState(self.velocity.resampled(grid), move(self.marker), move(self.pressure), self.time,
+                          move(self.velocity_rate), move(self.acceleration))

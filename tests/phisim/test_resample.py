@@ -122,3 +122,24 @@ def test_resampled_rejects_another_box_rank_or_a_non_grid():
     c = CenteredGrid.zeros(Grid((8, 6), bounds=BOX2), "open")
     with pytest.raises(GridMismatchError, match="another box"):
         c.resampled(Grid((8, 6), bounds=[(0.0, 2.5), (-0.5, 1.0)]))
+
+
+def test_fluid_state_resampled_moves_every_field_and_keeps_the_time():
+    from phisim.fluid import FluidState
+
+    g, f = Grid((12, 9), bounds=BOX2), Grid((18, 15), bounds=BOX2)
+    v = StaggeredGrid.from_function(_linear, g, "wall", dtype=torch.float64)
+    p = CenteredGrid.from_function(lambda x: _linear(x)[..., 1], g, "open", dtype=torch.float64)
+    m = CenteredGrid.from_function(lambda x: x[..., 0] ** 2, g, "open", dtype=torch.float64)
+    state = FluidState(v, marker=m, pressure=p, time=1.25, velocity_rate=2 * v)
+    moved = state.resampled(f)
+    assert moved.time == 1.25 and moved.acceleration is None
+    for a, b in zip(moved.velocity.values, v.resampled(f).values):
+        assert torch.equal(a, b)
+    for a, b in zip(moved.velocity_rate.values, (2 * v).resampled(f).values):
+        assert torch.equal(a, b)
+    assert torch.equal(moved.pressure.values, p.resampled(f).values)
+    assert torch.equal(moved.marker.values, m.resampled(f).values)
+    assert FluidState(v).resampled(f).pressure is None
+    with pytest.raises(GridMismatchError):
+        state.resampled(Grid((18, 15), bounds=[(0.0, 2.0), (0.0, 1.0)]))
