@@ -51,6 +51,7 @@ from phisim.errors import ParameterError, ShapeError
 from phisim.field import StaggeredGrid
 from phisim.ops.tensors import unravel
 from phisim.solvers.box import TRANSFORMS, axis_eigenvalues
+from phisim.solvers.green import green_block, symmetric_factors
 from phisim.solvers.linalg import Solve, cg
 from phisim.spectral import fft as _fft
 from phisim.spectral.pocket import wall_transposes
@@ -267,6 +268,28 @@ class _Component:
         return self.restrict(self.laplace(z))
 
     # -- spectral application ------------------------------------------------------------------------------
+
+    def green_factors(self, coef: float):
+        """The box operator ``A = I - coef L₀`` on the unknowns, separated (:func:`phisim.solvers.green.green_block`):
+        per axis ``(L_a, R_a)`` (the inverse and the normalised forward transform as matrices, float64 on the CPU; a
+        real orthonormal eigenbasis along periodic axes) and the inverse eigenvalues ``1 / (1 - coef Σ_a λ_a)``."""
+        shape = [self.count if a == self.i else int(self.face_shape[a]) for a in range(self.rank)]
+        factors, lam = [], torch.zeros((), dtype=torch.float64)
+        for a, n in enumerate(shape):
+            if self.kinds[a] is None:
+                mu, left, right = symmetric_factors(n, float(self.dx[a]), ("periodic", "periodic"))
+                ev = -mu
+            else:
+                fwd, inv = self.kinds[a]
+                eye = torch.eye(n, dtype=torch.float64)[None]
+                right = _fft.r2rn(eye, (fwd,), (1,))[0]  # modes x cells
+                left = _fft.r2rn(eye, (inv,), (1,))[0]  # cells x modes
+                grid_n = self.n if a == self.i else n
+                right = right / (2 * grid_n)
+                ev = self.eigs[a]
+            factors.append((left.contiguous(), right.contiguous()))
+            lam = lam.unsqueeze(-1) + ev
+        return factors, 1.0 / (1.0 - float(coef) * lam)
 
     def inverse_multiplier(self, coef, dtype, device) -> torch.Tensor:
         """``1 / (1 - coef λ)`` with the transforms' normalisation, in ``dtype`` (cached for a float ``coef``)."""
@@ -659,6 +682,24 @@ def _phi1(z: torch.Tensor) -> torch.Tensor:
 
 #: Most surface faces per component for which a dense capacitance matrix is built.
 CAPACITANCE_MAX_FACES = 4096
+def _green_rows(comp, index: torch.Tensor, shape, coef: float, mult, device, engine) -> torch.Tensor | None:
+    """``g[j] = (A⁻¹ e_(index_j))[index]`` for the box operator of ``comp`` (``(k, k)`` float64 on ``device``) from its
+    separable decomposition, checked against two box solves; None where they disagree (the caller solves the columns
+    one by one)."""
+    coords = [c.cpu() for c in unravel(index, shape)]
+    factors, inverse = comp.green_factors(coef)
+    g = green_block(factors, inverse, coords).to(device)
+    n_all = math.prod(shape)
+    k = index.numel()
+    for j in sorted({0, k - 1}):
+        e = torch.zeros(1, n_all, dtype=torch.float64, device=device)
+        e[0, index[j]] = 1.0
+        z = comp.apply(e.reshape(1, *shape), mult, engine, prescaled=True).reshape(-1)[index]
+        if float((z - g[j]).abs().max()) > 1e-9 * max(float(z.abs().max()), 1e-300):
+            return None
+    return g
+
+
 class _CapacitanceSolve:
     """Exact solve of ``(I - a L₀) u = f`` on the free faces with ``u`` prescribed on the fixed faces.
 
@@ -685,14 +726,16 @@ class _CapacitanceSolve:
         index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
         self.surface_full = comp.restrict(index[None]).reshape(-1)[surface]
         mult = comp.inverse_multiplier(coef, torch.float64, device)
-        cap = torch.empty(k, k, dtype=torch.float64, device=device)
-        chunk = max(1, (1 << 22) // n_all)  # unit sources per batched box solve (<= 32 MB)
-        for start in range(0, k, chunk):
-            idx = surface[start : start + chunk]
-            e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
-            e[torch.arange(idx.numel(), device=device), idx] = 1.0
-            z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
-            cap[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, surface]
+        cap = _green_rows(comp, surface, shape, coef, mult, device, engine) if k else None
+        if cap is None:
+            cap = torch.empty(k, k, dtype=torch.float64, device=device)
+            chunk = max(1, (1 << 22) // n_all)  # unit sources per batched box solve (<= 32 MB)
+            for start in range(0, k, chunk):
+                idx = surface[start : start + chunk]
+                e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
+                e[torch.arange(idx.numel(), device=device), idx] = 1.0
+                z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
+                cap[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, surface]
         self.lu, self.pivots = torch.linalg.lu_factor(cap)
 
     def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
@@ -808,13 +851,19 @@ class _SharpCapacitanceSolve:
         k = self.index.numel()
         self.ad = (coef * dcoef).to(torch.float64)  # a C on the faces of N
         mult = comp.inverse_multiplier(coef, torch.float64, device)
-        g = torch.empty(k, k, dtype=torch.float64, device=device)  # g[j] = (A⁻¹ e_j) on S ∪ N
-        h = torch.zeros(n_all, dtype=torch.float64, device=device)  # row sums of |G_{:,J}|
-        chunk = max(1, (1 << 22) // n_all)
-        for start in range(0, k, chunk):
-            z = self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
-            g[start : start + z.shape[0]] = z[:, self.index]
-            h += z.abs().sum(0)
+        g = _green_rows(comp, self.index, shape, coef, mult, device, engine) if k else None  # g[j] = (A⁻¹ e_j) on J
+        if g is not None:  # the row sums of G_{:,J} >= 0 (A is an M-matrix): one box solve
+            ones = torch.zeros(1, n_all, dtype=torch.float64, device=device)
+            ones[0, self.index] = 1.0
+            h = comp.apply(ones.reshape(1, *shape), mult, engine, prescaled=True).reshape(-1).abs()
+        else:
+            g = torch.empty(k, k, dtype=torch.float64, device=device)
+            h = torch.zeros(n_all, dtype=torch.float64, device=device)  # row sums of |G_{:,J}|
+            chunk = max(1, (1 << 22) // n_all)
+            for start in range(0, k, chunk):
+                z = self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
+                g[start : start + z.shape[0]] = z[:, self.index]
+                h += z.abs().sum(0)
         self.op = ("implicit", coef)
         full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
         comp.restrict(full).copy_(fixed)

@@ -379,3 +379,91 @@ def test_direct_solve_keeps_the_rhs_gradient():
     rhs = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(3), requires_grad=True)
     assert torch.autograd.gradcheck(lambda f: op.solve(f, solve=Solve(rtol=1e-12))[0], (rhs,))
     assert op._direct and op._direct.lu is not None
+
+
+def _dense_box(res, dx, kinds):
+    """The box operator ``Σ_a I ⊗ L_a ⊗ I`` as a dense matrix (C order, as the fields' flat index)."""
+    import numpy as np
+
+    from phisim.solvers.green import axis_operator
+
+    total = 0
+    for a in range(len(res)):
+        mats = [np.eye(n) for n in res]
+        mats[a] = axis_operator(res[a], dx[a], kinds[a])
+        k = mats[0]
+        for m in mats[1:]:
+            k = np.kron(k, m)
+        total = total + k
+    return total
+
+
+@pytest.mark.parametrize("res, kinds", [
+    ((7, 5), (("neumann", "dirichlet"), ("neumann", "neumann"))),
+    ((6, 5, 4), (("dirichlet", "neumann"), ("periodic", "periodic"), ("dirichlet", "dirichlet"))),
+    ((5, 6), (("neumann", "neumann"), ("periodic", "periodic"))),
+    ((4, 3, 5), (("neumann", "neumann"), ("neumann", "neumann"), ("neumann", "neumann"))),
+])
+def test_box_green_block_equals_the_dense_inverse(res, kinds):
+    """The separable eigen-decomposition's block of ``B⁻¹`` equals the inverse of the assembled operator (a
+    singular box made definite on its constant mode, as the box inverse does); and ``axis_operator`` is the box
+    inverse's operator: the spectral box solve inverts the assembled matrix."""
+    import math
+
+    import numpy as np
+
+    from phisim.ops.tensors import unravel
+    from phisim.solvers.green import box_green_block
+
+    dx = (0.3, 0.2, 0.25)[: len(res)]
+    b = _dense_box(res, dx, kinds)
+    n = math.prod(res)
+    null = None
+    if all("dirichlet" not in pair for pair in kinds):
+        beta = float(np.linalg.eigvalsh(b)[1])
+        null = 1.0 / beta
+        b = b + beta * np.ones((n, n)) / n
+    binv = np.linalg.inv(b)
+    cells = torch.tensor(sorted({0, 3, n // 2, n - 2, n - 1}))
+    g = box_green_block(res, dx, kinds, unravel(cells, res), null)
+    ref = binv[np.ix_(cells.numpy(), cells.numpy())]
+    assert float(np.abs(g.numpy() - ref).max()) <= 1e-12 * float(np.abs(ref).max())
+    # the spectral box inverse (singular boxes made definite the same way) inverts the assembled matrix
+    f = torch.randn(1, *res, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    x = torch.as_tensor(binv @ f.reshape(-1).numpy()).reshape(1, *res)
+    ones = [torch.ones(1, *[m + (1 if b_ == a else 0) for b_, m in enumerate(res)], dtype=torch.float64)
+            for a in range(len(res))]
+    p = MaskedPoisson(ones, dx, kinds, direct=False)._box_inverse(f)
+    torch.testing.assert_close(p, x, rtol=0, atol=1e-11 * float(x.abs().max()))
+
+
+@pytest.mark.parametrize("name, res, centres, radius, kinds", DIRECT_CASES, ids=[c[0] for c in DIRECT_CASES])
+def test_capacitance_by_spectrum_equals_the_box_solves(name, res, centres, radius, kinds):
+    """The direct solve's coupling block ``Uᵀ B⁻¹ U`` from the box's eigen-decomposition equals the one from ``k``
+    box solves, in every box of the direct-solve cases (Dirichlet, Neumann, periodic, closed)."""
+    from phisim.solvers.direct import WoodburySolve
+
+    weights = _disc_weights(res, centres, radius)
+    dx = tuple(1.0 / res[0] for _ in res)
+    op = MaskedPoisson(weights, dx, kinds, direct=False)
+    solver = WoodburySolve(tuple(w[0] for w in op.weights), op.active[0], op.dx, op.kinds, op._box_inverse)
+    fast = solver._coupling_by_spectrum()
+    slow = solver._coupling_by_box_solves()
+    assert fast is not None
+    assert float((fast - slow).abs().max()) <= 1e-12 * float(slow.abs().max())
+
+
+def test_capacitance_falls_back_to_box_solves_for_another_box_inverse():
+    """A box inverse that is not the box's own fails the spectral build's check against two exact solves; the
+    capacitance then comes from that inverse's solves, and the direct solve stays consistent with it."""
+    from phisim.solvers.direct import WoodburySolve
+
+    res, kinds = (16, 12), (("neumann", "dirichlet"), ("neumann", "neumann"))
+    weights = _disc_weights(res, [(0.4, 0.35)], 0.15)
+    op = MaskedPoisson(weights, 1 / 16, kinds, direct=False)
+    twice = lambda f: 2.0 * op._box_inverse(f)  # noqa: E731
+    solver = WoodburySolve(tuple(w[0] for w in op.weights), op.active[0], op.dx, op.kinds, twice)
+    assert solver._coupling_by_spectrum() is None
+    solver.factor()
+    expected = torch.linalg.lu_factor(solver._coupling_by_box_solves() + torch.diag(1.0 / solver.d))
+    torch.testing.assert_close(solver.lu, expected[0], rtol=0, atol=1e-12)
