@@ -12,13 +12,16 @@ cases, 3-D, float64, one thread, thread time:
 * ``resting N``: a step of the resting sphere of ``examples/sphere_drag.py`` in the quarter of the wide box with ``N``
   cells per diameter, ``integrator='imex2', convection='quick'`` (the stepper keeps the layout and its solves): the
   median step of ``--steps`` after two untimed ones.
+* ``build N``: the same resting sphere's stepper built and its first step taken (the stepper's direct pressure solve
+  and viscous capacitance solves are built there): the thread time of both together.
 
 ``--compare ROOT`` runs every case also with phisim imported from the checkout ``ROOT`` (another commit), each
 sample in a fresh process, the two trees alternating, and prints the ratio of the medians; ``--doc`` writes the table
 into ``docs/BENCHMARKS.md`` between the markers ``<!-- TAG:begin -->`` and ``<!-- TAG:end -->`` (``--tag``, default
 ``layout``), with ``--title`` as its heading and ``--changed`` (Markdown) as what the compared commits differ in.
 
-Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--resting 12] [--steps 5]
+Run:  python benchmarks/bench_layout.py [--static 8 12 16] [--carried 48 64] [--slip 48] [--resting 12] [--build 16]
+      [--steps 5]
       [--rounds 2] [--compare ROOT] [--doc] [--tag layout] [--title T] [--changed TEXT] [--json out.json]
       [--device cpu]
 """
@@ -106,6 +109,26 @@ def _resting(n: int, steps: int, device: str) -> dict:
     return _timed_steps(stepper, state, steps, device)
 
 
+def _build(n: int, device: str) -> dict:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    import sphere_drag as sd
+
+    from phisim.fluid import FluidStepper
+
+    grid, body, state, nu = sd.setup(n, width=8, up=4, down=10, quarter=True, device=device)
+    clock = _clock(device)
+    synchronize(device)
+    t0 = clock()
+    stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=0.5 * grid.dx[0],
+                           dtype=torch.float64, device=device, integrator="imex2", convection="quick")
+    state = stepper(state)
+    synchronize(device)
+    return {"seconds": clock() - t0, "cells": list(grid.resolution),
+            "max_u": float(max(c.abs().max() for c in state.velocity.values))}
+
+
 def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:
     import torch
 
@@ -116,6 +139,8 @@ def _worker(case: str, n: int, steps: int, device: str = "cpu") -> dict:
         out = _static(n, device)
     elif case == "resting":
         out = _resting(n, steps, device)
+    elif case == "build":
+        out = _build(n, device)
     else:
         out = _carried(n, steps, no_slip=case == "carried", device=device)
     out["phisim"] = str(Path(phisim.__file__).resolve().parents[1])
@@ -162,6 +187,7 @@ def main(argv=None) -> int:
     ap.add_argument("--carried", type=int, nargs="*", default=[48, 64])
     ap.add_argument("--slip", type=int, nargs="*", default=[48])
     ap.add_argument("--resting", type=int, nargs="*", default=[])
+    ap.add_argument("--build", type=int, nargs="*", default=[])
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--compare", default=None, help="another checkout of phisim to run beside this one")
@@ -178,7 +204,8 @@ def main(argv=None) -> int:
     device = str(check_device(args.device))  # a device this machine lacks stops here, before anything is written
     trees = [("this", ROOT)] + ([("compare", Path(args.compare).resolve())] if args.compare else [])
     cases = [("static", n) for n in args.static] + [("carried", n) for n in args.carried] + \
-            [("slip", n) for n in args.slip] + [("resting", n) for n in args.resting]
+            [("slip", n) for n in args.slip] + [("resting", n) for n in args.resting] + \
+            [("build", n) for n in args.build]
     rows = []
     started = datetime.now().isoformat(timespec="seconds")
     for case, n in cases:
@@ -221,7 +248,8 @@ def _command(argv) -> str:
 
 def _write_doc(rows, trees, started, args) -> None:
     label = {"static": "resting sphere, one layout", "carried": "carried no-slip sphere, one step",
-             "slip": "carried free-slip sphere, one step", "resting": "resting sphere, quarter box, one `imex2` step"}
+             "slip": "carried free-slip sphere, one step", "resting": "resting sphere, quarter box, one `imex2` step",
+             "build": "resting sphere, quarter box, `imex2` stepper built + first step"}
     head = "| case | cells | this tree | other tree | other / this |\n|---|---|---|---|---|\n"
     lines = []
     for r in rows:
@@ -239,8 +267,9 @@ def _write_doc(rows, trees, started, args) -> None:
     body = (
         f"{begin}\n## {args.title}\n\n"
         "Thread time of one `solid_layout` of the resting sphere of `examples/sphere_drag.py` (wide box), the "
-        "median step of a sphere carried through a closed box (the layout is rebuilt every step) and the median "
-        "`imex2` step of the resting sphere (quarter box), as the table lists them; each sample in a fresh process, "
+        "median step of a sphere carried through a closed box (the layout is rebuilt every step), the median "
+        "`imex2` step of the resting sphere (quarter box) and the building of its stepper with the first step, as "
+        "the table lists them; each sample in a fresh process, "
         "the trees alternating (`benchmarks/bench_layout.py`).\n\n" + head + "\n".join(lines) + "\n\n"
         f"- made by `{cmd}` ({started}, {platform.machine()} {os.cpu_count()} cores, {platform.system()}); "
         f"{args.rounds} samples per tree and case, medians; trees: {trees_txt} (the other tree: a `git worktree` of "

@@ -283,9 +283,10 @@ def diffuse_staggered(
     per component, chosen per axis by the component's boundary kinds (table in
     :mod:`phisim.solvers.mac_diffusion`). With ``fixed`` faces (bodies) the solve uses conjugate gradients
     preconditioned with the exact box solve, or, where the caller passes a ``capacitance`` dict (the solver
-    cache of a body layout it reuses), a direct capacitance matrix on the body surface (|S| box solves to build,
-    kept in that dict; then two box solves per call, or, for a sharp surface where the Green's function of the box
-    operator falls below round-off within a window around the body, one box solve and one on that window alone).
+    cache of a body layout it reuses), a direct capacitance matrix on the body surface (built from the box's
+    eigen-decomposition, kept in that dict; then two box solves per call, or, for a sharp surface where the Green's
+    function of the box operator falls below round-off within a window around the body, one box solve and one on
+    that window alone).
 
     Methods and their order in time:
 

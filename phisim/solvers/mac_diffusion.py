@@ -682,6 +682,8 @@ def _phi1(z: torch.Tensor) -> torch.Tensor:
 
 #: Most surface faces per component for which a dense capacitance matrix is built.
 CAPACITANCE_MAX_FACES = 4096
+
+
 def _green_rows(comp, index: torch.Tensor, shape, coef: float, mult, device, engine) -> torch.Tensor | None:
     """``g[j] = (A⁻¹ e_(index_j))[index]`` for the box operator of ``comp`` (``(k, k)`` float64 on ``device``) from its
     separable decomposition, checked against two box solves; None where they disagree (the caller solves the columns
@@ -706,9 +708,10 @@ class _CapacitanceSolve:
     Let ``A = I - a L₀`` be the box operator on the unknowns (inverted exactly by the transforms) and ``S`` the
     fixed faces with a free stencil neighbour (the body surface). The free-face equations see no other fixed
     face, so the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources ``σ`` on ``S`` chosen so that ``u_S = g_S``:
-    ``C σ = g_S - (A⁻¹ f)_S`` with the capacitance matrix ``C = (A⁻¹)_{SS}`` (|S| x |S|, dense, LU-factored
-    once in float64). Per call: two box solves and one small triangular solve, no iterations; the other fixed
-    faces (inside the body) are overwritten by their prescribed values. Buzbee, Dorr, George & Golub (1971),
+    ``C σ = g_S - (A⁻¹ f)_S`` with the capacitance matrix ``C = (A⁻¹)_{SS}`` (|S| x |S|, dense, read from the
+    box's separable eigen-decomposition and LU-factored once in float64). Per call: two box solves and one small
+    triangular solve, no iterations; the other fixed faces (inside the body) are overwritten by their prescribed
+    values. Buzbee, Dorr, George & Golub (1971),
     "The direct solution of the discrete Poisson equation on irregular regions", SIAM J. Numer. Anal. 8(4).
     """
 
@@ -782,11 +785,11 @@ def _surface(comp, fixed: torch.Tensor) -> torch.Tensor:
 def _capacitance(comp, mask: torch.Tensor, coef, device, engine, cache: dict | None) -> _CapacitanceSolve | None:
     """The capacitance solve for this component, body and ``coef = θ ν dt``, kept in ``cache``; or None (CG).
 
-    None without a ``cache`` (a one-off solve: the matrix costs |S| box solves, one PCG solve about 30-70 in
-    2-D at 48²-256² per component, so it pays only when the same body and time step come back, and the owner
-    of the body's layout says so by passing its cache), for a tensor ``coef`` (its gradient needs the CG path),
-    per-sample masks and more than :data:`CAPACITANCE_MAX_FACES` surface faces. With a cache the solve is built
-    at the first request, so every solve of one owner takes the same path.
+    None without a ``cache`` (a one-off solve: the matrix costs a block of the box's Green's function and an
+    ``|S|``-sized LU factorisation, more than one PCG solve, so it pays only when the same body and time step come
+    back, and the owner of the body's layout says so by passing its cache), for a tensor ``coef`` (its gradient
+    needs the CG path), per-sample masks and more than :data:`CAPACITANCE_MAX_FACES` surface faces. With a cache the
+    solve is built at the first request, so every solve of one owner takes the same path.
     """
     if cache is None or isinstance(coef, torch.Tensor) or mask.shape[0] != 1 or mask.requires_grad:
         return None
@@ -818,9 +821,9 @@ class _SharpCapacitanceSolve:
     operator ``A = I - a L₀`` (inverted exactly by the transforms) the answer is ``u = A⁻¹ (f + Pᵀ σ)`` with sources
     ``σ`` on the held surface faces ``S`` and on ``N``: on ``S`` they make ``u_S = g_S``, on ``N`` they supply the
     diagonal, ``σ_N = -a C u_N``. With ``G = A⁻¹`` restricted to ``J = S ∪ N`` and ``z = A⁻¹ f``:
-    ``(G_JJ + diag(0_S, (a C)⁻¹_N)) σ = [g_S, 0_N] - z_J`` (the rows of ``N`` divided by ``a C``; the matrix is
-    built from ``|J|`` box solves and inverted once in float64). ``g`` is the held value as the stencil reads it:
-    the face's value, 0 on the cut faces.
+    ``(G_JJ + diag(0_S, (a C)⁻¹_N)) σ = [g_S, 0_N] - z_J`` (the rows of ``N`` divided by ``a C``; ``G_JJ`` is read
+    from the box's separable eigen-decomposition, :func:`_green_rows`, and the matrix inverted once in float64).
+    ``g`` is the held value as the stencil reads it: the face's value, 0 on the cut faces.
 
     The correction ``w = A⁻¹ Pᵀ σ = G_{:,J} σ`` is a second box solve of the whole component, or, where ``G``
     decays fast enough (``a`` small against the cell size), a box solve on a window ``W`` around the body alone:
