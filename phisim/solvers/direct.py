@@ -159,7 +159,7 @@ class WoodburySolve:
 
     def _coupling_by_spectrum(self) -> torch.Tensor | None:
         """``Uᵀ B⁻¹ U`` from the box's eigen-decomposition (None where it disagrees with ``box_inverse``)."""
-        if self.kinds is None or self.rank == 0:
+        if self.rank == 0:
             return None
         res = self.resolution
         cells, pos = torch.unique(torch.cat([self.plus, self.minus]), return_inverse=True)

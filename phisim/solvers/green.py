@@ -18,7 +18,7 @@ import torch
 __all__ = ["axis_operator", "symmetric_factors", "green_block", "box_green_block"]
 
 
-def axis_operator(n: int, h: float, pair) -> np.ndarray:
+def axis_operator(n: int, h: float, pair: tuple[str, str]) -> np.ndarray:
     """The box operator ``-d²/dx²`` of one axis on ``n`` cells, dense ``(n, n)``: ``(2 u_i - u_(i-1) - u_(i+1)) / h²``
     inside; a Neumann side drops its face, a Dirichlet side (zero half a cell beyond the last centre) adds ``2 / h²``
     to its cell, a periodic axis closes the ring."""
@@ -40,7 +40,7 @@ def axis_operator(n: int, h: float, pair) -> np.ndarray:
     return m / (h * h)
 
 
-def symmetric_factors(n: int, h: float, pair) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def symmetric_factors(n: int, h: float, pair: tuple[str, str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(μ, L, R)`` of :func:`axis_operator`: its eigenvalues (ascending; the constant mode of an axis without a
     Dirichlet side exactly 0, first) and orthonormal eigenvectors ``L`` (cells x modes), ``R = Lᵀ``."""
     mu, phi = np.linalg.eigh(axis_operator(n, h, pair))

@@ -269,7 +269,7 @@ class _Component:
 
     # -- spectral application ------------------------------------------------------------------------------
 
-    def green_factors(self, coef: float):
+    def green_factors(self, coef: float) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
         """The box operator ``A = I - coef L₀`` on the unknowns, separated (:func:`phisim.solvers.green.green_block`):
         per axis ``(L_a, R_a)`` (the inverse and the normalised forward transform as matrices, float64 on the CPU; a
         real orthonormal eigenbasis along periodic axes) and the inverse eigenvalues ``1 / (1 - coef Σ_a λ_a)``."""
@@ -702,6 +702,20 @@ def _green_rows(comp, index: torch.Tensor, shape, coef: float, mult, device, eng
     return g
 
 
+def _capacitance_rows(comp, index: torch.Tensor, shape, coef: float, mult, device, engine) -> torch.Tensor:
+    """``g[j] = (A⁻¹ e_(index_j))[index]``: :func:`_green_rows`, or, where its check fails, ``k`` box solves (in
+    batches of at most 32 MB)."""
+    k = index.numel()
+    g = _green_rows(comp, index, shape, coef, mult, device, engine) if k else None
+    if g is None:
+        g = torch.empty(k, k, dtype=torch.float64, device=device)
+        chunk = max(1, (1 << 22) // math.prod(shape))
+        for start in range(0, k, chunk):
+            z = _SharpCapacitanceSolve._columns(comp, index[start : start + chunk], shape, mult, engine)
+            g[start : start + z.shape[0]] = z[:, index]
+    return g
+
+
 class _CapacitanceSolve:
     """Exact solve of ``(I - a L₀) u = f`` on the free faces with ``u`` prescribed on the fixed faces.
 
@@ -720,8 +734,6 @@ class _CapacitanceSolve:
         self.op = ("implicit", coef)  # the box operator, for the fast box solves
         self.fixed = fixed  # (1, *unknown_shape) bool
         shape = tuple(fixed.shape[1:])
-        n_all = math.prod(shape)
-        k = surface.numel()
         # the same faces as flat indices into the full component, and the fixed faces there
         full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
         comp.restrict(full).copy_(fixed)
@@ -729,16 +741,7 @@ class _CapacitanceSolve:
         index = torch.arange(math.prod(comp.face_shape), device=device).reshape(comp.face_shape)
         self.surface_full = comp.restrict(index[None]).reshape(-1)[surface]
         mult = comp.inverse_multiplier(coef, torch.float64, device)
-        cap = _green_rows(comp, surface, shape, coef, mult, device, engine) if k else None
-        if cap is None:
-            cap = torch.empty(k, k, dtype=torch.float64, device=device)
-            chunk = max(1, (1 << 22) // n_all)  # unit sources per batched box solve (<= 32 MB)
-            for start in range(0, k, chunk):
-                idx = surface[start : start + chunk]
-                e = torch.zeros(idx.numel(), n_all, dtype=torch.float64, device=device)
-                e[torch.arange(idx.numel(), device=device), idx] = 1.0
-                z = comp.apply(e.reshape(idx.numel(), *shape), mult, engine, prescaled=True)
-                cap[start : start + idx.numel()] = z.reshape(idx.numel(), n_all)[:, surface]
+        cap = _capacitance_rows(comp, surface, shape, coef, mult, device, engine)
         self.lu, self.pivots = torch.linalg.lu_factor(cap)
 
     def _sigma(self, resid: torch.Tensor) -> torch.Tensor:
@@ -854,19 +857,11 @@ class _SharpCapacitanceSolve:
         k = self.index.numel()
         self.ad = (coef * dcoef).to(torch.float64)  # a C on the faces of N
         mult = comp.inverse_multiplier(coef, torch.float64, device)
-        g = _green_rows(comp, self.index, shape, coef, mult, device, engine) if k else None  # g[j] = (A⁻¹ e_j) on J
-        if g is not None:  # the row sums of G_{:,J} >= 0 (A is an M-matrix): one box solve
-            ones = torch.zeros(1, n_all, dtype=torch.float64, device=device)
-            ones[0, self.index] = 1.0
-            h = comp.apply(ones.reshape(1, *shape), mult, engine, prescaled=True).reshape(-1).abs()
-        else:
-            g = torch.empty(k, k, dtype=torch.float64, device=device)
-            h = torch.zeros(n_all, dtype=torch.float64, device=device)  # row sums of |G_{:,J}|
-            chunk = max(1, (1 << 22) // n_all)
-            for start in range(0, k, chunk):
-                z = self._columns(comp, self.index[start : start + chunk], shape, mult, engine)
-                g[start : start + z.shape[0]] = z[:, self.index]
-                h += z.abs().sum(0)
+        g = _capacitance_rows(comp, self.index, shape, coef, mult, device, engine)  # g[j] = (A⁻¹ e_j) on J
+        # the row sums of G_{:,J}, all >= 0 (A is an M-matrix): one box solve
+        ones = torch.zeros(1, n_all, dtype=torch.float64, device=device)
+        ones[0, self.index] = 1.0
+        h = comp.apply(ones.reshape(1, *shape), mult, engine, prescaled=True).reshape(-1).abs()
         self.op = ("implicit", coef)
         full = torch.zeros((1, *comp.face_shape), dtype=torch.bool, device=device)
         comp.restrict(full).copy_(fixed)
