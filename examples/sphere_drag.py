@@ -143,7 +143,8 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     scheme (``docs/SCHEMES.md``; ``'imex2'`` treats the viscosity implicitly, so its time step is the CFL one).
     ``quarter``: the quarter ``y, z >= 0`` of the box with free-slip mirror planes (:func:`setup`); the forces of its
     quarter sphere are multiplied by 4 (the cross-stream coefficients are zero by the symmetry and not computed).
-    ``save_state``: a file for the final velocity and pressure (``torch.save``), for readings made afterwards.
+    ``save_state``: a file for the velocity and pressure (``torch.save``), written every time unit (a checkpoint: a
+    killed run continues from it with ``init_from``) and at the end, for readings made afterwards.
     ``init_from``: such a file, of the same box, from any grid: the run starts from its state at its time, resampled
     onto this grid (grid sequencing: a fine grid starts from a coarse grid's steady wake; ``t_end`` counts from 0 as
     before, so give the saved time plus the time to settle)."""
@@ -184,6 +185,8 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
             if not all(math.isfinite(v) for v in (hist[-1][1], hist[-1][4]) + (() if quarter else (cy, cz))):
                 break
             prev = [h for h in hist if h[0] <= state.time - 1.0 + 0.5 * dt]
+            if save_state:  # a checkpoint every time unit: a killed run continues from it with init_from
+                _save(save_state, n, box, quarter, dt, state)
             if log is not None:
                 log(f"n={n} t={state.time:.2f} cd={hist[-1][1]:.5f} (pressure {hist[-1][4]:.5f}) L/D={hist[-1][5]:.3f} "
                     f"wall={_time.perf_counter() - t0:.0f}s")
@@ -210,12 +213,7 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     cd_p_mom = float(2 * mom.pressure[0, 0] / (U**2 * area))
     cd_v_mom = float(2 * mom.viscous[0, 0] / (U**2 * area))
     if save_state:
-        Path(save_state).parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(save_state).with_name(Path(save_state).name + ".tmp")  # a killed run leaves no partial file
-        torch.save({"n": n, "box": [up, down, width], "quarter": quarter, "dt": dt, "time": state.time,
-                    "velocity": [c.cpu() for c in state.velocity.values], "pressure": state.pressure.values.cpu()},
-                   tmp)
-        os.replace(tmp, save_state)
+        _save(save_state, n, box, quarter, dt, state)
     ref = REFERENCE["cd_johnson_patel_1999"]
     prev = h[h[:, 0] <= last[0] - 1.0 + 0.5 * dt]
     return h, {"n": n, "dx": dx, "cells": list(grid.resolution), "dt": dt, "steps": k, "t": float(last[0]),
@@ -231,6 +229,16 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                "dtype": str(dtype).replace("torch.", ""), "cfl": cfl, "box": [-up, down, width],
                "blockage": AREA / width**2, "integrator": integrator, "convection": convection, "quarter": quarter,
                **({"init_from": str(init_from), "t_start": t_start} if init_from else {})}
+
+
+def _save(path, n: int, box, quarter: bool, dt: float, state: FluidState) -> None:
+    """Write the state for :func:`load_state` (``torch.save``), through a temporary file: a killed run leaves the
+    previous complete file."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(path).with_name(Path(path).name + ".tmp")
+    torch.save({"n": n, "box": [float(b) for b in box], "quarter": quarter, "dt": dt, "time": state.time,
+                "velocity": [c.cpu() for c in state.velocity.values], "pressure": state.pressure.values.cpu()}, tmp)
+    os.replace(tmp, path)
 
 
 def load_state(path, grid, boundary, re: float, box, quarter: bool, dtype, device) -> FluidState:

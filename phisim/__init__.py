@@ -53,6 +53,7 @@ from phisim.errors import (
     ParameterError,
     PhisimError,
     ShapeError,
+    SlowPathWarning,
     SolveError,
 )
 from phisim.field import CenteredGrid, Field, StaggeredGrid, sample_padded
@@ -99,7 +100,7 @@ from phisim.spectral.fft import FFTSettings, fft_settings, get_fft_settings, set
 
 __all__ = [
     "PhisimError", "ShapeError", "GridMismatchError", "BoundaryError", "ParameterError",
-    "NonFiniteError", "SolveError", "FileFormatError", "IncompleteFileWarning",
+    "NonFiniteError", "SolveError", "FileFormatError", "IncompleteFileWarning", "SlowPathWarning",
     "Grid",
     "Solve", "SolveInfo", "cg", "remove_mean",
     "Boundary", "BoundaryCondition", "Periodic", "Dirichlet", "Neumann", "NoSlipWall", "FreeSlipWall", "Open", "Inflow",

@@ -16,6 +16,7 @@ __all__ = [
     "SolveError",
     "FileFormatError",
     "IncompleteFileWarning",
+    "SlowPathWarning",
 ]
 
 
@@ -63,6 +64,11 @@ class FileFormatError(PhisimError, OSError):
 
 class IncompleteFileWarning(UserWarning):
     """A file was not closed cleanly (its writer was killed or is still running); what was complete is read."""
+
+
+class SlowPathWarning(UserWarning):
+    """A fast path failed its own check and the slower exact path was taken: the result is the same, it only took
+    longer (for example a capacitance block built by box solves instead of from the box's eigen-decomposition)."""
 
 
 def warn_from_caller(message: str, category: type[Warning] = UserWarning) -> None:

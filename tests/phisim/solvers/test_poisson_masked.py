@@ -456,6 +456,7 @@ def test_capacitance_by_spectrum_equals_the_box_solves(name, res, centres, radiu
 def test_capacitance_falls_back_to_box_solves_for_another_box_inverse():
     """A box inverse that is not the box's own fails the spectral build's check against two exact solves; the
     capacitance then comes from that inverse's solves, and the direct solve stays consistent with it."""
+    from phisim.errors import SlowPathWarning
     from phisim.solvers.direct import WoodburySolve
 
     res, kinds = (16, 12), (("neumann", "dirichlet"), ("neumann", "neumann"))
@@ -463,7 +464,9 @@ def test_capacitance_falls_back_to_box_solves_for_another_box_inverse():
     op = MaskedPoisson(weights, 1 / 16, kinds, direct=False)
     twice = lambda f: 2.0 * op._box_inverse(f)  # noqa: E731
     solver = WoodburySolve(tuple(w[0] for w in op.weights), op.active[0], op.dx, op.kinds, twice)
-    assert solver._coupling_by_spectrum() is None
-    solver.factor()
+    with pytest.warns(SlowPathWarning, match="box solves instead"):
+        assert solver._coupling_by_spectrum() is None
+    with pytest.warns(SlowPathWarning):
+        solver.factor()
     expected = torch.linalg.lu_factor(solver._coupling_by_box_solves() + torch.diag(1.0 / solver.d))
     torch.testing.assert_close(solver.lu, expected[0], rtol=0, atol=1e-12)

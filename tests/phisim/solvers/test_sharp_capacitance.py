@@ -15,7 +15,7 @@ import math
 import pytest
 import torch
 
-from phisim import Grid, Inflow, Open, StaggeredGrid
+from phisim import Grid, Inflow, Open, SlowPathWarning, StaggeredGrid
 from phisim.fluid import Body, Sphere, diffuse_velocity, impose_solids, solid_layout
 from phisim.fluid.projection import _blend, _flux, flux_correction
 from phisim.solvers import Solve
@@ -178,9 +178,18 @@ def test_capacitance_rows_fall_back_to_box_solves(monkeypatch):
     w, layout = _flow(False)
     ref = diffuse_velocity(w, 1.0, viscosity=0.08, scheme="implicit", solids=layout.persistent())
     calls = []
-    monkeypatch.setattr(md, "_green_rows", lambda *args: calls.append(1))  # every check fails: returns None
+    block = md.green_block
+
+    def wrong_block(*args):  # a block that fails the check against the box solves
+        calls.append(1)
+        return 2.0 * block(*args)
+
+    monkeypatch.setattr(md, "green_block", wrong_block)
     held = layout.persistent()
-    out = diffuse_velocity(w, 1.0, viscosity=0.08, scheme="implicit", solids=held)
+    with pytest.warns(SlowPathWarning, match="viscous capacitance solve.*box solves instead") as record:
+        out = diffuse_velocity(w, 1.0, viscosity=0.08, scheme="implicit", solids=held)
     assert len(calls) == 2 and all(s.windows[F64] is not None for s in _solvers(held))
+    assert sum(r.category is SlowPathWarning for r in record) == 2  # one per component
+    assert all(r.filename == __file__ for r in record)  # pointed at the caller's line
     for a, b in zip(out.values, ref.values):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-12 * float(b.abs().max()))
