@@ -10,6 +10,7 @@ Modules:
   with walls, inflows, outflows, periodic sides and bodies;
 * :mod:`~phisim.fluid.viscosity` -- :func:`diffuse_velocity`;
 * :mod:`~phisim.fluid.forces` -- drag and lift on bodies, pressure at probe points;
+* :mod:`~phisim.fluid.control_volume` -- the force on what lies in a box, from the momentum balance over the box;
 * :mod:`~phisim.fluid.step` -- the parts of a split step (buoyancy, energy, CFL, the wall values of sharp bodies
   with the anticipated pressure gradient: :func:`anticipate_pressure`) and :class:`FluidState`;
 * :mod:`~phisim.fluid.stepper` -- :class:`FluidStepper` (settings checked and operators built once; the way to
@@ -22,6 +23,7 @@ Modules:
 """
 
 from phisim.fluid.bodies import Body, Obstacle, SolidLayout, obstacle_mask, open_face_masks, solid_layout
+from phisim.fluid.control_volume import ControlVolumeForces, control_volume_box, control_volume_force
 from phisim.fluid.forces import BodyForces, body_forces, probe_pressure, wall_pressure
 from phisim.fluid.geometry import SDF, Box, Geometry, RotatedBox, Sphere, Union, fluid_fraction
 from phisim.fluid.integrators import INTEGRATORS, convection, navier_stokes_rk_step
@@ -48,6 +50,7 @@ __all__ = [
     "diffuse_velocity", "VISCOSITY_SCHEMES", "anticipate_pressure",
     "INTEGRATORS", "convection", "navier_stokes_rk_step",
     "BodyForces", "body_forces", "probe_pressure", "wall_pressure",
+    "ControlVolumeForces", "control_volume_force", "control_volume_box",
     "buoyancy", "kinetic_energy", "normalize_energy", "cfl_dt", "navier_stokes_step", "FluidState", "step",
     "FluidStepper", "AdvectionDiffusionStepper", "BurgersStepper",
 ]
