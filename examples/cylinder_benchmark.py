@@ -43,11 +43,14 @@ from phisim.fluid import (  # noqa: E402
     FluidStepper,
     Sphere,
     body_forces,
+    control_volume_force,
     probe_pressure,
     wall_pressure,
 )
 
 H, L, D, CENTER, NU = 0.41, 2.2, 0.1, (0.2, 0.2), 1e-3
+#: The control volume of the ``*_cv`` readings: 1.5 diameters from the cylinder's centre on each side.
+CV_BOX = ((CENTER[0] - 1.5 * D, CENTER[0] + 1.5 * D), (CENTER[1] - 1.5 * D, CENTER[1] + 1.5 * D))
 #: Reference values (Schäfer & Turek 1996, Table 3/4; the refined 2D-1 values of John & Matthies 2001).
 REFERENCE = {
     "2D-1": {"cd": 5.57953523384, "cl": 0.010618948146, "dp": 0.11752016697,
@@ -88,7 +91,9 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
     and back points; then ``cd_surface, cl_surface, dp_quadratic``: the pressure read at the surface
     (``pressure_at='surface'``) and ``dp`` from the quadratic extrapolation (``probe_pressure(..., order=2)``); then
     ``cd_momentum, cl_momentum, dp_momentum``: the pressure read through the momentum equation along the normal
-    (``pressure_at='momentum'``, :func:`~phisim.fluid.wall_pressure`, with the previous step's velocity)."""
+    (``pressure_at='momentum'``, :func:`~phisim.fluid.wall_pressure`, with the previous step's velocity); then
+    ``cd_cv, cl_cv``: the force from the momentum balance over the box ``CV_BOX`` around the cylinder
+    (:func:`~phisim.fluid.control_volume_force`, at the half step), which reads nothing next to it."""
     device = check_device(device)
     grid, body, state, um = setup(case, ny, dtype, device)
     t0 = 0.0
@@ -130,9 +135,12 @@ def run(case: str, ny: int, t_end: float, cfl: float = 0.5, advection: str = "ma
             cm = fm.coefficients(umean, D)[0]
             pm = wall_pressure(state.velocity, state.pressure, body, front_back, dt=dt, viscosity=NU, time=state.time,
                                previous_velocity=previous)[0]
+            fc = control_volume_force(state.velocity, state.pressure, box=CV_BOX, dt=dt, viscosity=NU,
+                                      previous=previous)  # stands at the half step
+            cc = fc.coefficients(umean, D)[0]
             hist.append((state.time, float(c[0]), float(c[1]), float(pfb[0] - pfb[1]), float(cp[0]), float(cp[1]),
                          float(cs[0]), float(cs[1]), float(pq[0] - pq[1]), float(cm[0]), float(cm[1]),
-                         float(pm[0] - pm[1])))
+                         float(pm[0] - pm[1]), float(cc[0]), float(cc[1])))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     wall = _time.perf_counter() - clock
@@ -201,6 +209,8 @@ def summarize(case: str, hist: np.ndarray) -> dict:
         if hist.shape[1] > 9:
             out.update({"cd_momentum": float(hist[-1, 9]), "cl_momentum": float(hist[-1, 10]),
                         "dp_momentum": float(hist[-1, 11])})
+        if hist.shape[1] > 12:
+            out.update({"cd_cv": float(hist[-1, 12]), "cl_cv": float(hist[-1, 13])})
         return out
     out = _periodic(hist[:, 0], hist[:, 1], hist[:, 2])
     if surface:
@@ -209,6 +219,9 @@ def summarize(case: str, hist: np.ndarray) -> dict:
     if hist.shape[1] > 9:
         out.update({f"{k}_momentum": v for k, v in _periodic(hist[:, 0], hist[:, 9], hist[:, 10]).items()
                     if k in ("cd_max", "cl_max")})
+    if hist.shape[1] > 12:
+        out.update({f"{k}_cv": v for k, v in _periodic(hist[:, 0], hist[:, 12], hist[:, 13]).items()
+                    if k in ("cd_max", "cl_max", "cd_max_limit", "cl_max_limit")})
     return out
 
 
@@ -289,7 +302,7 @@ def main(argv=None) -> int:
         if args.out:
             np.savetxt(Path(args.out).with_suffix(f".ny{ny}.csv"), hist, delimiter=",",
                        header="t,cd,cl,dp,cd_pressure,cl_pressure,cd_surface,cl_surface,dp_quadratic,"
-                       "cd_momentum,cl_momentum,dp_momentum")
+                       "cd_momentum,cl_momentum,dp_momentum,cd_cv,cl_cv")
         tail = hist[hist[:, 0] >= t_end - (1.0 if args.case == "2D-1" else 2.0)]
         res = {**meta, **summarize(args.case, tail)}
         growth = res.get("cl_max_growth")

@@ -73,8 +73,9 @@ class ControlVolumeForces:
 def control_volume_box(grid, box) -> tuple[tuple[int, int], ...]:
     """``box`` (``((lo, hi), ...)`` in the grid's coordinates) rounded to face indices ``((i_lo, i_hi), ...)``.
 
-    Raises ``ParameterError`` unless every side lies at least one cell inside the domain (the side stencils reach
-    one cell beyond the box) and each axis keeps at least one cell."""
+    A side may lie on the domain's boundary (the side stencils, which reach one cell beyond the box, then read the
+    ghost values the boundary conditions give: exact mirror images on a free-slip symmetry plane). Raises
+    ``ParameterError`` for a box that leaves the domain or spans no cell along an axis."""
     if not isinstance(box, (list, tuple)) or len(box) != grid.rank:
         raise ParameterError(f"box must give (lo, hi) for each of the grid's {grid.rank} axes, got {box!r}")
     out = []
@@ -87,10 +88,10 @@ def control_volume_box(grid, box) -> tuple[tuple[int, int], ...]:
             raise ParameterError(f"box[{a}] = {pair!r} is not finite")
         start, d, n = grid.bounds[a][0], grid.dx[a], grid.resolution[a]
         i_lo, i_hi = round((lo - start) / d), round((hi - start) / d)
-        if not 1 <= i_lo < i_hi <= n - 1:
+        if not 0 <= i_lo < i_hi <= n:
             raise ParameterError(
                 f"box[{a}] = ({lo:g}, {hi:g}) rounds to faces {i_lo}..{i_hi} of axis {a}; the box must span at least "
-                f"one cell and keep one cell between each side and the domain's boundary (faces 1..{n - 1})")
+                f"one cell and lie in the domain (faces 0..{n})")
         out.append((i_lo, i_hi))
     return tuple(out)
 
@@ -171,7 +172,9 @@ def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box
         velocity: The velocity after a step.
         pressure: The pressure potential the step returned (``density * p / dt`` is the physical pressure).
         box: ``((lo, hi), ...)`` per axis in the grid's coordinates, rounded to the nearest face planes
-            (:func:`control_volume_box`); it should enclose the bodies to be read and no others.
+            (:func:`control_volume_box`); it should enclose the bodies to be read and no others. A side on the
+            domain's boundary reads the ghost values of its conditions (on a mirror plane of a symmetric flow the
+            box is then half of the whole flow's box, and the force half of the whole body's).
         dt: The step's time step.
         viscosity: Kinematic viscosity.
         previous: The velocity one step earlier: the reading then includes the momentum change in the box and
@@ -198,13 +201,24 @@ def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box
             raise GridMismatchError(f"previous velocity grid {previous.grid} differs from the velocity grid {grid}")
     cells = control_volume_box(grid, box)
     dx = grid.dx
-    conv, visc = _side_fluxes(velocity.values, cells, dx, nu)
+    # a side on the domain's boundary reads the ghost values its conditions give (one layer, indices shifted by 1)
+    ghosts = any(lo == 0 or hi == n for (lo, hi), n in zip(cells, grid.resolution))
+    shifted = tuple((lo + 1, hi + 1) for lo, hi in cells) if ghosts else cells
+
+    def components(v: StaggeredGrid):
+        return tuple(v.padded_component(c, 1) for c in range(grid.rank)) if ghosts else v.values
+
+    if ghosts:
+        p = pressure.padded(1)
+    values = components(velocity)
+    conv, visc = _side_fluxes(values, shifted, dx, nu)
     if previous is not None:
-        conv0, visc0 = _side_fluxes(previous.values, cells, dx, nu)
+        values0 = components(previous)
+        conv0, visc0 = _side_fluxes(values0, shifted, dx, nu)
         conv, visc = 0.5 * (conv + conv0), 0.5 * (visc + visc0)
-        unsteady = -(_momentum(velocity.values, cells, dx) - _momentum(previous.values, cells, dx)) / dt
+        unsteady = -(_momentum(values, shifted, dx) - _momentum(values0, shifted, dx)) / dt
     else:
         unsteady = torch.zeros_like(conv)
     return ControlVolumeForces(unsteady=density * unsteady, momentum_flux=density * conv,
-                               pressure=_pressure_force(p * (density / dt), cells, dx),
+                               pressure=_pressure_force(p * (density / dt), shifted, dx),
                                viscous=density * visc, box=cells)
