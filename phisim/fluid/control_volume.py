@@ -84,7 +84,7 @@ def control_volume_box(grid, box) -> tuple[tuple[int, int], ...]:
             lo, hi = (float(v) for v in pair)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"box[{a}] must be a pair (lo, hi) of numbers, got {pair!r}") from exc
-        if not (math.isfinite(lo) and math.isfinite(hi)):
+        if not (-math.inf < lo < math.inf and -math.inf < hi < math.inf):  # traceable where math.isfinite is not
             raise ParameterError(f"box[{a}] = {pair!r} is not finite")
         start, d, n = grid.bounds[a][0], grid.dx[a], grid.resolution[a]
         i_lo, i_hi = round((lo - start) / d), round((hi - start) / d)
@@ -94,6 +94,14 @@ def control_volume_box(grid, box) -> tuple[tuple[int, int], ...]:
                 f"one cell and lie in the domain (faces 0..{n})")
         out.append((i_lo, i_hi))
     return tuple(out)
+
+
+def _product(values) -> float:
+    """The product of a few floats (a loop: ``torch.compile`` traces it without a graph break)."""
+    out = 1.0
+    for v in values:
+        out *= float(v)
+    return out
 
 
 def _take(x: torch.Tensor, ranges: dict[int, tuple[int, int]]) -> torch.Tensor:
@@ -115,7 +123,7 @@ def _momentum(values, box, dx) -> torch.Tensor:
         ends = _take(values[c], {**ranges, c: (box[c][0], box[c][0] + 1)}).sum(tuple(range(1, d + 1)))
         ends = ends + _take(values[c], {**ranges, c: (box[c][1], box[c][1] + 1)}).sum(tuple(range(1, d + 1)))
         out.append(s - 0.5 * ends)
-    return torch.stack(out, -1) * math.prod(dx)
+    return torch.stack(out, -1) * _product(dx)
 
 
 def _side_fluxes(values, box, dx, nu: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -124,7 +132,7 @@ def _side_fluxes(values, box, dx, nu: float) -> tuple[torch.Tensor, torch.Tensor
     conv = [0.0] * d
     visc = [0.0] * d
     for a in range(d):
-        area = math.prod(dx[k] for k in range(d) if k != a)
+        area = _product([dx[k] for k in range(d) if k != a])
         cells = {k: box[k] for k in range(d) if k != a}  # the side's cells along the other axes
         for s, sign in ((box[a][1], 1.0), (box[a][0], -1.0)):
             ua = values[a]
@@ -154,7 +162,7 @@ def _pressure_force(p: torch.Tensor, box, dx) -> torch.Tensor:
     d = len(box)
     out = []
     for a in range(d):
-        area = math.prod(dx[k] for k in range(d) if k != a)
+        area = _product([dx[k] for k in range(d) if k != a])
         cells = {k: box[k] for k in range(d) if k != a}
         total = 0.0
         for s, sign in ((box[a][1], 1.0), (box[a][0], -1.0)):
