@@ -13,7 +13,10 @@ The flow starts uniform and is advanced by the split step (MacCormack advection,
 viscous parts from :func:`phisim.fluid.body_forces`) changes by less than ``--steady-tol`` (relative) over one time
 unit ``D / U``, or ``--t-end`` is reached. Also recorded: the cross-stream coefficients (zero by symmetry: the grid
 and the sphere are mirror-symmetric about ``y = 0`` and ``z = 0``) and the length of the recirculation behind the
-sphere, from the zero of the streamwise velocity on the axis, ``L / D`` measured from the rear of the sphere.
+sphere, from the zero of the streamwise velocity on the axis, ``L / D`` measured from the rear of the sphere. At
+the end the drag is read four more ways: the pressure part at the surface and through the normal momentum equation,
+the wall shear with the momentum balance at the wall, and the whole drag from the momentum balance over a box round
+the sphere (``cd_cv``, :func:`phisim.fluid.control_volume_force`, box ``CV_BOX``).
 
 Reference values: the resolved axisymmetric computations of Johnson, T. A. & Patel, V. C. (1999), "Flow past a
 sphere up to a Reynolds number of 300", J. Fluid Mech. 378, 19-70, are commonly quoted as ``C_D = 1.087`` and
@@ -55,7 +58,7 @@ from phisim import CenteredGrid, Grid, Open, StaggeredGrid  # noqa: E402
 from phisim.boundary import Inflow  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
 from phisim.errors import FileFormatError, ParameterError  # noqa: E402
-from phisim.fluid import Body, FluidState, FluidStepper, Sphere, body_forces  # noqa: E402
+from phisim.fluid import Body, FluidState, FluidStepper, Sphere, body_forces, control_volume_force  # noqa: E402
 
 D, U = 1.0, 1.0
 UP, DOWN, W = 2.5, 6.0, 5.0  # box [-UP, DOWN] x [-W/2, W/2]^2 in units of D
@@ -171,7 +174,9 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
     t0, c0 = _time.perf_counter(), _time.thread_time()
     steady = False
     k = 0
+    previous = None
     for k in range(1, steps + 1):
+        previous = state.velocity
         state = stepper(state)
         if k % every and k % per_unit and k != steps:
             continue
@@ -212,6 +217,8 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                       pressure_at="momentum", shear_at="momentum")
     cd_p_mom = float(2 * mom.pressure[0, 0] / (U**2 * area))
     cd_v_mom = float(2 * mom.viscous[0, 0] / (U**2 * area))
+    # the drag from the momentum balance over a box round the sphere (reads nothing next to it)
+    cd_cv = control_volume_drag(state, dt, nu, quarter, previous=previous)
     if save_state:
         _save(save_state, n, box, quarter, dt, state)
     ref = REFERENCE["cd_johnson_patel_1999"]
@@ -221,7 +228,8 @@ def run(n: int, re: float = 100.0, t_end: float = 40.0, cfl: float = 0.5, steady
                "cd_viscous": float(last[1] - last[4]),
                "cd_viscous_by_probe_distance": probes, "cd_pressure_surface": cd_p_surface,
                "cd_surface": cd_p_surface + float(last[1] - last[4]), "cd_pressure_momentum": cd_p_mom,
-               "cd_viscous_momentum": cd_v_mom, "cd_momentum": cd_p_mom + cd_v_mom,
+               "cd_viscous_momentum": cd_v_mom, "cd_momentum": cd_p_mom + cd_v_mom, "cd_cv": cd_cv,
+               "cv_box": list(CV_BOX),
                "cy": None if quarter else float(last[2]), "cz": None if quarter else float(last[3]),
                "recirculation": float(last[5]), "cd_change_last_unit": float(abs(last[1] - prev[-1, 1]))
                if len(prev) else None, "cd_error_vs_1.087": float(last[1] / ref - 1),
@@ -239,6 +247,23 @@ def _save(path, n: int, box, quarter: bool, dt: float, state: FluidState) -> Non
     torch.save({"n": n, "box": [float(b) for b in box], "quarter": quarter, "dt": dt, "time": state.time,
                 "velocity": [c.cpu() for c in state.velocity.values], "pressure": state.pressure.values.cpu()}, tmp)
     os.replace(tmp, path)
+
+
+#: The control volume of ``cd_cv``: ``x`` from ``-a`` to ``b`` diameters, ``|y|, |z|`` up to ``c`` diameters.
+CV_BOX = (1.0, 1.5, 1.0)
+
+
+def control_volume_drag(state: FluidState, dt: float, nu: float, quarter: bool, box=CV_BOX,
+                        previous: StaggeredGrid | None = None) -> float:
+    """The drag coefficient from the momentum balance over a box round the sphere
+    (:func:`~phisim.fluid.control_volume_force`; with ``previous``, the momentum change included). In the quarter
+    box the box's lower sides lie on the mirror planes ``y = 0`` and ``z = 0`` (it reads their mirror images), so
+    the box is a quarter of the whole box round the whole sphere: the drag against a quarter of the frontal area."""
+    a, b, c = box
+    lo = 0.0 if quarter else -c
+    cv = control_volume_force(state.velocity, state.pressure, box=((-a, b), (lo, c), (lo, c)), dt=dt, viscosity=nu,
+                              previous=previous)
+    return float(cv.coefficients(U, AREA / 4 if quarter else AREA)[0, 0])
 
 
 def load_state(path, grid, boundary, re: float, box, quarter: bool, dtype, device) -> FluidState:

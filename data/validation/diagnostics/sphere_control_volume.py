@@ -25,7 +25,7 @@ _spec = importlib.util.spec_from_file_location("sphere_drag", ROOT / "examples" 
 sd = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(sd)
 
-from phisim.fluid import body_forces, control_volume_force  # noqa: E402
+from phisim.fluid import body_forces  # noqa: E402
 
 
 def read(path: str, boxes) -> dict:
@@ -43,13 +43,7 @@ def read(path: str, boxes) -> dict:
     out["cd_momentum"] = float(m.coefficients(sd.U, area)[0, 0])
     out["cv"] = {}
     for a, b, c in boxes:
-        lo = 0.0 if quarter else -c
-        cv = control_volume_force(state.velocity, state.pressure, box=((-a, b), (lo, c), (lo, c)), dt=dt,
-                                  viscosity=nu)
-        coef = cv.coefficients(sd.U, area)[0, 0]
-        parts = {k: float(2 * getattr(cv, k)[0, 0] / (sd.U**2 * area))
-                 for k in ("momentum_flux", "pressure", "viscous")}
-        out["cv"][f"{a:g},{b:g},{c:g}"] = {"cd": float(coef), "box": [list(r) for r in cv.box], **parts}
+        out["cv"][f"{a:g},{b:g},{c:g}"] = sd.control_volume_drag(state, dt, nu, quarter, box=(a, b, c))
     return out
 
 

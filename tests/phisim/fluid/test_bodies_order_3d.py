@@ -95,7 +95,8 @@ def test_sphere_in_a_stream_quarter_box_is_the_whole_box(load_example, integrato
     """The quarter ``y, z >= 0`` of the box with free-slip planes at ``y = 0`` and ``z = 0`` (``sphere_drag.setup(...,
     quarter=True)``) computes the whole box's flow on that quarter: free-slip planes are its mirror planes on the MAC
     grid (normal velocity zero, the tangential ghosts and the pressure mirrored), and the quarter sphere's drag against
-    a quarter of the frontal area is the sphere's; for the split step and for ``'imex2'`` with QUICK convection (whose
+    a quarter of the frontal area is the sphere's, with the body's readings and with the control volume's; for the
+    split step and for ``'imex2'`` with QUICK convection (whose
     upwind stencil reaches two faces across the planes, into the mirrored ghosts)."""
     sd = load_example("sphere_drag")
     out = {}
@@ -105,10 +106,14 @@ def test_sphere_in_a_stream_quarter_box_is_the_whole_box(load_example, integrato
         stepper = FluidStepper(grid, state.velocity.boundary, obstacles=body, viscosity=nu, dt=dt,
                                dtype=torch.float64, integrator=integrator, convection=convection)
         for _ in range(8):
+            previous = state.velocity
             state = stepper(state)
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=nu, time=state.time)
-        out[quarter] = (state, f.coefficients(sd.U, sd.AREA / 4 if quarter else sd.AREA)[0, 0], grid)
-    (full, cd_full, g_full), (part, cd_part, g_part) = out[False], out[True]
+        cv = sd.control_volume_drag(state, dt, nu, quarter, previous=previous)
+        out[quarter] = (state, f.coefficients(sd.U, sd.AREA / 4 if quarter else sd.AREA)[0, 0], grid, cv)
+    (full, cd_full, g_full, cv_full), (part, cd_part, g_part, cv_part) = out[False], out[True]
+    # the control volume of the quarter box (its lower sides on the mirror planes) is a quarter of the whole one
+    assert cv_part == pytest.approx(cv_full, rel=1e-9) and abs(cv_full) > 0.1
     m = g_full.resolution[1] // 2
     assert g_part.resolution == (g_full.resolution[0], m, m) and g_part.bounds[1] == (0.0, g_full.bounds[1][1])
     for i, (a, b) in enumerate(zip(full.velocity.values, part.velocity.values)):
