@@ -22,6 +22,10 @@ at the half step: ``d/dt`` by ``(M(velocity) - M(previous)) / dt`` and the side 
 levels, with the step's pressure (``'imex2'``'s incremental pressure stands at the half step); without it, the
 steady balance at the velocity's time.
 
+A moving body's interior holds the body's velocity, so the momentum change in the box then includes the body's
+own, ``rho V_b a_b`` for a rigid body of volume ``V_b`` whose centre accelerates at ``a_b``: the force on the body
+is the reading plus ``rho V_b a_b`` (zero for bodies at rest or in uniform motion).
+
 The pressure argument is the potential a step returns; the physical pressure is ``density * p / dt``, as for
 :func:`~phisim.fluid.forces.body_forces`.
 """
@@ -186,7 +190,8 @@ def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box
         dt: The step's time step.
         viscosity: Kinematic viscosity.
         previous: The velocity one step earlier: the reading then includes the momentum change in the box and
-            stands at the half step. Without it, the steady balance.
+            stands at the half step. Without it, the steady balance. (An accelerating body's interior adds
+            ``-rho V_b a_b`` to the reading; see the module's documentation.)
         density: Fluid density.
 
     Returns:
