@@ -209,6 +209,7 @@ def test_bad_input_is_refused():
         control_volume_force(vel, p, box=good, dt=0.1, viscosity=0.1, previous=other)
 
 
+@pytest.mark.filterwarnings("ignore:Dynamo detected a call to a:UserWarning")  # the padding plans' cache, traced
 @pytest.mark.parametrize("box", [((0.3, 0.9), (0.2, 0.8)), ((0.0, 0.6), (0.2, 1.0))])
 def test_the_reading_traces_without_host_reads(box):
     """``torch.compile(fullgraph=True)`` traces the reading (inside the domain, and with sides on its boundary,
