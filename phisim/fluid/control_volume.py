@@ -38,9 +38,8 @@ from dataclasses import dataclass
 import torch
 
 from phisim.checks import check_nonnegative, check_positive
-from phisim.errors import GridMismatchError, ParameterError
+from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.forces import _pressure_values
 from phisim.fluid.projection import check_velocity
 
 __all__ = ["ControlVolumeForces", "control_volume_force", "control_volume_box"]
@@ -200,14 +199,19 @@ def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box
     Raises:
         ParameterError: For a box that does not fit (:func:`control_volume_box`), non-positive ``dt`` or
             ``density``, or negative ``viscosity``.
-        GridMismatchError: For fields on different grids.
+        GridMismatchError: For a previous velocity on another grid.
+        ShapeError: For a pressure on another grid.
     """
     check_velocity(velocity)
     dt = check_positive(dt, "dt")
     density = check_positive(density, "density")
     nu = check_nonnegative(viscosity, "viscosity")
-    p = _pressure_values(pressure, velocity)
     grid = velocity.grid
+    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
+        raise ParameterError("pressure must be the scalar CenteredGrid returned by the step / projection")
+    if pressure.grid != grid:
+        raise ShapeError(f"pressure grid {pressure.grid} differs from the velocity grid {grid}")
+    p = pressure.values
     if previous is not None:
         check_velocity(previous, "previous")
         if previous.grid != grid:

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from phisim import CenteredGrid, Grid, StaggeredGrid
-from phisim.errors import GridMismatchError, ParameterError
+from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.fluid import control_volume_box, control_volume_force
 
 F64 = torch.float64
@@ -204,6 +204,11 @@ def test_bad_input_is_refused():
         control_volume_force(vel, p, box=good, dt=-0.1, viscosity=0.1)
     with pytest.raises(ParameterError):
         control_volume_force(vel, p, box=good, dt=0.1, viscosity=-1.0)
+    with pytest.raises(ParameterError, match="scalar CenteredGrid"):
+        control_volume_force(vel, vel, box=good, dt=0.1, viscosity=0.1)
+    with pytest.raises(ShapeError, match="differs"):
+        control_volume_force(vel, CenteredGrid.zeros(Grid((8, 9)), "wall", dtype=F64), box=good, dt=0.1,
+                             viscosity=0.1)
     other = StaggeredGrid.zeros(Grid((8, 9)), "wall", dtype=F64)
     with pytest.raises(GridMismatchError):
         control_volume_force(vel, p, box=good, dt=0.1, viscosity=0.1, previous=other)
