@@ -33,6 +33,7 @@ The pressure argument is the potential a step returns; the physical pressure is 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -41,6 +42,7 @@ from phisim.checks import check_nonnegative, check_positive
 from phisim.errors import GridMismatchError, ParameterError, ShapeError
 from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.projection import check_velocity
+from phisim.grid import Grid
 
 __all__ = ["ControlVolumeForces", "control_volume_force", "control_volume_box"]
 
@@ -73,7 +75,7 @@ class ControlVolumeForces:
         return 2.0 * self.total / (density * speed**2 * length)
 
 
-def control_volume_box(grid, box) -> tuple[tuple[int, int], ...]:
+def control_volume_box(grid: Grid, box: Sequence[Sequence[float]]) -> tuple[tuple[int, int], ...]:
     """``box`` (``((lo, hi), ...)`` in the grid's coordinates) rounded to face indices ``((i_lo, i_hi), ...)``.
 
     A side may lie on the domain's boundary (the side stencils, which reach one cell beyond the box, then read the
@@ -175,8 +177,9 @@ def _pressure_force(p: torch.Tensor, box, dx) -> torch.Tensor:
     return torch.stack(out, -1)
 
 
-def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box, dt: float, viscosity: float,
-                         previous: StaggeredGrid | None = None, density: float = 1.0) -> ControlVolumeForces:
+def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box: Sequence[Sequence[float]],
+                         dt: float, viscosity: float, previous: StaggeredGrid | None = None,
+                         density: float = 1.0) -> ControlVolumeForces:
     """The force of the fluid on whatever lies inside ``box``, from the momentum balance over the box.
 
     Args:

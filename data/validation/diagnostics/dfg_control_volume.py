@@ -1,4 +1,4 @@
-"""DFG 2D-2: the force on the cylinder read from a momentum balance over a control volume away from it.
+"""DFG 2D-1 / 2D-2: the force on the cylinder read from a momentum balance over a control volume away from it.
 
 The body readings of ``body_forces`` (cut cells, surface, momentum) all read the pressure and the wall shear within a
 few cells of the cylinder. This script reads the same force a fourth way, from the flow only where it is smooth: for

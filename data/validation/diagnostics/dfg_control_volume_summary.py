@@ -22,28 +22,15 @@ def _order(h, gaps):
             for h0, h1, g0, g1 in zip(h, h[1:], gaps, gaps[1:])]
 
 
-def _maxima(t, y):
-    """The last full period's maximum (periods between upward crossings of the mean)."""
-    x = y - 0.5 * (y.max() + y.min())
-    up = np.nonzero((x[:-1] < 0) & (x[1:] >= 0))[0]
-    if len(up) < 2:
-        return float(y.max())
-    return float(y[up[-2]:up[-1] + 1].max())
-
-
 def table(case: str):
+    """Per grid and reading: ``(c_D, c_L)`` at the end (2D-1) or the maxima of the last full period (2D-2), as
+    dfg_control_volume.py wrote them."""
     rows = []
     for f in sorted(HERE.glob(f"dfg_{case}_ny*.json")):
         r = json.loads(f.read_text())
-        h = np.loadtxt(f.with_suffix(".csv"), delimiter=",")
-        names = list(r["readings"])
         row = {"ny": r["ny"], "D/h": round(r["ny"] * 0.1 / 0.41)}
-        for k, nm in enumerate(names):
-            cd, cl = h[:, 2 + 2 * k], h[:, 3 + 2 * k]
-            if case == "2d1":
-                row[nm] = (float(cd[-1]), float(cl[-1]))
-            else:
-                row[nm] = (float(cd.max()), _maxima(h[:, 1], cl))
+        for nm, v in r["readings"].items():
+            row[nm] = (v["cd_last"], v["cl_last"]) if case == "2d1" else (v["cd_max"], v["cl_max_per_period"][-1])
         rows.append(row)
     rows.sort(key=lambda r: r["ny"])
     return rows
