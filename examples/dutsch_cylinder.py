@@ -16,6 +16,11 @@ Records per step: time, body position and velocity, in-line force (pressure and 
   ``F = -0.5 rho C_d D |U| U - rho C_i (pi D^2 / 4) dU/dt`` (``U`` the cylinder velocity, the in-line force on a
   cylinder moving through fluid at rest) by linear least squares for ``C_d, C_i``; the rms difference between the
   force and the fitted Morison force relative to the force amplitude.
+* **Control-volume readings** ``c_inline_cv`` (one per box of ``CV_HALF_WIDTHS`` that fits in the domain): the
+  momentum balance over a box fixed in the laboratory that holds the cylinder's whole path
+  (:func:`~phisim.fluid.control_volume_force`, at the half step ``t - dt / 2``), plus the cylinder's own momentum
+  change ``rho (pi D^2 / 4) dU/dt`` (its interior holds its velocity): a reading that looks nowhere near the
+  cylinder. Each gets its Morison fit (``morison_cv``).
 * **Velocity profiles** ``u, v`` along the vertical lines ``x / D = -0.6, 0, 0.6, 1.2`` (the laboratory frame; at
   phase 180 deg the cylinder is centred at ``x = 0``), ``-2 <= y / D <= 2``, at the phase angles ``2 pi f t`` =
   180, 210, 330 degrees of the last recorded period (points inside the cylinder are NaN).
@@ -40,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from phisim import Grid, StaggeredGrid  # noqa: E402
 from phisim.checks import check_device  # noqa: E402
-from phisim.fluid import Body, FluidState, Sphere, body_forces, step  # noqa: E402
+from phisim.fluid import Body, FluidState, Sphere, body_forces, control_volume_force, step  # noqa: E402
 
 D, U_MAX, RE, KC = 1.0, 1.0, 100.0, 5.0
 NU = U_MAX * D / RE
@@ -49,6 +54,9 @@ PERIOD = 1.0 / FREQ
 AMP = KC * D / (2 * math.pi)
 OMEGA = 2 * math.pi * FREQ
 LINES = (-0.6, 0.0, 0.6, 1.2)
+#: Half-widths (in diameters, about the origin) of the control volumes of the ``c_inline_cv`` readings: each holds
+#: the cylinder's whole path (``|x| <= A + D / 2 = 1.3 D``) with at least 1.2 diameters to spare.
+CV_HALF_WIDTHS = ((2.5, 1.5), (3.0, 2.0))
 PHASES = (180.0, 210.0, 330.0)
 
 
@@ -115,6 +123,9 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     wanted = {int(round((last - 1 + ph / 360.0) * steps_per_period)): ph for ph in PHASES}
     hist, rows = [], []
     q = 0.5 * U_MAX**2 * D
+    area = math.pi * D**2 / 4
+    cv_boxes = [((-hx * D, hx * D), (-hy * D, hy * D)) for hx, hy in CV_HALF_WIDTHS
+                if hx * D <= half_width and hy * D <= half_width]
     t0 = wall.thread_time()
     for k in range(1, total + 1):
         previous = state.velocity
@@ -123,8 +134,11 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
         t = state.time
         f = body_forces(state.velocity, state.pressure, body, dt=dt, viscosity=NU, time=t, pressure_at=pressure_at,
                         previous_velocity=previous if pressure_at == "momentum" else None, shear_at=shear_at)
+        cv = [float(control_volume_force(state.velocity, state.pressure, box=b, dt=dt, viscosity=NU,
+                                         previous=previous).total[0, 0]) + area * body_acceleration(t - 0.5 * dt)
+              for b in cv_boxes]
         hist.append((t, position(t), body_velocity(t), float(f.total[0, 0]) / q, float(f.pressure[0, 0]) / q,
-                     float(f.viscous[0, 0]) / q, float(f.total[0, 1]) / q))
+                     float(f.viscous[0, 0]) / q, float(f.total[0, 1]) / q, *(c / q for c in cv)))
         if k in wanted:
             rows += profiles(state.velocity, body, t, ys)
         if progress and k % 100 == 0:
@@ -132,6 +146,7 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     h = np.array(hist)
     rec = h[:, 0] >= record_from * PERIOD - 1e-9
     fit = morison_fit(h[rec, 0], h[rec, 3])
+    fit_cv = [morison_fit(h[rec, 0] - 0.5 * dt, h[rec, 7 + j]) for j in range(len(cv_boxes))]
     per_period = []
     for p in range(int(record_from), int(math.floor(periods + 1e-9))):
         sel = (h[:, 0] > p * PERIOD + 1e-9) & (h[:, 0] <= (p + 1) * PERIOD + 1e-9)
@@ -146,6 +161,7 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
             "advection": advection, "pressure_at": pressure_at, "shear_at": shear_at, "integrator": integrator,
             "convection": convection,
             "cpu_seconds": wall.thread_time() - t0, "morison": fit,
+            "cv_boxes": cv_boxes, "morison_cv": fit_cv,
             "morison_per_period": per_period,
             "smoothness": {"max_jump_over_range": float(np.abs(np.diff(cd)).max() / rng),
                            "max_second_difference_over_range": float(np.abs(np.diff(cd, 2)).max() / rng)},
@@ -181,11 +197,13 @@ def main(argv=None) -> int:
         prefix = Path(args.out)
         prefix.parent.mkdir(parents=True, exist_ok=True)
         np.savetxt(f"{prefix}_forces.csv", hist, delimiter=",", fmt="%.8g",
-                   header="t,x_body,u_body,c_inline,c_inline_pressure,c_inline_viscous,c_cross")
+                   header="t,x_body,u_body,c_inline,c_inline_pressure,c_inline_viscous,c_cross"
+                   + "".join(f",c_inline_cv{j}" for j in range(len(out["cv_boxes"]))))
         np.savetxt(f"{prefix}_profiles.csv", np.array(rows, dtype=float).reshape(-1, 5), delimiter=",", fmt="%.8g",
                    header="phase_deg,x,y,u,v")
         Path(f"{prefix}.json").write_text(json.dumps({**out, "device": str(device)}, indent=1))
-    print(json.dumps({k: out[k] for k in ("res", "grid", "dt", "steps", "cpu_seconds", "morison", "smoothness")}))
+    print(json.dumps({k: out[k] for k in ("res", "grid", "dt", "steps", "cpu_seconds", "morison", "morison_cv",
+                                          "smoothness")}))
     return 0
 
 

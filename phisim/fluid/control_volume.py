@@ -24,7 +24,8 @@ steady balance at the velocity's time.
 
 A moving body's interior holds the body's velocity, so the momentum change in the box then includes the body's
 own, ``rho V_b a_b`` for a rigid body of volume ``V_b`` whose centre accelerates at ``a_b``: the force on the body
-is the reading plus ``rho V_b a_b`` (zero for bodies at rest or in uniform motion).
+is the reading plus ``rho V_b a_b`` (zero for bodies at rest or in uniform motion; checked on an oscillating
+cylinder in ``tests/phisim/fluid/test_control_volume.py`` and ``docs/VALIDATION.md``).
 
 The pressure argument is the potential a step returns; the physical pressure is ``density * p / dt``, as for
 :func:`~phisim.fluid.forces.body_forces`.
