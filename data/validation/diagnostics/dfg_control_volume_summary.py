@@ -22,11 +22,11 @@ def _order(h, gaps):
             for h0, h1, g0, g1 in zip(h, h[1:], gaps, gaps[1:])]
 
 
-def table(case: str):
+def table(case: str, variant: str = ""):
     """Per grid and reading: ``(c_D, c_L)`` at the end (2D-1) or the maxima of the last full period (2D-2), as
-    dfg_control_volume.py wrote them."""
+    dfg_control_volume.py wrote them; ``variant`` ``"central_"`` for the runs with central fluxes."""
     rows = []
-    for f in sorted(HERE.glob(f"dfg_{case}_ny*.json")):
+    for f in sorted(HERE.glob(f"dfg_{case}_{variant}ny*.json")):
         r = json.loads(f.read_text())
         row = {"ny": r["ny"], "D/h": round(r["ny"] * 0.1 / 0.41)}
         for nm, v in r["readings"].items():
@@ -37,11 +37,12 @@ def table(case: str):
 
 
 def main() -> int:
-    for case, labels in (("2d1", ("c_D", "c_L")), ("2d2", ("c_D,max", "c_L,max"))):
-        rows = table(case)
+    for case, variant, labels in (("2d1", "", ("c_D", "c_L")), ("2d2", "", ("c_D,max", "c_L,max")),
+                                  ("2d2", "central_", ("c_D,max", "c_L,max"))):
+        rows = table(case, variant)
         if not rows:
             continue
-        print(f"DFG {case.upper()}")
+        print(f"DFG {case.upper()}" + (" (central fluxes)" if variant else ""))
         cvs = [k for k in rows[0] if k.startswith("cv_")]
         for r in rows:
             cv = np.array([r[k] for k in cvs])
