@@ -58,6 +58,8 @@ LINES = (-0.6, 0.0, 0.6, 1.2)
 #: the cylinder's whole path (``|x| <= A + D / 2 = 1.3 D``) with at least 1.2 diameters to spare.
 CV_HALF_WIDTHS = ((2.5, 1.5), (3.0, 2.0))
 PHASES = (180.0, 210.0, 330.0)
+#: The columns of the force history; one ``c_inline_cv<j>`` per control volume follows them.
+COLUMNS = ("t", "x_body", "u_body", "c_inline", "c_inline_pressure", "c_inline_viscous", "c_cross")
 
 
 def position(t: float) -> float:
@@ -146,7 +148,7 @@ def run(res: int = 20, periods: float = 5.0, half_width: float = 8.0, cfl: float
     h = np.array(hist)
     rec = h[:, 0] >= record_from * PERIOD - 1e-9
     fit = morison_fit(h[rec, 0], h[rec, 3])
-    fit_cv = [morison_fit(h[rec, 0] - 0.5 * dt, h[rec, 7 + j]) for j in range(len(cv_boxes))]
+    fit_cv = [morison_fit(h[rec, 0] - 0.5 * dt, h[rec, len(COLUMNS) + j]) for j in range(len(cv_boxes))]
     per_period = []
     for p in range(int(record_from), int(math.floor(periods + 1e-9))):
         sel = (h[:, 0] > p * PERIOD + 1e-9) & (h[:, 0] <= (p + 1) * PERIOD + 1e-9)
@@ -197,8 +199,7 @@ def main(argv=None) -> int:
         prefix = Path(args.out)
         prefix.parent.mkdir(parents=True, exist_ok=True)
         np.savetxt(f"{prefix}_forces.csv", hist, delimiter=",", fmt="%.8g",
-                   header="t,x_body,u_body,c_inline,c_inline_pressure,c_inline_viscous,c_cross"
-                   + "".join(f",c_inline_cv{j}" for j in range(len(out["cv_boxes"]))))
+                   header=",".join([*COLUMNS, *(f"c_inline_cv{j}" for j in range(len(out["cv_boxes"])))]))
         np.savetxt(f"{prefix}_profiles.csv", np.array(rows, dtype=float).reshape(-1, 5), delimiter=",", fmt="%.8g",
                    header="phase_deg,x,y,u,v")
         Path(f"{prefix}.json").write_text(json.dumps({**out, "device": str(device)}, indent=1))

@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import torch
 
 from phisim.checks import check_nonnegative, check_positive
-from phisim.errors import GridMismatchError, ParameterError, ShapeError
+from phisim.errors import GridMismatchError, ParameterError
 from phisim.field import CenteredGrid, StaggeredGrid
-from phisim.fluid.projection import check_velocity
+from phisim.fluid.projection import check_velocity, pressure_values
 from phisim.grid import Grid
 
 __all__ = ["ControlVolumeForces", "control_volume_force", "control_volume_box"]
@@ -211,11 +211,7 @@ def control_volume_force(velocity: StaggeredGrid, pressure: CenteredGrid, *, box
     density = check_positive(density, "density")
     nu = check_nonnegative(viscosity, "viscosity")
     grid = velocity.grid
-    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
-        raise ParameterError("pressure must be the scalar CenteredGrid returned by the step / projection")
-    if pressure.grid != grid:
-        raise ShapeError(f"pressure grid {pressure.grid} differs from the velocity grid {grid}")
-    p = pressure.values
+    p = pressure_values(pressure, velocity)
     if previous is not None:
         check_velocity(previous, "previous")
         if previous.grid != grid:

@@ -50,7 +50,7 @@ from phisim.field import CenteredGrid, StaggeredGrid
 from phisim.fluid.bodies import Body, Obstacle, body_fraction, unit_normal
 from phisim.fluid.geometry import Geometry
 from phisim.fluid.normal_momentum import momentum_wall_pressure, momentum_wall_shear
-from phisim.fluid.projection import check_velocity
+from phisim.fluid.projection import check_velocity, pressure_values
 
 __all__ = ["BodyForces", "body_forces", "probe_pressure", "wall_pressure"]
 
@@ -92,14 +92,6 @@ def _as_body(body) -> Body:
     if not isinstance(body, Body):
         raise ParameterError(f"body must be a Body or a Geometry, got {type(body).__name__}")
     return body
-
-
-def _pressure_values(pressure, velocity: StaggeredGrid) -> torch.Tensor:
-    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
-        raise ParameterError("pressure must be the scalar CenteredGrid returned by the step / projection")
-    if pressure.grid != velocity.grid:
-        raise ShapeError(f"pressure grid {pressure.grid} differs from the velocity grid {velocity.grid}")
-    return pressure.values
 
 
 def _surface(body: Body, grid, t: float, like: torch.Tensor):
@@ -175,7 +167,7 @@ def body_forces(velocity: StaggeredGrid, pressure: CenteredGrid, body, *, dt: fl
         raise ParameterError(f"shear_at must be one of {SHEAR_READINGS}, got {shear_at!r}")
     if previous_velocity is not None and pressure_at != "momentum":
         raise ParameterError("previous_velocity is read by pressure_at='momentum' alone")
-    p = _pressure_values(pressure, velocity) * (density / dt)
+    p = pressure_values(pressure, velocity) * (density / dt)
     grid = velocity.grid
     vec = _surface(body, grid, float(time), p)
     if pressure_at == "cells":
@@ -368,7 +360,7 @@ def wall_pressure(velocity: StaggeredGrid, pressure: CenteredGrid, body, points,
     body = _as_body(body)
     dt = check_positive(dt, "dt")
     density = check_positive(density, "density")
-    _pressure_values(pressure, velocity)
+    pressure_values(pressure, velocity)
     _check_momentum(body, viscosity, previous_velocity, velocity)
     grid = velocity.grid
     x = _points(points, grid, velocity.values[0])

@@ -68,7 +68,7 @@ from phisim.solvers.poisson import field_kinds_and_values
 
 __all__ = ["PRESSURE_SOLVE", "Projection", "ProjectionResult", "check_velocity", "check_fits", "project_box",
            "make_incompressible", "project_trusted", "check_balance", "relative_divergence", "impose_solids",
-           "net_boundary_flux", "solid_flux", "applied_gradient"]
+           "net_boundary_flux", "solid_flux", "applied_gradient", "pressure_values"]
 
 #: Default CG settings of the masked pressure solve in float64: a relative residual of 1e-6 keeps the
 #: relative divergence after the projection below 1e-5 with a margin. Float32 input uses rtol 1e-5, and
@@ -84,6 +84,20 @@ def check_velocity(velocity, what: str = "velocity") -> None:
             f"{what} must be a StaggeredGrid (MAC velocity), got {type(velocity).__name__}; convert a centred "
             "velocity with CenteredGrid.to_staggered()"
         )
+
+
+def pressure_values(pressure, velocity: StaggeredGrid) -> torch.Tensor:
+    """The values of the pressure a step or projection returned, checked against ``velocity``'s grid.
+
+    Raises:
+        ParameterError: For anything but a scalar :class:`CenteredGrid`.
+        ShapeError: For a pressure on another grid.
+    """
+    if not isinstance(pressure, CenteredGrid) or pressure.is_vector:
+        raise ParameterError("pressure must be the scalar CenteredGrid returned by the step / projection")
+    if pressure.grid != velocity.grid:
+        raise ShapeError(f"pressure grid {pressure.grid} differs from the velocity grid {velocity.grid}")
+    return pressure.values
 
 
 def _guess_tensor(pressure_guess, velocity: StaggeredGrid) -> torch.Tensor | None:
